@@ -1,0 +1,41 @@
+"""lcreg: deep point-cloud registration (DVDs, local consistency, baselines) on PyTorch Lightning.
+
+``import lcreg`` and ``from lcreg import LocalConsistency`` stay light: they import torch only; Lightning-based
+classes are loaded on first access.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "LocalConsistency": "lcreg.nn.local_consistency",
+    "PointNetEncoder": "lcreg.nn.pointnet",
+    "InverseCompositionalLK": "lcreg.nn.lk",
+    "RegistrationResult": "lcreg.types",
+    "RegistrationBatch": "lcreg.types",
+    "RegistrationModule": "lcreg.models.base",
+    "LocalConsistencyMixin": "lcreg.models.mixins",
+    "DVDs": "lcreg.models.dvds",
+    "ModelNet40DataModule": "lcreg.data.datamodule",
+    "SyntheticDataModule": "lcreg.data.datamodule",
+    "PairDataModule": "lcreg.data.datamodule",
+}
+
+__all__ = [*_LAZY, "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    """Import public classes on first access (keeps ``import lcreg`` free of Lightning/Open3D)."""
+    if name in _LAZY:
+        value = getattr(import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'lcreg' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -1,0 +1,145 @@
+"""Input validation shared by every public entry point.
+
+All checks raise typed errors that name the offending argument, never ``assert``:
+
+* :class:`ShapeError` (a ``ValueError``) for a wrong shape, with ``expected`` and ``actual`` attributes;
+* ``TypeError`` for a non-tensor or an unsupported dtype (float32 and float64 are supported);
+* :class:`NonFiniteError` (a ``ValueError``) for NaN or Inf values;
+* :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+__all__ = [
+    "NonFiniteError",
+    "ShapeError",
+    "TooFewPointsError",
+    "check_finite",
+    "check_float",
+    "check_points",
+    "check_same_batch",
+    "check_shape",
+    "check_transform",
+]
+
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+
+class ShapeError(ValueError):
+    """A tensor does not have the expected shape.
+
+    Attributes:
+        name: The argument name.
+        expected: The expected shape, symbolic dimensions as strings.
+        actual: The actual shape.
+    """
+
+    def __init__(self, name: str, expected: Sequence[int | str], actual: Sequence[int]) -> None:
+        self.name = name
+        self.expected = tuple(expected)
+        self.actual = tuple(actual)
+        exp = "(" + ", ".join(str(e) for e in self.expected) + ")"
+        super().__init__(f"`{name}` must have shape {exp}, got {tuple(self.actual)}")
+
+
+class NonFiniteError(ValueError):
+    """A tensor contains NaN or Inf values."""
+
+
+class TooFewPointsError(ValueError):
+    """A point cloud has fewer points than an operation needs (including empty clouds)."""
+
+
+def check_float(x: object, name: str) -> torch.Tensor:
+    """Check that ``x`` is a float32/float64 tensor and return it.
+
+    Raises:
+        TypeError: If ``x`` is not a tensor or has another dtype.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"`{name}` must be a torch.Tensor, got {type(x).__name__}")
+    if x.dtype not in SUPPORTED_DTYPES:
+        raise TypeError(f"`{name}` must be float32 or float64, got {x.dtype}")
+    return x
+
+
+def check_shape(x: torch.Tensor, expected: Sequence[int | str], name: str) -> dict[str, int]:
+    """Check ``x.shape`` against ``expected`` where strings are symbolic dimensions.
+
+    Args:
+        x: The tensor.
+        expected: For example ``("B", "N", 3)``; a repeated symbol must match itself.
+        name: The argument name used in the message.
+
+    Returns:
+        The values bound to the symbolic dimensions.
+
+    Raises:
+        ShapeError: On a rank or size mismatch.
+    """
+    if x.ndim != len(expected):
+        raise ShapeError(name, expected, x.shape)
+    bound: dict[str, int] = {}
+    for dim, exp in zip(x.shape, expected):
+        if isinstance(exp, str):
+            if bound.setdefault(exp, dim) != dim:
+                raise ShapeError(name, expected, x.shape)
+        elif dim != exp:
+            raise ShapeError(name, expected, x.shape)
+    return bound
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Raise :class:`NonFiniteError` if ``x`` has NaN or Inf entries."""
+    if not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise NonFiniteError(f"`{name}` contains {bad} NaN/Inf value(s)")
+
+
+def check_points(x: object, name: str, min_points: int = 1) -> torch.Tensor:
+    """Validate a batched point cloud ``(B, N, 3)``: float dtype, shape, size and finiteness.
+
+    Args:
+        x: The candidate tensor.
+        name: Argument name for messages.
+        min_points: Smallest acceptable ``N``.
+
+    Returns:
+        ``x`` unchanged.
+    """
+    t = check_float(x, name)
+    check_shape(t, ("B", "N", 3), name)
+    if t.shape[0] == 0:
+        raise ShapeError(name, ("B>0", "N", 3), t.shape)
+    if t.shape[1] < min_points:
+        raise TooFewPointsError(f"`{name}` has {t.shape[1]} points; at least {min_points} are needed")
+    check_finite(t, name)
+    return t
+
+
+def check_transform(x: object, name: str) -> torch.Tensor:
+    """Validate a batch of homogeneous transforms ``(B, 4, 4)`` (dtype, shape, finiteness)."""
+    t = check_float(x, name)
+    check_shape(t, ("B", 4, 4), name)
+    check_finite(t, name)
+    return t
+
+
+def check_same_batch(**tensors: torch.Tensor) -> None:
+    """Check that all tensors share the batch size (dim 0) and dtype.
+
+    Raises:
+        ShapeError: On different batch sizes.
+        TypeError: On different dtypes.
+    """
+    items = list(tensors.items())
+    name0, t0 = items[0]
+    for name, t in items[1:]:
+        if t.shape[0] != t0.shape[0]:
+            raise ShapeError(name, (t0.shape[0], *t.shape[1:]), t.shape)
+        if t.dtype != t0.dtype:
+            raise TypeError(f"`{name}` has dtype {t.dtype} but `{name0}` has {t0.dtype}")

@@ -1,0 +1,98 @@
+"""Command line: ``lcreg fit|validate|test|predict --config configs/<x>.yaml`` (LightningCLI).
+
+Models are any :class:`~lcreg.models.base.RegistrationModule` subclass (``model.class_path``), data any
+:class:`~lcreg.data.datamodule.PairDataModule` subclass (``data.class_path``); both are picked in YAML.
+Defaults: CSV logging under ``runs/``, checkpoints selected on ``val/loss`` (label-free, as in the DVDs paper) plus
+``last.ckpt``, and a TQDM bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments
+(``model.init_args.optimizer``), so the top-level ``optimizer:`` key of LightningCLI is not used.
+
+A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
+``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+from lightning.pytorch.cli import ArgsType, LightningCLI
+
+from lcreg.data.datamodule import PairDataModule
+from lcreg.models.base import RegistrationModule
+
+__all__ = ["LcregCLI", "main"]
+
+TRAINER_DEFAULTS: dict[str, Any] = {
+    "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs", "name": "lcreg"}},
+}
+
+
+class LcregCLI(LightningCLI):
+    """LightningCLI with lcreg's base classes in subclass mode and default callbacks.
+
+    Unless disabled in the trainer config, adds ``ModelCheckpoint(monitor="val/loss", save_last=True)`` and a
+    ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well.
+    """
+
+    def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
+        from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
+
+        listed = config.get("callbacks") or []
+        if config.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in listed):
+            callbacks.append(
+                ModelCheckpoint(
+                    monitor="val/loss",
+                    mode="min",
+                    save_last=True,
+                    filename="epoch{epoch:03d}-val_loss{val/loss:.4f}",
+                    auto_insert_metric_name=False,
+                )
+            )
+        if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
+            callbacks.append(TQDMProgressBar(refresh_rate=20))
+        return super()._instantiate_trainer(config, callbacks)
+
+
+def _wandb_offline_if_no_account(argv: list[str]) -> None:
+    """Default ``WANDB_MODE=offline`` when a WandbLogger is requested without credentials."""
+    wants_wandb = any("WandbLogger" in a or "wandb" in os.path.basename(a) for a in argv)
+    if wants_wandb and "WANDB_MODE" not in os.environ and "WANDB_API_KEY" not in os.environ:
+        os.environ["WANDB_MODE"] = "offline"
+        print("lcreg: no WANDB_API_KEY found, logging to wandb in offline mode (sync later with `wandb sync`)")
+
+
+def _config_mentions_wandb(argv: list[str]) -> list[str]:
+    """Arguments plus the text of any ``--config`` files (to detect a WandbLogger)."""
+    texts = list(argv)
+    for i, arg in enumerate(argv):
+        path = None
+        if arg.startswith("--config="):
+            path = arg.split("=", 1)[1]
+        elif arg == "--config" and i + 1 < len(argv):
+            path = argv[i + 1]
+        if path and os.path.isfile(path):
+            with open(path, encoding="utf-8") as fh:
+                texts.append(fh.read())
+    return texts
+
+
+def main(args: ArgsType = None) -> None:
+    """Entry point of the ``lcreg`` console script (``args=None`` reads ``sys.argv``; tests pass a list)."""
+    argv = list(args) if isinstance(args, (list, tuple)) else sys.argv[1:]
+    _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
+    LcregCLI(
+        RegistrationModule,
+        PairDataModule,
+        subclass_mode_model=True,
+        subclass_mode_data=True,
+        auto_configure_optimizers=False,
+        save_config_kwargs={"overwrite": True},
+        trainer_defaults=TRAINER_DEFAULTS,
+        seed_everything_default=1234,
+        args=args,
+    )
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,370 @@
+"""Pair datasets and Lightning DataModules for object registration (ModelNet40 and the embedded synthetic shapes).
+
+* :class:`PairDataset` turns objects into pairs with :func:`lcreg.data.pairs.make_pair`. Deterministic datasets
+  (validation, test) seed a fresh generator with ``seed + index``, so the same pairs come out on every run, in every
+  worker and every epoch; training datasets draw a new seed from the global torch RNG on every call (seeded per
+  worker by ``lightning.seed_everything(workers=True)``), so training pairs change every epoch.
+* :func:`collate_pairs` stacks pair dicts into a :class:`lcreg.types.RegistrationBatch`.
+* :class:`PairDataModule` holds the protocol options (the LightningCLI keys under ``data.init_args``), carves the
+  validation objects out of the training pool with a seeded permutation (never out of the test set) and builds the
+  loaders; subclasses only say which objects make up the pools.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from lightning.pytorch import LightningDataModule
+from torch.utils.data import DataLoader, Dataset
+
+from lcreg.checks import ShapeError
+from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
+from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.types import RegistrationBatch
+
+__all__ = [
+    "ModelNet40DataModule",
+    "PairDataModule",
+    "PairDataset",
+    "SyntheticDataModule",
+    "collate_pairs",
+]
+
+_SEED_HIGH = 2**62
+SYNTHETIC_TEST_SEED_OFFSET = 1_000_003
+"""The synthetic test shapes use ``shape_seed + SYNTHETIC_TEST_SEED_OFFSET``, so they differ from the train shapes."""
+
+
+class PairDataset(Dataset[dict[str, torch.Tensor]]):
+    """Registration pairs drawn from a fixed set of objects.
+
+    Args:
+        points: Object points ``(S, P, 3)`` (NumPy array or tensor, kept on the CPU).
+        normals: Object normals ``(S, P, 3)`` or ``None``.
+        protocol: How pairs are made.
+        deterministic: If ``True`` (validation/test), item ``i`` always uses ``torch.Generator().manual_seed(seed +
+            i)``; if ``False`` (training), every call draws a fresh seed from the global torch RNG.
+        seed: Base seed of deterministic items.
+
+    Raises:
+        ShapeError: If ``points``/``normals`` are not ``(S, P, 3)`` with the same shape.
+
+    Example:
+        >>> points = torch.rand(4, 2048, 3)
+        >>> ds = PairDataset(points, None, PairProtocol(), deterministic=True, seed=0)
+        >>> sorted(ds[0])
+        ['angles_zyx', 'index', 'points_ref', 'points_src', 'transform_ref_src']
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray | torch.Tensor,
+        normals: np.ndarray | torch.Tensor | None,
+        protocol: PairProtocol,
+        deterministic: bool = False,
+        seed: int = 0,
+    ) -> None:
+        self.points = torch.as_tensor(points)
+        self.normals = None if normals is None else torch.as_tensor(normals)
+        if self.points.ndim != 3 or self.points.shape[-1] != 3:
+            raise ShapeError("points", ("S", "P", 3), self.points.shape)
+        if self.normals is not None and self.normals.shape != self.points.shape:
+            raise ShapeError("normals", tuple(self.points.shape), self.normals.shape)
+        self.protocol = protocol
+        self.deterministic = deterministic
+        self.seed = int(seed)
+
+    @classmethod
+    def from_objects(
+        cls, objects: ObjectSet, protocol: PairProtocol, deterministic: bool = False, seed: int = 0
+    ) -> PairDataset:
+        """Build a dataset from an :class:`~lcreg.data.pairs.ObjectSet`."""
+        return cls(objects.points, objects.normals, protocol, deterministic=deterministic, seed=seed)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def generator(self, index: int) -> torch.Generator:
+        """The CPU generator of item ``index`` (fixed when deterministic, fresh from the global RNG otherwise)."""
+        if self.deterministic:
+            return torch.Generator().manual_seed(self.seed + index)
+        return torch.Generator().manual_seed(int(torch.randint(0, _SEED_HIGH, (1,)).item()))
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        """Pair ``index``: the keys of :func:`~lcreg.data.pairs.make_pair` plus ``index`` (int64 scalar)."""
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} is out of range for a dataset of {len(self)} objects")
+        index = index % len(self)
+        normals = None if self.normals is None else self.normals[index]
+        pair = make_pair(self.points[index], normals, self.protocol, self.generator(index))
+        pair["index"] = torch.tensor(index, dtype=torch.int64)
+        return pair
+
+
+def collate_pairs(items: list[dict[str, torch.Tensor]]) -> RegistrationBatch:
+    """Stack pair dicts (from :class:`PairDataset`) into a batch.
+
+    Args:
+        items: Dicts with ``points_src (N, 3)``, ``points_ref (M, 3)`` and optionally ``transform_ref_src (4, 4)``,
+            ``normals_src``/``normals_ref`` and ``index``; other keys (``angles_zyx``) are dropped.
+
+    Returns:
+        A :class:`~lcreg.types.RegistrationBatch` with ``points_src (B, N, 3)``, ``points_ref (B, M, 3)``,
+        ``transform_ref_src (B, 4, 4)`` (or ``None``), normals ``(B, N, 3)``/``(B, M, 3)`` (or ``None``) and
+        ``index (B,)``.
+
+    Raises:
+        ValueError: If ``items`` is empty or some items have a key that others lack.
+        ShapeError: If the clouds of the batch do not all have the same size.
+    """
+    if not items:
+        raise ValueError("`items` must not be empty")
+    keys = ("points_src", "points_ref", "transform_ref_src", "normals_src", "normals_ref", "index")
+    stacked: dict[str, torch.Tensor | None] = {}
+    for key in keys:
+        present = [key in item for item in items]
+        if not any(present):
+            stacked[key] = None
+            continue
+        if not all(present):
+            raise ValueError(f"`{key}` is present in {sum(present)} of {len(items)} items; a batch needs all or none")
+        values = [item[key] for item in items]
+        for i, value in enumerate(values):
+            if value.shape != values[0].shape:
+                # Every pair of a batch must have the same size (fixed num_points and partial_keep).
+                raise ShapeError(f"items[{i}]['{key}']", tuple(values[0].shape), value.shape)
+        stacked[key] = torch.stack(values)
+    points_src, points_ref = stacked["points_src"], stacked["points_ref"]
+    if points_src is None or points_ref is None:
+        raise ValueError("every item needs `points_src` and `points_ref`")
+    return RegistrationBatch(
+        points_src=points_src,
+        points_ref=points_ref,
+        transform_ref_src=stacked["transform_ref_src"],
+        normals_src=stacked["normals_src"],
+        normals_ref=stacked["normals_ref"],
+        index=stacked["index"],
+    )
+
+
+class PairDataModule(LightningDataModule):
+    """Base DataModule: pair protocol options, validation carving and loaders.
+
+    Subclasses implement :meth:`_load_objects`. Validation and test pairs are deterministic per index (generator
+    seeded with ``seed + index``); training pairs change every epoch.
+
+    Args:
+        num_points: Points sampled per cloud (``N``).
+        batch_size: Pairs per batch (all loaders).
+        num_workers: DataLoader workers (persistent when > 0).
+        max_angle_deg: Each Euler angle ``U[0, max_angle_deg]`` degrees.
+        max_translation: Each translation component ``U[-max_translation, max_translation]``.
+        noise_sigma: Gaussian noise std added independently to both clouds (0 = clean).
+        noise_clip: Noise clip ``±noise_clip``.
+        partial: ``"none"``, ``"prnet"`` (shared far anchor) or ``"viewpoint"`` crops.
+        partial_keep: Points kept per cloud by a crop: a count or a fraction of ``num_points``.
+        independent_sampling: Source and reference are independent samplings of the object.
+        normalize: Scale every object into the unit sphere before sampling.
+        val_fraction: Fraction of the training pool held out for validation (seeded, ignored by subclasses that
+            define their own validation objects).
+        seed: Seed of the validation carve-out and base seed of the deterministic val/test pairs.
+
+    Raises:
+        ValueError: On invalid protocol options or ``val_fraction``/``batch_size``/``num_workers``.
+    """
+
+    def __init__(
+        self,
+        num_points: int = 1024,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        max_angle_deg: float = 45.0,
+        max_translation: float = 0.5,
+        noise_sigma: float = 0.0,
+        noise_clip: float = 0.05,
+        partial: Literal["none", "prnet", "viewpoint"] = "none",
+        partial_keep: int | float = 768,
+        independent_sampling: bool = True,
+        normalize: bool = True,
+        val_fraction: float = 0.1,
+        seed: int = 1234,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        if batch_size < 1:
+            raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
+        if num_workers < 0:
+            raise ValueError(f"`num_workers` must be >= 0, got {num_workers}")
+        if not 0.0 <= val_fraction < 1.0:
+            raise ValueError(f"`val_fraction` must be in [0, 1), got {val_fraction}")
+        self.pair_protocol = PairProtocol(
+            num_points=num_points,
+            max_angle_deg=max_angle_deg,
+            max_translation=max_translation,
+            independent_sampling=independent_sampling,
+            normalize=normalize,
+            noise_sigma=noise_sigma,
+            noise_clip=noise_clip,
+            partial=partial,
+            partial_keep=partial_keep,
+        )
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.val_fraction = val_fraction
+        self.seed = seed
+        self.train_set: PairDataset | None = None
+        self.val_set: PairDataset | None = None
+        self.test_set: PairDataset | None = None
+
+    def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
+        """Objects of a stage: ``{"train": ..., "val": ... (optional)}`` for ``"fit"``, ``{"test": ...}`` else.
+
+        Without a ``"val"`` entry, validation objects are carved out of ``"train"`` with ``val_fraction``.
+        """
+        raise NotImplementedError
+
+    def split_train_val(self, objects: ObjectSet) -> tuple[ObjectSet, ObjectSet]:
+        """Split a training pool into (train, val) with a permutation seeded by ``seed``.
+
+        The validation size is ``round(val_fraction * S)`` (at least 1 when ``val_fraction > 0`` and ``S > 1``).
+        """
+        total = len(objects)
+        num_val = round(self.val_fraction * total)
+        if self.val_fraction > 0 and total > 1:
+            num_val = min(max(num_val, 1), total - 1)
+        perm = torch.randperm(total, generator=torch.Generator().manual_seed(self.seed)).numpy()
+        val_idx, train_idx = np.sort(perm[:num_val]), np.sort(perm[num_val:])
+        return objects.subset(train_idx), objects.subset(val_idx)
+
+    def setup(self, stage: str | None = None) -> None:
+        """Build the datasets needed by ``stage`` (``fit``/``validate`` need train+val, ``test``/``predict`` test)."""
+        if stage in (None, "fit", "validate") and (self.train_set is None or self.val_set is None):
+            objects = self._load_objects("fit")
+            if "val" in objects:
+                train, val = objects["train"], objects["val"]
+            else:
+                train, val = self.split_train_val(objects["train"])
+            self.train_set = PairDataset.from_objects(train, self.pair_protocol, deterministic=False, seed=self.seed)
+            self.val_set = PairDataset.from_objects(val, self.pair_protocol, deterministic=True, seed=self.seed)
+        if stage in (None, "test", "predict") and self.test_set is None:
+            test = self._load_objects("test")["test"]
+            self.test_set = PairDataset.from_objects(test, self.pair_protocol, deterministic=True, seed=self.seed)
+
+    def _loader(self, dataset: PairDataset | None, name: str, shuffle: bool) -> DataLoader[Any]:
+        """A DataLoader over ``dataset`` with :func:`collate_pairs`."""
+        if dataset is None:
+            raise RuntimeError(f"the {name} set is not built; call `setup()` with the matching stage first")
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            drop_last=False,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            collate_fn=collate_pairs,
+        )
+
+    def train_dataloader(self) -> DataLoader[Any]:
+        """Shuffled training pairs (new pairs every epoch)."""
+        return self._loader(self.train_set, "train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader[Any]:
+        """Deterministic validation pairs, in order."""
+        return self._loader(self.val_set, "val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader[Any]:
+        """Deterministic test pairs, in order."""
+        return self._loader(self.test_set, "test", shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader[Any]:
+        """The test pairs (``predict`` registers the test set)."""
+        return self._loader(self.test_set, "test", shuffle=False)
+
+
+class ModelNet40DataModule(PairDataModule):
+    """ModelNet40 (official ``modelnet40_ply_hdf5_2048`` layout) under the unseen-objects/-categories protocols.
+
+    Train and validation objects come from the train split of labels 0-19 (validation carved with
+    ``val_fraction``); the test set follows ``protocol`` (see :mod:`lcreg.data.modelnet40`).
+
+    Args:
+        root: Dataset folder (checked in :meth:`setup`, not here, so configs can be built without the data).
+        protocol: ``"unseen_objects"`` or ``"unseen_categories"``.
+        unseen_categories_test: ``"all"`` (labels 20-39 of both splits, as PointNetLK Revisited) or
+            ``"test_split"`` (labels 20-39 of the test split, as DCP/PRNet).
+        **kwargs: Options of :class:`PairDataModule` (``num_points``, ``batch_size``, ...).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        protocol: Literal["unseen_objects", "unseen_categories"] = "unseen_objects",
+        unseen_categories_test: Literal["test_split", "all"] = "all",
+        **kwargs: Any,
+    ) -> None:
+        if protocol not in ("unseen_objects", "unseen_categories"):
+            raise ValueError(f"`protocol` must be 'unseen_objects' or 'unseen_categories', got {protocol!r}")
+        if unseen_categories_test not in ("test_split", "all"):
+            raise ValueError(f"`unseen_categories_test` must be 'test_split' or 'all', got {unseen_categories_test!r}")
+        super().__init__(**kwargs)
+        self.root = root
+        self.protocol = protocol
+        self.unseen_categories_test = unseen_categories_test
+
+    def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
+        if not Path(self.root).expanduser().is_dir():
+            raise FileNotFoundError(f"ModelNet40DataModule: root {self.root!r} is not a directory; {EXPECTED_LAYOUT}")
+        part: Literal["train", "test"] = "train" if stage == "fit" else "test"
+        return {part: modelnet40_objects(self.root, self.protocol, part, self.unseen_categories_test)}
+
+
+class SyntheticDataModule(PairDataModule):
+    """Embedded procedural shapes (:func:`lcreg.data.synthetic.synthetic_shapes`): needs no files.
+
+    Train and validation shapes are disjoint slices of one stream (``shape_seed``); test shapes come from another
+    seed (``shape_seed + 1_000_003``). ``val_fraction`` is not used (``num_val`` sets the validation size).
+
+    Args:
+        num_train: Training shapes.
+        num_val: Validation shapes.
+        num_test: Test shapes.
+        points_per_shape: Points per shape (must be >= ``num_points``).
+        shape_seed: Seed of the shapes.
+        **kwargs: Options of :class:`PairDataModule` (``num_points``, ``batch_size``, ...).
+    """
+
+    def __init__(
+        self,
+        num_train: int = 512,
+        num_val: int = 64,
+        num_test: int = 128,
+        points_per_shape: int = 2048,
+        shape_seed: int = 0,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(**kwargs)
+        for name, value in (("num_train", num_train), ("num_val", num_val), ("num_test", num_test)):
+            if value < 0:
+                raise ValueError(f"`{name}` must be >= 0, got {value}")
+        if points_per_shape < self.pair_protocol.num_points:
+            raise ValueError(
+                f"`points_per_shape` ({points_per_shape}) must be >= `num_points` ({self.pair_protocol.num_points})"
+            )
+        self.num_train = num_train
+        self.num_val = num_val
+        self.num_test = num_test
+        self.points_per_shape = points_per_shape
+        self.shape_seed = shape_seed
+
+    def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
+        if stage == "fit":
+            pool = ObjectSet(*synthetic_shapes(self.num_train + self.num_val, self.points_per_shape, self.shape_seed))
+            train_idx = np.arange(self.num_train)
+            val_idx = np.arange(self.num_train, self.num_train + self.num_val)
+            return {"train": pool.subset(train_idx), "val": pool.subset(val_idx)}
+        seed = self.shape_seed + SYNTHETIC_TEST_SEED_OFFSET
+        return {"test": ObjectSet(*synthetic_shapes(self.num_test, self.points_per_shape, seed))}

@@ -1,0 +1,1 @@
+"""Registration metrics: per-pair errors (``functional``) and their ``torchmetrics`` shells (``registration``)."""

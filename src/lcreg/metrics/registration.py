@@ -1,0 +1,264 @@
+"""Registration metrics as ``torchmetrics.Metric`` shells over :mod:`lcreg.metrics.functional`.
+
+Every metric keeps the per-pair errors of all updates in list states (``dist_reduce_fx="cat"``, so DDP gathers the
+pairs themselves and medians/recalls stay exact) and reduces them in ``compute``. ``update`` takes the keyword
+arguments ``transform_pred (B, 4, 4)`` and ``transform_gt (B, 4, 4)``, so one
+``MetricCollection.update(transform_pred=..., transform_gt=...)`` feeds them all.
+
+Failure policy (a diverged estimate with NaN/Inf entries, or any pair whose functional error is NaN):
+
+* recall (:class:`RegistrationRecall`) counts the pair as a failure;
+* the averaged metrics never drop it (``torchmetrics``' ``MeanMetric``/``CatMetric`` would, by default) and never
+  turn into NaN because of it: its errors are replaced by the worst-case or "no-motion" error,
+  rotation error -> 180 degrees, each Euler-angle error -> 180 degrees, translation error -> ``||t_gt||`` and each
+  translation-component error -> ``|t_gt|`` (the error of predicting the identity);
+* :class:`NumFailed` counts such pairs and :class:`PerPairErrors` returns the raw errors with their NaNs.
+
+Ground-truth transforms must be finite (:class:`lcreg.checks.NonFiniteError` otherwise). ``compute`` before any
+``update`` returns NaN.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torchmetrics import Metric, MetricCollection
+from torchmetrics.utilities import dim_zero_cat
+
+from lcreg.checks import check_finite
+from lcreg.metrics import functional
+
+__all__ = [
+    "EulerRotationMAE",
+    "EulerRotationRMSE",
+    "NumFailed",
+    "PerPairErrors",
+    "RegistrationRecall",
+    "RotationErrorMean",
+    "RotationErrorMedian",
+    "TranslationErrorMean",
+    "TranslationMAE",
+    "TranslationRMSE",
+    "registration_metrics",
+]
+
+WORST_ROTATION_DEG = 180.0
+_STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt")
+
+
+class _PairErrorMetric(Metric):
+    """Accumulates raw per-pair errors; subclasses only implement ``compute``.
+
+    States (lists of per-update tensors, concatenated along dim 0): ``rot_err_deg (P,)``, ``trans_err (P,)``,
+    ``euler_err_deg (P, 3)``, ``trans_errs (P, 3)`` (raw, NaN for failed pairs) and ``trans_gt (P, 3)``.
+    """
+
+    is_differentiable = False
+    full_state_update = False
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        for name in _STATES:
+            self.add_state(name, default=[], dist_reduce_fx="cat")
+
+    def update(self, transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> None:
+        """Add a batch of pairs.
+
+        Args:
+            transform_pred: Estimated ``transform_ref_src`` ``(B, 4, 4)``; NaN/Inf entries mark a failed pair.
+            transform_gt: Ground-truth ``transform_ref_src`` ``(B, 4, 4)``, finite.
+        """
+        check_finite(transform_gt, "transform_gt")
+        values = {
+            "rot_err_deg": functional.rotation_error_deg(transform_pred, transform_gt),
+            "trans_err": functional.translation_error(transform_pred, transform_gt),
+            "euler_err_deg": functional.euler_errors_deg(transform_pred, transform_gt),
+            "trans_errs": functional.translation_errors(transform_pred, transform_gt),
+            "trans_gt": transform_gt[:, :3, 3],
+        }
+        for name, value in values.items():
+            getattr(self, name).append(value.detach())
+
+    def _state(self, name: str) -> torch.Tensor:
+        """Concatenated state ``name`` (an empty tensor before any update)."""
+        value = getattr(self, name)
+        if isinstance(value, list) and not value:
+            return torch.empty(0, device=self.device, dtype=self.dtype)
+        return dim_zero_cat(value)
+
+    def _failed(self) -> torch.Tensor:
+        """Per-pair failure flags ``(P,)``: any raw error of the pair is NaN/Inf."""
+        return ~(torch.isfinite(self._state("rot_err_deg")) & torch.isfinite(self._state("trans_err")))
+
+    def _rotation(self) -> torch.Tensor:
+        """Isotropic rotation errors ``(P,)`` in degrees, failures at 180."""
+        err = self._state("rot_err_deg")
+        return torch.where(torch.isfinite(err), err, torch.full_like(err, WORST_ROTATION_DEG))
+
+    def _translation(self) -> torch.Tensor:
+        """Translation errors ``(P,)``, failures at ``||t_gt||``."""
+        err = self._state("trans_err")
+        return torch.where(torch.isfinite(err), err, self._state("trans_gt").reshape(-1, 3).norm(dim=-1))
+
+    def _euler(self) -> torch.Tensor:
+        """Euler-angle errors ``(P, 3)`` in degrees, failures at 180 per angle."""
+        err = self._state("euler_err_deg").reshape(-1, 3)
+        return torch.where(torch.isfinite(err), err, torch.full_like(err, WORST_ROTATION_DEG))
+
+    def _translation_components(self) -> torch.Tensor:
+        """Translation component errors ``(P, 3)``, failures at ``|t_gt|`` per component."""
+        err = self._state("trans_errs").reshape(-1, 3)
+        return torch.where(torch.isfinite(err), err, self._state("trans_gt").reshape(-1, 3).abs())
+
+
+class EulerRotationRMSE(_PairErrorMetric):
+    """DCP's RMSE(R): root mean square of the ``[z, y, x]`` Euler errors over all pairs and angles, degrees."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar RMSE in degrees."""
+        return self._euler().square().mean().sqrt()
+
+
+class EulerRotationMAE(_PairErrorMetric):
+    """DCP's MAE(R): mean absolute Euler error over all pairs and angles, degrees."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar MAE in degrees."""
+        return self._euler().abs().mean()
+
+
+class TranslationRMSE(_PairErrorMetric):
+    """DCP's RMSE(t): root mean square over all pairs and the 3 translation components, point units."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar RMSE."""
+        return self._translation_components().square().mean().sqrt()
+
+
+class TranslationMAE(_PairErrorMetric):
+    """DCP's MAE(t): mean absolute translation component error over all pairs and components, point units."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar MAE."""
+        return self._translation_components().abs().mean()
+
+
+class RotationErrorMean(_PairErrorMetric):
+    """Mean isotropic rotation error (RRE) in degrees."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar mean in degrees."""
+        return self._rotation().mean()
+
+
+class RotationErrorMedian(_PairErrorMetric):
+    """Median isotropic rotation error in degrees (mean of the two middle values for an even count)."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar median in degrees."""
+        err = self._rotation()
+        return torch.quantile(err, 0.5) if err.numel() else err.new_tensor(float("nan"))
+
+
+class TranslationErrorMean(_PairErrorMetric):
+    """Mean translation error (RTE) ``||t_pred - t_gt||`` in point units."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar mean."""
+        return self._translation().mean()
+
+
+class RegistrationRecall(_PairErrorMetric):
+    """Fraction of pairs with rotation error ``< rot_thr_deg`` and translation error ``< trans_thr``.
+
+    Args:
+        rot_thr_deg: Rotation threshold in degrees.
+        trans_thr: Translation threshold in point units.
+        **kwargs: Forwarded to ``torchmetrics.Metric``.
+    """
+
+    higher_is_better = True
+
+    def __init__(self, rot_thr_deg: float = 2.0, trans_thr: float = 0.01, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        if not rot_thr_deg > 0 or not trans_thr > 0:
+            raise ValueError(f"thresholds must be > 0, got rot_thr_deg={rot_thr_deg}, trans_thr={trans_thr}")
+        self.rot_thr_deg = rot_thr_deg
+        self.trans_thr = trans_thr
+
+    def compute(self) -> torch.Tensor:
+        """Return the recall in ``[0, 1]``; failed (NaN) pairs count as misses."""
+        return functional.registration_recall(
+            self._state("rot_err_deg"), self._state("trans_err"), self.rot_thr_deg, self.trans_thr
+        )
+
+
+class NumFailed(_PairErrorMetric):
+    """Number of failed pairs (non-finite estimate), as a float tensor."""
+
+    higher_is_better = False
+
+    def compute(self) -> torch.Tensor:
+        """Return the count of failed pairs."""
+        return self._failed().sum().to(self.dtype)
+
+
+class PerPairErrors(_PairErrorMetric):
+    """Raw per-pair errors for curves and tables (failed pairs keep their NaN).
+
+    ``compute`` returns ``(rot_err_deg (P,), trans_err (P,))`` concatenated over all updates (and processes).
+    """
+
+    def compute(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Return ``(rotation errors in degrees, translation errors)``, each ``(P,)``."""
+        return self._state("rot_err_deg"), self._state("trans_err")
+
+
+def registration_metrics(prefix: str = "") -> MetricCollection:
+    """The standard metric collection logged by every registration model.
+
+    Keys (after ``prefix``): ``rmse_r_deg``, ``mae_r_deg`` (DCP Euler), ``rmse_t``, ``mae_t``, ``rre_mean_deg``,
+    ``rre_median_deg``, ``rte_mean``, ``recall_r2_t0p01`` (2 degrees and 0.01) and ``recall_r5_t0p05``
+    (5 degrees and 0.05). Module names cannot contain ``.``, hence ``0p01`` for 0.01.
+
+    Args:
+        prefix: Prepended to every key, e.g. ``"val/"``.
+
+    Returns:
+        A ``MetricCollection`` to ``update(transform_pred=..., transform_gt=...)`` and ``compute()``.
+
+    Example:
+        >>> metrics = registration_metrics("test/")
+        >>> metrics.update(transform_pred=torch.eye(4)[None], transform_gt=torch.eye(4)[None])
+        >>> float(metrics.compute()["test/recall_r2_t0p01"])
+        1.0
+    """
+    return MetricCollection(
+        {
+            "rmse_r_deg": EulerRotationRMSE(),
+            "mae_r_deg": EulerRotationMAE(),
+            "rmse_t": TranslationRMSE(),
+            "mae_t": TranslationMAE(),
+            "rre_mean_deg": RotationErrorMean(),
+            "rre_median_deg": RotationErrorMedian(),
+            "rte_mean": TranslationErrorMean(),
+            "recall_r2_t0p01": RegistrationRecall(rot_thr_deg=2.0, trans_thr=0.01),
+            "recall_r5_t0p05": RegistrationRecall(rot_thr_deg=5.0, trans_thr=0.05),
+        },
+        prefix=prefix,
+    )

@@ -1,0 +1,1 @@
+"""LightningModules: the shared :class:`~lcreg.models.base.RegistrationModule` and DVDs."""

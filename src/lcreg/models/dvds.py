@@ -1,0 +1,163 @@
+"""DVDs: self-supervised registration with Deep Versatile Descriptors (Liu et al., IEEE T-ITS 2023).
+
+Registration (Section IV, Algorithm 1): a PointNet global descriptor ``psi`` and the inverse-compositional LK solver
+(:class:`lcreg.nn.lk.InverseCompositionalLK`, T = 10, stop at ``||dw|| < 1e-7``). Training uses no ground-truth
+pose; per batch:
+
+1. ``psi`` frozen (eval mode, no graph): IC-LK estimates ``W`` for each pair.
+2. ``psi`` trainable, ``W`` held fixed (one train-mode encoder pass over ``[X, Y, W(X)]``):
+   ``L_p = ||psi(W(X)) - psi(Y)||_2 + LC`` (batch mean of the L2 norm, not squared; LC = symmetric KL of
+   :class:`lcreg.nn.local_consistency.LocalConsistency`),
+   ``L_CD = CD(xi(psi(X)), X) + CD(xi(psi(Y)), Y)`` (FoldingNet decoder ``xi``, Chamfer not squared),
+   ``L_n = sum_P (1 - mean_i cos(l([p_i, psi(P)]), n_i))`` (normal head ``l``),
+   ``L = L_p + lambda1 L_CD + lambda2 L_n`` (defaults 0.5, 0.1; ``lc_weight`` scales the LC term, 1 in the paper).
+
+Normals come from the batch (ModelNet40 provides them). Without normals they are estimated by PCA
+(:func:`lcreg.geometry.normals.estimate_normals`) and compared with ``|cos|`` since their sign is arbitrary.
+The paper's ablation models: A ``lc_weight=0, lambda_recon=0, lambda_normal=0``; B adds LC; C adds reconstruction;
+D is the full model (``configs/ablation/``). Decoder and normal head are unused at test time (not even built when
+their weight is 0).
+
+Diagnostics (paper-ambiguity note 1): every ``diagnostics_every_n_steps`` training steps the gradient norms of the
+LC and global terms w.r.t. ``psi`` are logged (``train/lc_grad_norm``, ``train/global_grad_norm``), so a collapse of
+the LC term is visible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from lcreg.geometry import se3
+from lcreg.geometry.chamfer import chamfer_distance
+from lcreg.geometry.normals import estimate_normals
+from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
+from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.nn.folding import FoldingDecoder
+from lcreg.nn.heads import NormalHead
+from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
+from lcreg.nn.local_consistency import Pairing
+from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+__all__ = ["DVDs"]
+
+
+class DVDs(LocalConsistencyMixin, RegistrationModule):
+    """DVDs model.
+
+    Args:
+        encoder_channels: PointNet widths; the last is the descriptor size ``K`` (paper: 1024).
+        batch_norm: BatchNorm in the encoder.
+        max_iterations: IC-LK iterations ``T``.
+        tolerance: IC-LK stopping threshold on ``||dw||``.
+        damping: Relative damping of ``J^T J``.
+        jacobian: ``"analytic"`` (exact, default), ``"autodiff"`` or ``"finite_difference"``.
+        lc_weight: Weight of the local-consistency term (paper: 1; 0 disables it).
+        num_local_points: ``|X1| = |X2|`` (paper: 64).
+        lc_pairing: ``"target"`` or ``"estimate"`` (see :mod:`lcreg.nn.local_consistency`).
+        lc_outlier_threshold: Outlier distance ``c`` for the farthest point (``None``: off).
+        lc_outlier_quantile: Quantile-based alternative to ``c``.
+        lc_temperature: Softmax temperature of ``tau``.
+        lc_trainable_metric: Train the FC metric of LC (default frozen).
+        lambda_recon: ``lambda1`` (self-reconstruction; 0 disables it).
+        lambda_normal: ``lambda2`` (normal estimation; 0 disables it).
+        decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
+        decoder_hidden: FoldingNet MLP widths.
+        normal_hidden: Normal-head MLP widths.
+        diagnostics_every_n_steps: Period of the gradient-norm diagnostics (0: never).
+        optimizer: Optimiser factory.
+        lr_scheduler: Scheduler factory.
+    """
+
+    def __init__(
+        self,
+        encoder_channels: Sequence[int] = (64, 64, 64, 128, 1024),
+        batch_norm: bool = True,
+        max_iterations: int = 10,
+        tolerance: float = 1e-7,
+        damping: float = 1e-6,
+        jacobian: JacobianMode = "analytic",
+        lc_weight: float = 1.0,
+        num_local_points: int = 64,
+        lc_pairing: Pairing = "target",
+        lc_outlier_threshold: float | None = None,
+        lc_outlier_quantile: float | None = None,
+        lc_temperature: float = 1.0,
+        lc_trainable_metric: bool = False,
+        lambda_recon: float = 0.5,
+        lambda_normal: float = 0.1,
+        decoder_grid_size: int = 32,
+        decoder_hidden: Sequence[int] = (256, 256),
+        normal_hidden: Sequence[int] = (128, 64),
+        diagnostics_every_n_steps: int = 50,
+        optimizer: OptimizerFactory = torch.optim.Adam,
+        lr_scheduler: SchedulerFactory | None = None,
+    ) -> None:
+        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        if lambda_recon < 0 or lambda_normal < 0:
+            raise ValueError(f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}")
+        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
+        self.encoder = PointNetEncoder(encoder_channels, batch_norm)
+        k = self.encoder.feature_dim
+        self.solver = InverseCompositionalLK(max_iterations, tolerance, damping, jacobian)
+        self.init_local_consistency(
+            k, lc_weight, num_local_points, lc_pairing, lc_outlier_threshold, lc_outlier_quantile, lc_temperature,
+            lc_trainable_metric,
+        )
+        self.lambda_recon = lambda_recon
+        self.lambda_normal = lambda_normal
+        self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden) if lambda_recon > 0 else None
+        self.normal_head = NormalHead(k, normal_hidden) if lambda_normal > 0 else None
+        self.diagnostics_every_n_steps = diagnostics_every_n_steps
+        self.min_points = max(3, num_local_points if lc_weight > 0 else 3)
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """IC-LK registration with the current (frozen) descriptor."""
+        return self.solver(self.encoder, points_src, points_ref)
+
+    def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
+        """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""
+        if self.normal_head is None:
+            raise RuntimeError("normal loss requested but lambda_normal == 0")
+        oriented = normals is not None
+        target = normals if normals is not None else estimate_normals(points.detach())
+        cos = torch.nn.functional.cosine_similarity(self.normal_head(points, code), target, dim=-1, eps=1e-8)
+        return (1 - (cos if oriented else cos.abs()).mean(dim=1)).mean()
+
+    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """``L = L_p + lambda1 L_CD + lambda2 L_n``; no ground-truth transform is used."""
+        x, y = batch.points_src, batch.points_ref
+        b = x.shape[0]
+        moved = se3.transform_points(result.transform_ref_src.detach(), x)
+        if y.shape[1] == x.shape[1]:
+            f_x, f_y, f_wx = self.encoder(torch.cat([x, y, moved])).split(b)
+        else:
+            f_x, f_wx = self.encoder(torch.cat([x, moved])).split(b)
+            f_y = self.encoder(y)
+        losses = {"global": (f_wx - f_y).norm(dim=-1).mean()}
+        losses["loss"] = losses["global"]
+        if self.decoder is not None:
+            recon = chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()
+            losses["recon"] = recon
+            losses["loss"] = losses["loss"] + self.lambda_recon * recon
+        if self.normal_head is not None:
+            normal = self._normal_loss(x, batch.normals_src, f_x) + self._normal_loss(y, batch.normals_ref, f_y)
+            losses["normal"] = normal
+            losses["loss"] = losses["loss"] + self.lambda_normal * normal
+        losses = self.add_local_consistency(losses, result, batch)
+        self._diagnostics(losses)
+        return losses
+
+    def _diagnostics(self, losses: dict[str, torch.Tensor]) -> None:
+        """Log gradient norms of the global and LC terms w.r.t. the encoder (collapse check)."""
+        every = self.diagnostics_every_n_steps
+        if not (self.training and every > 0 and self.global_step % every == 0 and torch.is_grad_enabled()):
+            return
+        params = [p for p in self.encoder.parameters() if p.requires_grad]
+        for name in ("global", "lc"):
+            if name in losses and losses[name].requires_grad:
+                grads = torch.autograd.grad(losses[name], params, retain_graph=True, allow_unused=True)
+                norm = torch.sqrt(sum((g.pow(2).sum() for g in grads if g is not None), torch.zeros(())))
+                self.log(f"train/{name}_grad_norm", norm, on_step=True, on_epoch=False)

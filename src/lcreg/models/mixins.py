@@ -1,0 +1,68 @@
+"""Composable additions to any :class:`~lcreg.models.base.RegistrationModule`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from lcreg.nn.local_consistency import LocalConsistency, Pairing
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+__all__ = ["LocalConsistencyMixin"]
+
+
+class LocalConsistencyMixin:
+    """Adds ``lc_weight * LocalConsistency(encoder, src, ref, estimate)`` to a host's ``compute_loss``.
+
+    The host only declares its encoder by overriding :meth:`lc_encoder` (default: ``self.encoder``) and calls
+    :meth:`init_local_consistency` in its constructor. Place the mixin first: ``class X(LocalConsistencyMixin, Host)``.
+    The term is logged as ``{stage}/lc``.
+    """
+
+    local_consistency: LocalConsistency | None
+    lc_weight: float
+
+    def init_local_consistency(
+        self,
+        feature_dim: int,
+        lc_weight: float = 1.0,
+        num_local_points: int = 64,
+        pairing: Pairing = "target",
+        outlier_threshold: float | None = None,
+        outlier_quantile: float | None = None,
+        temperature: float = 1.0,
+        trainable_metric: bool = False,
+    ) -> None:
+        """Create the LC module (``None`` when ``lc_weight == 0``)."""
+        if lc_weight < 0:
+            raise ValueError(f"`lc_weight` must be >= 0, got {lc_weight}")
+        self.lc_weight = lc_weight
+        self.local_consistency = (
+            LocalConsistency(
+                feature_dim, num_local_points, pairing, outlier_threshold, outlier_quantile, temperature,
+                trainable_metric,
+            )
+            if lc_weight > 0
+            else None
+        )
+
+    def lc_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The host's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""
+        return self.encoder  # type: ignore[attr-defined,no-any-return]
+
+    def add_local_consistency(
+        self, losses: dict[str, torch.Tensor], result: RegistrationResult, batch: RegistrationBatch
+    ) -> dict[str, torch.Tensor]:
+        """Add ``losses["lc"]`` and its weighted value to ``losses["loss"]`` (no-op when LC is off)."""
+        if self.local_consistency is not None:
+            lc = self.local_consistency(self.lc_encoder(), batch.points_src, batch.points_ref, result.transform_ref_src)
+            losses["lc"] = lc
+            losses["loss"] = losses["loss"] + self.lc_weight * lc
+        return losses
+
+    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """The host's losses plus the weighted LC term."""
+        losses: dict[str, Any] = super().compute_loss(result, batch)  # type: ignore[misc]
+        return self.add_local_consistency(losses, result, batch)

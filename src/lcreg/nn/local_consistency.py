@@ -1,0 +1,191 @@
+"""Local consistency (LC): the DVDs pretext loss, usable by any registration network.
+
+For a source cloud ``X`` (and its reference ``Y``):
+
+1. Barycenter ``x_b``; the farthest point ``x_f = argmax ||x_i - x_b||`` over points not rejected as outliers
+   (distance above ``outlier_threshold`` or above the ``outlier_quantile`` of the cloud's distances), and the
+   closest point ``x_c = argmin ||x_i - x_b||``.
+2. Local subsets ``X1 = kNN(x_f, N_l)``, ``X2 = kNN(x_c, N_l)``.
+3. ``tau(X_k) = FC[psi(X_k) (+) psi(W(X_k))]`` with ``FC: R^{2K} -> R^K`` and ``psi`` the host's encoder.
+4. Loss ``1/2 (KL(p1 || p2) + KL(p2 || p1))`` with ``p_k = softmax(tau(X_k) / temperature)`` over the K channels.
+
+What ``W(X_k)`` is (see ``docs/local_consistency.md``):
+
+* ``pairing="target"`` (default): the subset of ``Y`` chosen by the same rule. The barycenter rule is invariant
+  to rigid motion, so ``Y``'s subsets correspond to ``W(X_k)`` up to sampling. It needs no estimate, carries the
+  real relation between ``X`` and ``Y``, and so plugs into any host without touching its solver.
+* ``pairing="estimate"``: ``X_k`` moved by the host's current estimate (held fixed: detached). This is the literal
+  reading of the paper's alternating scheme (``W`` is found, then ``psi`` is trained with ``W`` fixed); early in
+  training a poor estimate (e.g. identity) reduces the term to comparing the two regions' own descriptors.
+
+The metric ``FC`` is a randomly initialised, **frozen** layer by default: a trainable FC can output a constant and
+drive the loss to zero with no gradient left for ``psi`` (Algorithm 1 also lists only ``psi``, the decoder and the
+normal head as trained). ``trainable_metric=True`` makes it trainable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import torch
+from torch import nn
+
+from lcreg.checks import check_points, check_same_batch, check_transform
+from lcreg.geometry import se3
+from lcreg.geometry.neighbors import gather_points, knn
+
+__all__ = ["LocalConsistency", "barycenter_subsets"]
+
+Pairing = Literal["target", "estimate"]
+
+
+def barycenter_subsets(
+    points: torch.Tensor,
+    num_local_points: int,
+    outlier_threshold: float | None = None,
+    outlier_quantile: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices of the farthest- and closest-to-barycenter local subsets.
+
+    Args:
+        points: Clouds ``(B, N, 3)``.
+        num_local_points: Subset size ``N_l`` (``<= N``).
+        outlier_threshold: Points farther than this from the barycenter (distance units) cannot be ``x_f``.
+        outlier_quantile: Points beyond this quantile (in ``(0, 1]``) of the distances cannot be ``x_f``.
+
+    Returns:
+        ``(idx_far, idx_close)``, each ``(B, N_l)`` int64 indices into ``N``.
+    """
+    dist = (points - points.mean(dim=1, keepdim=True)).norm(dim=-1)  # (B, N)
+    cap = torch.full_like(dist[:, 0], float("inf"))
+    if outlier_threshold is not None:
+        cap = cap.clamp(max=outlier_threshold)
+    if outlier_quantile is not None:
+        cap = torch.minimum(cap, torch.quantile(dist, outlier_quantile, dim=1))
+    # Fall back to the closest point if every point is rejected (threshold below all distances).
+    eligible = dist <= cap[:, None]
+    far = torch.where(eligible, dist, torch.full_like(dist, -1.0)).argmax(dim=1)  # (B,)
+    close = dist.argmin(dim=1)
+    anchors = gather_points(points, torch.stack([far, close], dim=1))  # (B, 2, 3)
+    _, idx = knn(anchors, points, num_local_points)  # (B, 2, N_l)
+    return idx[:, 0], idx[:, 1]
+
+
+def _descriptor(encoder: Callable[[torch.Tensor], torch.Tensor], points: torch.Tensor) -> torch.Tensor:
+    """``(B, K)`` descriptor; a per-point encoder output ``(B, n, K)`` is max-pooled."""
+    out = encoder(points)
+    if out.ndim == 3:
+        out = out.amax(dim=1)
+    if out.ndim != 2:
+        raise ValueError(f"the encoder must return (B, K) or (B, n, K) features, got shape {tuple(out.shape)}")
+    return out
+
+
+class LocalConsistency(nn.Module):
+    """Symmetric-KL local-consistency loss between the far and close barycenter subsets.
+
+    Args:
+        feature_dim: Descriptor size ``K`` of the encoder it will be used with.
+        num_local_points: ``N_l = |X1| = |X2|`` (paper default 64).
+        pairing: ``"target"`` or ``"estimate"`` (module docstring).
+        outlier_threshold: Absolute outlier distance ``c`` for ``x_f``; ``None`` disables it.
+        outlier_quantile: Alternative robust cap: quantile of the barycenter distances (e.g. 0.98 on real scans).
+        temperature: Softmax temperature turning ``tau`` into a distribution.
+        trainable_metric: Train the FC metric (default frozen, see module docstring).
+
+    Example:
+        >>> from lcreg import LocalConsistency
+        >>> from lcreg.nn.pointnet import PointNetEncoder
+        >>> lc = LocalConsistency(feature_dim=64, num_local_points=16)
+        >>> enc = PointNetEncoder(channels=(32, 64))
+        >>> loss = lc(enc, torch.randn(2, 100, 3), torch.randn(2, 100, 3))
+        >>> loss.shape
+        torch.Size([])
+    """
+
+    def __init__(
+        self,
+        feature_dim: int = 1024,
+        num_local_points: int = 64,
+        pairing: Pairing = "target",
+        outlier_threshold: float | None = None,
+        outlier_quantile: float | None = None,
+        temperature: float = 1.0,
+        trainable_metric: bool = False,
+    ) -> None:
+        super().__init__()
+        if feature_dim < 1 or num_local_points < 1:
+            raise ValueError(f"`feature_dim` and `num_local_points` must be >= 1, got {feature_dim}, {num_local_points}")
+        if pairing not in ("target", "estimate"):
+            raise ValueError(f"`pairing` must be 'target' or 'estimate', got {pairing!r}")
+        if outlier_quantile is not None and not 0 < outlier_quantile <= 1:
+            raise ValueError(f"`outlier_quantile` must be in (0, 1], got {outlier_quantile}")
+        if temperature <= 0:
+            raise ValueError(f"`temperature` must be > 0, got {temperature}")
+        self.feature_dim = feature_dim
+        self.num_local_points = num_local_points
+        self.pairing = pairing
+        self.outlier_threshold = outlier_threshold
+        self.outlier_quantile = outlier_quantile
+        self.temperature = temperature
+        self.metric = nn.Linear(2 * feature_dim, feature_dim)
+        self.metric.requires_grad_(trainable_metric)
+
+    def subsets(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Far and close subsets ``(B, N_l, 3)`` each of ``points (B, N, 3)``."""
+        idx_far, idx_close = barycenter_subsets(
+            points, self.num_local_points, self.outlier_threshold, self.outlier_quantile
+        )
+        return gather_points(points, idx_far), gather_points(points, idx_close)
+
+    def _paired_subsets(
+        self, points_src: torch.Tensor, points_ref: torch.Tensor | None, transform_ref_src: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``X1, X2, W(X1), W(X2)``, each ``(B, N_l, 3)``."""
+        x1, x2 = self.subsets(points_src)
+        if self.pairing == "target":
+            if points_ref is None:
+                raise ValueError("pairing='target' needs `points_ref`")
+            check_points(points_ref, "points_ref", min_points=self.num_local_points)
+            check_same_batch(points_src=points_src, points_ref=points_ref)
+            w1, w2 = self.subsets(points_ref)
+        else:
+            if transform_ref_src is None:
+                raise ValueError("pairing='estimate' needs `transform_ref_src` (the current estimate)")
+            transform = check_transform(transform_ref_src, "transform_ref_src").detach()
+            w1, w2 = se3.transform_points(transform, x1), se3.transform_points(transform, x2)
+        return x1, x2, w1, w2
+
+    def forward(
+        self,
+        encoder: Callable[[torch.Tensor], torch.Tensor],
+        points_src: torch.Tensor,
+        points_ref: torch.Tensor | None = None,
+        transform_ref_src: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Batch-mean symmetric KL between ``softmax(tau(X1))`` and ``softmax(tau(X2))``.
+
+        Args:
+            encoder: The host's ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)`` (max-pooled here).
+            points_src: Source clouds ``(B, N, 3)``, ``N >= num_local_points``.
+            points_ref: Reference clouds ``(B, M, 3)`` (``pairing="target"``).
+            transform_ref_src: Current estimates ``(B, 4, 4)`` (``pairing="estimate"``).
+
+        Returns:
+            Scalar loss (nats).
+
+        Raises:
+            TooFewPointsError: A cloud has fewer than ``num_local_points`` points.
+        """
+        check_points(points_src, "points_src", min_points=self.num_local_points)
+        x1, x2, w1, w2 = self._paired_subsets(points_src, points_ref, transform_ref_src)
+        feats = _descriptor(encoder, torch.cat([x1, x2, w1, w2]))  # (4B, K), one encoder pass
+        if feats.shape[1] != self.feature_dim:
+            raise ValueError(f"encoder returns {feats.shape[1]} features, LocalConsistency expects {self.feature_dim}")
+        f1, f2, g1, g2 = feats.chunk(4)
+        tau1 = self.metric(torch.cat([f1, g1], dim=-1)) / self.temperature
+        tau2 = self.metric(torch.cat([f2, g2], dim=-1)) / self.temperature
+        logp, logq = torch.log_softmax(tau1, dim=-1), torch.log_softmax(tau2, dim=-1)
+        sym_kl = 0.5 * ((logp.exp() - logq.exp()) * (logp - logq)).sum(-1)  # (B,)
+        return sym_kl.mean()

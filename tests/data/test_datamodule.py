@@ -1,0 +1,231 @@
+from __future__ import annotations
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from jsonargparse import ArgumentParser
+
+from lcreg.checks import ShapeError
+from lcreg.data.datamodule import (
+    ModelNet40DataModule,
+    PairDataModule,
+    PairDataset,
+    SyntheticDataModule,
+    collate_pairs,
+)
+from lcreg.data.pairs import ObjectSet, PairProtocol
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.types import RegistrationBatch
+
+PROTOCOL = PairProtocol(num_points=64)
+
+
+@pytest.fixture(scope="module")
+def shapes() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return synthetic_shapes(6, 128, seed=0)
+
+
+def _small_module(**kwargs: object) -> SyntheticDataModule:
+    options: dict = {"num_train": 12, "num_val": 4, "num_test": 6, "points_per_shape": 128, "num_points": 64}
+    options.update(batch_size=4)
+    options.update(kwargs)
+    return SyntheticDataModule(**options)
+
+
+# ------------------------------------------------------------------------------------------------ PairDataset
+
+
+def _assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_deterministic_pairs_repeat_across_calls_and_instances(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    ds = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7)
+    twin = PairDataset(points.copy(), normals.copy(), PROTOCOL, deterministic=True, seed=7)
+    torch.manual_seed(0)
+    first = ds[2]
+    torch.manual_seed(1)  # the global RNG does not matter
+    _assert_same(first, ds[2])
+    _assert_same(first, twin[2])
+    assert first["index"].item() == 2 and first["index"].dtype == torch.int64
+    assert not torch.equal(ds[3]["transform_ref_src"], first["transform_ref_src"])
+    other_seed = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=8)
+    assert not torch.equal(other_seed[2]["transform_ref_src"], first["transform_ref_src"])
+    _assert_same(ds[-1], ds[len(ds) - 1])
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+
+
+def test_training_pairs_vary_but_follow_the_global_seed(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    ds = PairDataset(points, normals, PROTOCOL, deterministic=False)
+    torch.manual_seed(0)
+    a, b = ds[0], ds[0]
+    assert not torch.equal(a["transform_ref_src"], b["transform_ref_src"])
+    torch.manual_seed(0)
+    _assert_same(a, ds[0])  # seed_everything makes training reproducible
+
+
+def test_dataset_validates_shapes() -> None:
+    with pytest.raises(ShapeError, match="points"):
+        PairDataset(np.zeros((4, 10)), None, PROTOCOL)
+    with pytest.raises(ShapeError, match="normals"):
+        PairDataset(np.zeros((4, 10, 3)), np.zeros((4, 9, 3)), PROTOCOL)
+
+
+# ------------------------------------------------------------------------------------------------ collate_pairs
+
+
+def test_collate_stacks_into_a_registration_batch(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    ds = PairDataset(points, normals, PROTOCOL, deterministic=True)
+    batch = collate_pairs([ds[i] for i in range(3)])
+    assert isinstance(batch, RegistrationBatch) and len(batch) == 3
+    assert batch.points_src.shape == (3, 64, 3) and batch.points_ref.shape == (3, 64, 3)
+    assert batch.transform_ref_src is not None and batch.transform_ref_src.shape == (3, 4, 4)
+    assert batch.normals_src is not None and batch.normals_src.shape == (3, 64, 3)
+    assert batch.index is not None and batch.index.tolist() == [0, 1, 2]
+    torch.testing.assert_close(batch.points_src[1], ds[1]["points_src"])
+
+    no_normals = PairDataset(points, None, PROTOCOL, deterministic=True)
+    batch = collate_pairs([no_normals[i] for i in range(2)])
+    assert batch.normals_src is None and batch.normals_ref is None
+
+
+def test_collate_rejects_inconsistent_items(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    a = PairDataset(points, normals, PROTOCOL, deterministic=True)[0]
+    b = PairDataset(points, normals, PairProtocol(num_points=32), deterministic=True)[1]
+    with pytest.raises(ShapeError, match=r"items\[1\]\['points_src'\]"):
+        collate_pairs([a, b])
+    c = PairDataset(points, None, PROTOCOL, deterministic=True)[1]
+    with pytest.raises(ValueError, match="normals_src"):
+        collate_pairs([a, c])
+    with pytest.raises(ValueError, match="empty"):
+        collate_pairs([])
+
+
+# ------------------------------------------------------------------------------------------------ DataModules
+
+
+def test_synthetic_datamodule_loaders() -> None:
+    dm = _small_module(partial="prnet", partial_keep=48)
+    dm.setup("fit")
+    dm.setup("test")
+    assert dm.train_set is not None and dm.val_set is not None and dm.test_set is not None
+    assert (len(dm.train_set), len(dm.val_set), len(dm.test_set)) == (12, 4, 6)
+    loaders = {
+        "train": dm.train_dataloader(),
+        "val": dm.val_dataloader(),
+        "test": dm.test_dataloader(),
+        "predict": dm.predict_dataloader(),
+    }
+    for name, loader in loaders.items():
+        batch = next(iter(loader))
+        assert isinstance(batch, RegistrationBatch), name
+        assert batch.points_src.shape == (4, 48, 3) and batch.points_ref.shape == (4, 48, 3)
+        assert batch.transform_ref_src is not None and batch.transform_ref_src.shape == (4, 4, 4)
+        assert batch.normals_src is not None and batch.normals_src.shape == (4, 48, 3)
+        assert batch.points_src.dtype == torch.float32
+    assert sum(len(b) for b in loaders["test"]) == 6  # drop_last=False everywhere
+    first_val = [b.points_src for b in dm.val_dataloader()]
+    again = [b.points_src for b in dm.val_dataloader()]
+    assert all(torch.equal(x, y) for x, y in zip(first_val, again))  # same val pairs every epoch
+
+
+def test_synthetic_test_shapes_differ_from_train_shapes() -> None:
+    dm = _small_module(num_points=128, normalize=False)
+    dm.setup(None)
+    assert dm.train_set is not None and dm.val_set is not None and dm.test_set is not None
+    train = torch.cat([dm.train_set.points, dm.val_set.points]).flatten(1)
+    test = dm.test_set.points.flatten(1)
+    assert torch.cdist(test, train).min() > 1e-3
+
+
+def test_val_pairs_identical_with_workers() -> None:
+    serial = _small_module()
+    serial.setup("fit")
+    parallel = _small_module(num_workers=2)
+    parallel.setup("fit")
+    loader = parallel.val_dataloader()
+    assert loader.persistent_workers
+    for a, b in zip(serial.val_dataloader(), loader):
+        assert torch.equal(a.points_src, b.points_src) and torch.equal(a.points_ref, b.points_ref)
+
+
+def test_val_carved_from_train_pool_deterministically() -> None:
+    dm = ModelNet40DataModule(root=".", val_fraction=0.2, seed=3)
+    points, normals, labels = synthetic_shapes(20, 16, seed=0)
+    pool = ObjectSet(points, normals, labels)
+    train, val = dm.split_train_val(pool)
+    _, val2 = dm.split_train_val(pool)
+    assert (len(train), len(val)) == (16, 4)
+    np.testing.assert_array_equal(val.points, val2.points)
+    assert np.isin(val.points[:, 0, 0], train.points[:, 0, 0]).sum() == 0  # disjoint
+
+
+def test_datamodule_validates_and_records_hyperparameters() -> None:
+    dm = _small_module(batch_size=3, noise_sigma=0.01)
+    assert dm.hparams["batch_size"] == 3 and dm.hparams["num_train"] == 12 and dm.hparams["noise_sigma"] == 0.01
+    assert dm.pair_protocol.noise_sigma == 0.01
+    with pytest.raises(ValueError, match="val_fraction"):
+        _small_module(val_fraction=1.0)
+    with pytest.raises(ValueError, match="points_per_shape"):
+        _small_module(num_points=256)
+    with pytest.raises(ValueError, match="partial"):
+        _small_module(partial="half")
+    with pytest.raises(RuntimeError, match="setup"):
+        _small_module().train_dataloader()
+    with pytest.raises(NotImplementedError):
+        PairDataModule().setup("fit")
+
+
+@pytest.mark.parametrize("cls", [ModelNet40DataModule, SyntheticDataModule])
+def test_jsonargparse_exposes_base_and_own_arguments(cls: type) -> None:
+    parser = ArgumentParser(exit_on_error=False)
+    parser.add_class_arguments(cls, "data")
+    dests = {action.dest for action in parser._actions}
+    own = "data.root" if cls is ModelNet40DataModule else "data.num_train"
+    assert {"data.batch_size", "data.num_points", "data.partial_keep", "data.seed", own} <= dests
+    args = ["--data.batch_size=8", "--data.partial=prnet", "--data.partial_keep=700"]
+    if cls is ModelNet40DataModule:
+        args.append("--data.root=/somewhere")
+    dm = parser.instantiate(parser.parse_args(args)).data
+    assert isinstance(dm, cls)
+    assert dm.batch_size == 8 and dm.pair_protocol.partial_keep == 700 and dm.pair_protocol.num_kept == 700
+    assert dm.hparams["batch_size"] == 8
+
+
+class _TranslationModel(L.LightningModule):
+    """Fits one translation to the pairs: just enough to drive the loaders through a Trainer."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.translation = torch.nn.Parameter(torch.zeros(3))
+
+    def _loss(self, batch: RegistrationBatch) -> torch.Tensor:
+        residual = batch.points_ref.mean(1) - batch.points_src.mean(1) - self.translation
+        return residual.square().mean()
+
+    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor:
+        return self._loss(batch)
+
+    def validation_step(self, batch: RegistrationBatch, batch_idx: int) -> None:
+        self.log("val/loss", self._loss(batch), batch_size=len(batch))
+
+    def test_step(self, batch: RegistrationBatch, batch_idx: int) -> None:
+        self.log("test/loss", self._loss(batch), batch_size=len(batch))
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_trainer_fast_dev_run() -> None:
+    dm = _small_module()
+    trainer = L.Trainer(fast_dev_run=True, accelerator="cpu", logger=False, enable_progress_bar=False)
+    trainer.fit(_TranslationModel(), datamodule=dm)
+    trainer.test(_TranslationModel(), datamodule=dm, verbose=False)

@@ -1,0 +1,187 @@
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+from torchmetrics import MetricCollection
+
+from lcreg.checks import NonFiniteError
+from lcreg.geometry.random_transforms import random_euler_transform
+from lcreg.metrics.registration import (
+    EulerRotationMAE,
+    EulerRotationRMSE,
+    NumFailed,
+    PerPairErrors,
+    RegistrationRecall,
+    RotationErrorMean,
+    RotationErrorMedian,
+    TranslationErrorMean,
+    TranslationMAE,
+    TranslationRMSE,
+    registration_metrics,
+)
+
+KEYS = [
+    "rmse_r_deg",
+    "mae_r_deg",
+    "rmse_t",
+    "mae_t",
+    "rre_mean_deg",
+    "rre_median_deg",
+    "rte_mean",
+    "recall_r2_t0p01",
+    "recall_r5_t0p05",
+]
+
+
+def transform(euler_zyx_deg: list[float], trans: list[float], dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    out = torch.eye(4, dtype=dtype)
+    out[:3, :3] = torch.tensor(Rotation.from_euler("zyx", euler_zyx_deg, degrees=True).as_matrix(), dtype=dtype)
+    out[:3, 3] = torch.tensor(trans, dtype=dtype)
+    return out
+
+
+@pytest.fixture
+def hand_made() -> tuple[torch.Tensor, torch.Tensor]:
+    """Three pairs with ground truth identity-rotation: Euler errors (10, 0, 0), (0, 0, -20), (0, 0, 0)."""
+    gt = torch.stack([transform([0, 0, 0], [0.0, 0.0, 0.0])] * 3)
+    pred = torch.stack(
+        [
+            transform([10, 0, 0], [0.1, 0.0, 0.0]),
+            transform([0, 0, -20], [0.0, -0.2, 0.2]),
+            transform([0, 0, 0], [0.0, 0.0, 0.005]),
+        ]
+    )
+    return pred, gt
+
+
+def test_hand_made_values(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
+    pred, gt = hand_made
+    expected = {
+        EulerRotationRMSE: math.sqrt((10**2 + 20**2) / 9),
+        EulerRotationMAE: (10 + 20) / 9,
+        TranslationRMSE: math.sqrt((0.1**2 + 0.2**2 + 0.2**2 + 0.005**2) / 9),
+        TranslationMAE: (0.1 + 0.2 + 0.2 + 0.005) / 9,
+        RotationErrorMean: (10 + 20 + 0) / 3,
+        RotationErrorMedian: 10.0,
+        TranslationErrorMean: (0.1 + math.sqrt(0.08) + 0.005) / 3,
+        NumFailed: 0.0,
+    }
+    for cls, value in expected.items():
+        metric = cls()
+        metric.update(transform_pred=pred, transform_gt=gt)
+        assert float(metric.compute()) == pytest.approx(value, rel=1e-9, abs=1e-12), cls.__name__
+    recall = RegistrationRecall(rot_thr_deg=2.0, trans_thr=0.01)
+    recall.update(pred, gt)
+    assert float(recall.compute()) == pytest.approx(1 / 3)
+    loose = RegistrationRecall(rot_thr_deg=15.0, trans_thr=0.15)
+    loose.update(pred, gt)
+    assert float(loose.compute()) == pytest.approx(2 / 3)
+
+
+def test_median_of_even_count_averages_the_middle_pair() -> None:
+    gt = torch.eye(4).expand(4, 4, 4)
+    pred = torch.stack([transform([a, 0, 0], [0, 0, 0], torch.float32) for a in (1, 2, 4, 30)])
+    metric = RotationErrorMedian()
+    metric.update(pred, gt)
+    assert float(metric.compute()) == pytest.approx(3.0, abs=1e-4)
+
+
+def test_failure_policy(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
+    pred, gt = hand_made
+    failed_pred = torch.full((1, 4, 4), float("nan"), dtype=torch.float64)
+    failed_gt = transform([5, 5, 5], [0.3, -0.4, 0.0])[None]
+    pred, gt = torch.cat([pred, failed_pred]), torch.cat([gt, failed_gt])
+    collection = registration_metrics()
+    collection.update(transform_pred=pred, transform_gt=gt)
+    out = {k: float(v) for k, v in collection.compute().items()}
+    # The failed pair: rotation 180 deg, Euler 180 deg per angle, translation ||t_gt|| = 0.5, components |t_gt|.
+    assert out["rmse_r_deg"] == pytest.approx(math.sqrt((10**2 + 20**2 + 3 * 180**2) / 12))
+    assert out["mae_r_deg"] == pytest.approx((10 + 20 + 3 * 180) / 12)
+    assert out["rmse_t"] == pytest.approx(math.sqrt((0.1**2 + 0.08 + 0.005**2 + 0.3**2 + 0.4**2) / 12))
+    assert out["mae_t"] == pytest.approx((0.1 + 0.4 + 0.005 + 0.7) / 12)
+    assert out["rre_mean_deg"] == pytest.approx((10 + 20 + 180) / 4)
+    assert out["rre_median_deg"] == pytest.approx(15.0)
+    assert out["rte_mean"] == pytest.approx((0.1 + math.sqrt(0.08) + 0.005 + 0.5) / 4)
+    assert out["recall_r2_t0p01"] == pytest.approx(1 / 4)  # the failure counts in the denominator
+    assert all(math.isfinite(v) for v in out.values())
+
+    num_failed, per_pair = NumFailed(), PerPairErrors()
+    for metric in (num_failed, per_pair):
+        metric.update(pred, gt)
+    assert float(num_failed.compute()) == 1.0
+    rot_err, trans_err = per_pair.compute()
+    assert rot_err.shape == trans_err.shape == (4,)
+    assert torch.isnan(rot_err[3]) and torch.isnan(trans_err[3]) and torch.isfinite(rot_err[:3]).all()
+
+
+def test_recall_counts_a_failure_even_with_tiny_ground_truth_translation() -> None:
+    gt = torch.eye(4)[None]  # the no-motion error of a failure would be 0 here: recall must still fail it
+    metric = RegistrationRecall(rot_thr_deg=360.0, trans_thr=1.0)
+    metric.update(torch.full((1, 4, 4), float("nan")), gt)
+    assert float(metric.compute()) == 0.0
+
+
+def test_collection_keys_and_two_updates_equal_one(rng: torch.Generator) -> None:
+    gt, _ = random_euler_transform(10, generator=rng)
+    noise, _ = random_euler_transform(10, max_angle_deg=4.0, max_translation=0.03, generator=rng)
+    pred = noise @ gt
+    pred[7] = float("nan")
+    split = registration_metrics("val/")
+    split.update(transform_pred=pred[:6], transform_gt=gt[:6])
+    split.update(transform_pred=pred[6:], transform_gt=gt[6:])
+    whole = registration_metrics("val/")
+    whole.update(transform_pred=pred, transform_gt=gt)
+    out_split, out_whole = split.compute(), whole.compute()
+    assert sorted(out_split) == sorted(f"val/{k}" for k in KEYS)
+    for key in out_whole:
+        torch.testing.assert_close(out_split[key], out_whole[key], msg=key)
+        assert torch.isfinite(out_whole[key]), key
+    assert 0 < float(out_whole["val/recall_r5_t0p05"]) < 1
+
+
+def test_forward_reset_and_float64(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
+    pred, gt = hand_made
+    metric = RotationErrorMean()
+    batch_value = metric(pred, gt)  # forward returns the batch value and accumulates
+    assert float(batch_value) == pytest.approx(10.0)
+    metric.update(pred[:1], gt[:1])
+    assert float(metric.compute()) == pytest.approx(40 / 4)
+    metric.reset()
+    metric.update(pred[1:2], gt[1:2])
+    assert float(metric.compute()) == pytest.approx(20.0)
+
+
+def test_compute_before_update_is_nan() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torchmetrics warns about compute() before update()
+        for metric in (EulerRotationRMSE(), RotationErrorMedian(), RegistrationRecall(), TranslationMAE()):
+            assert math.isnan(float(metric.compute())), type(metric).__name__
+
+
+def test_bad_inputs() -> None:
+    eye = torch.eye(4)[None]
+    metric = RotationErrorMean()
+    with pytest.raises(NonFiniteError, match="transform_gt"):
+        metric.update(eye, torch.full((1, 4, 4), float("nan")))
+    with pytest.raises(ValueError, match="thresholds"):
+        RegistrationRecall(rot_thr_deg=0.0)
+    with pytest.raises(ValueError, match="thresholds"):
+        RegistrationRecall(trans_thr=-1.0)
+
+
+def test_compute_groups_share_state_without_changing_values(rng: torch.Generator) -> None:
+    gt, _ = random_euler_transform(8, generator=rng)
+    noise, _ = random_euler_transform(8, max_angle_deg=4.0, max_translation=0.03, generator=rng)
+    grouped = registration_metrics()
+    separate = MetricCollection(dict(registration_metrics().items(keep_base=True)), compute_groups=False)
+    for collection in (grouped, separate):
+        for _ in range(2):
+            collection.update(transform_pred=noise @ gt, transform_gt=gt)
+    assert len(grouped.compute_groups) == 1  # all metrics share one copy of the per-pair errors
+    out_grouped, out_separate = grouped.compute(), separate.compute()
+    for key in KEYS:
+        torch.testing.assert_close(out_grouped[key], out_separate[key], msg=key)

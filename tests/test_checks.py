@@ -1,0 +1,106 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lcreg.checks import (
+    NonFiniteError,
+    ShapeError,
+    TooFewPointsError,
+    check_finite,
+    check_float,
+    check_points,
+    check_same_batch,
+    check_shape,
+    check_transform,
+)
+
+
+def test_error_hierarchy() -> None:
+    assert issubclass(ShapeError, ValueError)
+    assert issubclass(NonFiniteError, ValueError)
+    assert issubclass(TooFewPointsError, ValueError)
+
+
+def test_shape_error_attributes_and_message() -> None:
+    err = ShapeError("points_src", ("B", "N", 3), (2, 5, 4))
+    assert err.name == "points_src"
+    assert err.expected == ("B", "N", 3)
+    assert err.actual == (2, 5, 4)
+    assert "points_src" in str(err) and "(B, N, 3)" in str(err) and "(2, 5, 4)" in str(err)
+
+
+def test_check_float_accepts_supported(dtype: torch.dtype) -> None:
+    x = torch.zeros(2, dtype=dtype)
+    assert check_float(x, "x") is x
+
+
+@pytest.mark.parametrize("bad", [torch.zeros(2, dtype=torch.int64), torch.zeros(2, dtype=torch.float16), np.zeros(2)])
+def test_check_float_rejects(bad: object) -> None:
+    with pytest.raises(TypeError, match="`my_arg`"):
+        check_float(bad, "my_arg")
+
+
+def test_check_shape_binds_symbols() -> None:
+    assert check_shape(torch.zeros(2, 5, 3), ("B", "N", 3), "x") == {"B": 2, "N": 5}
+    assert check_shape(torch.zeros(4, 4), ("K", "K"), "x") == {"K": 4}
+
+
+@pytest.mark.parametrize(
+    ("shape", "expected"),
+    [((2, 5), ("B", "N", 3)), ((2, 5, 4), ("B", "N", 3)), ((4, 3), ("K", "K")), ((2, 5, 3, 1), ("B", "N", 3))],
+)
+def test_check_shape_rejects(shape: tuple[int, ...], expected: tuple[int | str, ...]) -> None:
+    with pytest.raises(ShapeError, match="`cloud`") as info:
+        check_shape(torch.zeros(shape), expected, "cloud")
+    assert info.value.actual == shape
+    assert info.value.expected == expected
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_check_finite(value: float) -> None:
+    check_finite(torch.zeros(3), "x")
+    x = torch.zeros(3)
+    x[1] = value
+    with pytest.raises(NonFiniteError, match="`weights` contains 1"):
+        check_finite(x, "weights")
+
+
+def test_check_points() -> None:
+    pts = torch.zeros(2, 5, 3)
+    assert check_points(pts, "points_src") is pts
+    with pytest.raises(ShapeError, match="points_src"):
+        check_points(torch.zeros(2, 5, 2), "points_src")
+    with pytest.raises(ShapeError, match="points_src"):
+        check_points(torch.zeros(0, 5, 3), "points_src")
+    with pytest.raises(TooFewPointsError, match="points_src"):
+        check_points(torch.zeros(2, 0, 3), "points_src")
+    with pytest.raises(TooFewPointsError, match=r"points_src.*at least 6"):
+        check_points(pts, "points_src", min_points=6)
+    with pytest.raises(TypeError, match="points_src"):
+        check_points(pts.long(), "points_src")
+    pts[0, 0, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match="points_src"):
+        check_points(pts, "points_src")
+
+
+def test_check_transform() -> None:
+    t = torch.eye(4).expand(3, 4, 4)
+    assert check_transform(t, "transform_ref_src") is t
+    with pytest.raises(ShapeError, match="transform_ref_src"):
+        check_transform(torch.eye(4), "transform_ref_src")
+    with pytest.raises(TypeError, match="transform_ref_src"):
+        check_transform(torch.eye(4, dtype=torch.int32)[None], "transform_ref_src")
+    bad = t.clone()
+    bad[1, 0, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="transform_ref_src"):
+        check_transform(bad, "transform_ref_src")
+
+
+def test_check_same_batch() -> None:
+    check_same_batch(a=torch.zeros(2, 3), b=torch.zeros(2, 7, 3))
+    with pytest.raises(ShapeError, match="`b`"):
+        check_same_batch(a=torch.zeros(2, 3), b=torch.zeros(3, 3))
+    with pytest.raises(TypeError, match=r"`b`.*`a`"):
+        check_same_batch(a=torch.zeros(2, 3), b=torch.zeros(2, 3, dtype=torch.float64))
