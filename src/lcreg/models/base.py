@@ -95,8 +95,14 @@ class RegistrationModule(LightningModule):
             losses = self.compute_loss(result, batch)
             loss = losses["loss"]
             for name, value in losses.items():
-                self.log(f"{stage}/{name}", value.detach(), batch_size=bs, prog_bar=name == "loss",
-                         on_step=stage == "train", on_epoch=True)
+                self.log(
+                    f"{stage}/{name}",
+                    value.detach(),
+                    batch_size=bs,
+                    prog_bar=name == "loss",
+                    on_step=stage == "train",
+                    on_epoch=True,
+                )
         if stage != "train" and batch.transform_ref_src is not None:
             metrics = self.val_metrics if stage == "val" else self.test_metrics
             kwargs = {"transform_pred": result.transform_ref_src.detach(), "transform_gt": batch.transform_ref_src}

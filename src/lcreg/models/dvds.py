@@ -26,6 +26,7 @@ the LC term is visible.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import torch
 
@@ -66,6 +67,9 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
         decoder_hidden: FoldingNet MLP widths.
         normal_hidden: Normal-head MLP widths.
+        global_loss: ``"l2"`` (paper: ``||psi(W(X)) - psi(Y)||_2``) or ``"normalized_l2"`` (the same divided by the
+            RMS norm of the two descriptors; IC-LK is invariant to the descriptor scale, so this removes the trivial
+            minimiser "shrink the features" without changing what registration uses).
         diagnostics_every_n_steps: Period of the gradient-norm diagnostics (0: never).
         optimizer: Optimiser factory.
         lr_scheduler: Scheduler factory.
@@ -91,25 +95,37 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         decoder_grid_size: int = 32,
         decoder_hidden: Sequence[int] = (256, 256),
         normal_hidden: Sequence[int] = (128, 64),
+        global_loss: Literal["l2", "normalized_l2"] = "l2",
         diagnostics_every_n_steps: int = 50,
         optimizer: OptimizerFactory = torch.optim.Adam,
         lr_scheduler: SchedulerFactory | None = None,
     ) -> None:
         super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
         if lambda_recon < 0 or lambda_normal < 0:
-            raise ValueError(f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}")
+            raise ValueError(
+                f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}"
+            )
         self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
         self.encoder = PointNetEncoder(encoder_channels, batch_norm)
         k = self.encoder.feature_dim
         self.solver = InverseCompositionalLK(max_iterations, tolerance, damping, jacobian)
         self.init_local_consistency(
-            k, lc_weight, num_local_points, lc_pairing, lc_outlier_threshold, lc_outlier_quantile, lc_temperature,
+            k,
+            lc_weight,
+            num_local_points,
+            lc_pairing,
+            lc_outlier_threshold,
+            lc_outlier_quantile,
+            lc_temperature,
             lc_trainable_metric,
         )
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal
         self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden) if lambda_recon > 0 else None
         self.normal_head = NormalHead(k, normal_hidden) if lambda_normal > 0 else None
+        if global_loss not in ("l2", "normalized_l2"):
+            raise ValueError(f"`global_loss` must be 'l2' or 'normalized_l2', got {global_loss!r}")
+        self.global_loss = global_loss
         self.diagnostics_every_n_steps = diagnostics_every_n_steps
         self.min_points = max(3, num_local_points if lc_weight > 0 else 3)
 
@@ -136,7 +152,11 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         else:
             f_x, f_wx = self.encoder(torch.cat([x, moved])).split(b)
             f_y = self.encoder(y)
-        losses = {"global": (f_wx - f_y).norm(dim=-1).mean()}
+        residual = (f_wx - f_y).norm(dim=-1)  # (B,)
+        if self.global_loss == "normalized_l2":
+            scale = (0.5 * (f_wx.pow(2).sum(-1) + f_y.pow(2).sum(-1))).sqrt()
+            residual = residual / scale.clamp_min(torch.finfo(scale.dtype).eps)
+        losses = {"global": residual.mean()}
         losses["loss"] = losses["global"]
         if self.decoder is not None:
             recon = chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()

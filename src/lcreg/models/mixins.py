@@ -41,7 +41,12 @@ class LocalConsistencyMixin:
         self.lc_weight = lc_weight
         self.local_consistency = (
             LocalConsistency(
-                feature_dim, num_local_points, pairing, outlier_threshold, outlier_quantile, temperature,
+                feature_dim,
+                num_local_points,
+                pairing,
+                outlier_threshold,
+                outlier_quantile,
+                temperature,
                 trainable_metric,
             )
             if lc_weight > 0
@@ -50,7 +55,7 @@ class LocalConsistencyMixin:
 
     def lc_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """The host's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""
-        return self.encoder  # type: ignore[attr-defined,no-any-return]
+        return self.encoder  # type: ignore[attr-defined]
 
     def add_local_consistency(
         self, losses: dict[str, torch.Tensor], result: RegistrationResult, batch: RegistrationBatch

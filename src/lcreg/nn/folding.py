@@ -22,6 +22,8 @@ class FoldingDecoder(nn.Module):
         grid_extent: Half side of the grid.
     """
 
+    grid: torch.Tensor
+
     def __init__(
         self, feature_dim: int = 1024, grid_size: int = 32, hidden: Sequence[int] = (256, 256), grid_extent: float = 0.3
     ) -> None:

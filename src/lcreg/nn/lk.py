@@ -130,7 +130,9 @@ class InverseCompositionalLK(nn.Module):
         eye = torch.eye(6, dtype=torch.float64, device=jac.device)
         return torch.linalg.solve(jtj + lam[:, None, None] * eye, j64.transpose(1, 2)).to(jac.dtype)
 
-    def forward(self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+    def forward(
+        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor
+    ) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
 
         Returns:
@@ -150,7 +152,9 @@ class InverseCompositionalLK(nn.Module):
             if was_training and isinstance(encoder, nn.Module):
                 encoder.train()
 
-    def _solve(self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+    def _solve(
+        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor
+    ) -> RegistrationResult:
         b = points_src.shape[0]
         mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
         mean_ref = points_ref.mean(1) if self.center else points_ref.new_zeros(b, 3)

@@ -116,7 +116,9 @@ class LocalConsistency(nn.Module):
     ) -> None:
         super().__init__()
         if feature_dim < 1 or num_local_points < 1:
-            raise ValueError(f"`feature_dim` and `num_local_points` must be >= 1, got {feature_dim}, {num_local_points}")
+            raise ValueError(
+                f"`feature_dim` and `num_local_points` must be >= 1, got {feature_dim}, {num_local_points}"
+            )
         if pairing not in ("target", "estimate"):
             raise ValueError(f"`pairing` must be 'target' or 'estimate', got {pairing!r}")
         if outlier_quantile is not None and not 0 < outlier_quantile <= 1:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import pairwise
 
 import torch
 from torch import nn
@@ -30,7 +31,7 @@ class ConditionedPointMLP(nn.Module):
         self.point_in = nn.Linear(point_dim, hidden[0])
         self.code_in = nn.Linear(code_dim, hidden[0], bias=False)
         layers: list[nn.Module] = []
-        for c_in, c_out in zip(hidden[:-1], hidden[1:]):
+        for c_in, c_out in pairwise(hidden):
             layers += [nn.ReLU(), nn.Linear(c_in, c_out)]
         layers += [nn.ReLU(), nn.Linear(hidden[-1], out_dim)]
         self.rest = nn.Sequential(*layers)

@@ -15,6 +15,8 @@ solver runs the encoder.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import pairwise
+from typing import cast
 
 import torch
 from torch import nn
@@ -41,13 +43,17 @@ class PointNetEncoder(nn.Module):
         if len(channels) < 1 or any(c <= 0 for c in channels):
             raise ValueError(f"`channels` must be positive widths, got {list(channels)}")
         widths = [3, *channels]
-        self.linears = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.linears = nn.ModuleList(nn.Linear(a, b) for a, b in pairwise(widths))
         self.norms = nn.ModuleList(nn.BatchNorm1d(c) if batch_norm else nn.Identity() for c in channels)
 
     @property
     def feature_dim(self) -> int:
         """Descriptor size ``K``."""
-        return int(self.linears[-1].out_features)
+        return self._linear(len(self.linears) - 1).out_features
+
+    def _linear(self, i: int) -> nn.Linear:
+        """Linear layer ``i`` (typed access into the ModuleList)."""
+        return cast(nn.Linear, self.linears[i])
 
     def _block(self, i: int, h: torch.Tensor) -> torch.Tensor:
         """Layer ``i`` (linear, norm, ReLU) on ``(B, N, C)`` features, training-mode normalisation."""
@@ -58,7 +64,7 @@ class PointNetEncoder(nn.Module):
     def _folded(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Layer ``i`` with its eval-mode norm folded in: ``relu(h @ W.T + b)`` equals the block. Differentiable."""
         scale, shift = self._affine(i)
-        lin = self.linears[i]
+        lin = self._linear(i)
         bias = lin.bias if lin.bias is not None else 0.0
         return lin.weight * scale[:, None], bias * scale + shift
 
@@ -90,7 +96,7 @@ class PointNetEncoder(nn.Module):
     def _affine(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Eval-mode norm of layer ``i`` as ``scale * z + shift`` (identity without BatchNorm)."""
         norm = self.norms[i]
-        weight = self.linears[i].weight
+        weight = self._linear(i).weight
         if isinstance(norm, nn.BatchNorm1d):
             if norm.running_var is None or norm.running_mean is None:
                 raise RuntimeError("PointNetEncoder needs BatchNorm running statistics (track_running_stats=True)")

@@ -1,0 +1,1 @@
+"""Baselines behind the :class:`~lcreg.models.base.RegistrationModule` interface (one file per method)."""

@@ -1,0 +1,256 @@
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+
+from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
+from lcreg.data.datamodule import PairDataset, SyntheticDataModule, collate_pairs
+from lcreg.data.pairs import PairProtocol
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.geometry import se3
+from lcreg.geometry.random_transforms import random_euler_transform
+from lcreg.models.base import RegistrationModule
+from lcreg.models.dvds import DVDs
+from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+TINY = {
+    "encoder_channels": (16, 32),
+    "num_local_points": 16,
+    "decoder_grid_size": 8,
+    "decoder_hidden": (32,),
+    "normal_hidden": (16,),
+    "diagnostics_every_n_steps": 0,
+}
+
+
+def _model(seed: int = 0, **overrides: object) -> DVDs:
+    torch.manual_seed(seed)
+    return DVDs(**{**TINY, **overrides})  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def batch() -> RegistrationBatch:
+    points, normals, _ = synthetic_shapes(4, 256, seed=0)
+    dataset = PairDataset(points, normals, PairProtocol(num_points=128), deterministic=True, seed=0)
+    return collate_pairs([dataset[i] for i in range(4)])
+
+
+def test_forward_returns_a_registration_result(batch: RegistrationBatch) -> None:
+    model = _model().eval()
+    result = model(batch.points_src, batch.points_ref)
+    assert isinstance(result, RegistrationResult)
+    assert result.transform_ref_src.shape == (4, 4, 4)
+    assert result.converged.shape == (4,) and result.converged.dtype == torch.bool
+    assert result.num_iters.shape == (4,) and result.num_iters.dtype == torch.int64
+    assert ((result.num_iters >= 1) & (result.num_iters <= 10)).all()
+    assert torch.isfinite(result.transform_ref_src).all()
+    rot = result.rotation
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), torch.eye(3).expand(4, 3, 3), atol=1e-4, rtol=0)
+    assert not result.transform_ref_src.requires_grad
+
+
+def test_compute_loss_terms_are_finite_and_weighted(batch: RegistrationBatch) -> None:
+    model = _model().train()
+    result = model(batch.points_src, batch.points_ref)
+    assert model.training and model.encoder.training  # the solver restored the mode
+    losses = model.compute_loss(result, batch)
+    assert set(losses) == {"global", "recon", "normal", "lc", "loss"}
+    for name, value in losses.items():
+        assert value.ndim == 0 and torch.isfinite(value), name
+        assert value >= 0, name
+    expected = losses["global"] + 0.5 * losses["recon"] + 0.1 * losses["normal"] + 1.0 * losses["lc"]
+    torch.testing.assert_close(losses["loss"], expected)
+    assert losses["loss"].requires_grad
+
+
+def test_loss_does_not_depend_on_the_ground_truth(batch: RegistrationBatch) -> None:
+    model = _model().train()
+    result = model(batch.points_src, batch.points_ref)
+    random_gt, _ = random_euler_transform(4, generator=torch.Generator().manual_seed(5))
+    variants = [
+        batch,
+        dataclasses.replace(batch, transform_ref_src=random_gt),
+        dataclasses.replace(batch, transform_ref_src=None),
+    ]
+    all_losses = [model.compute_loss(result, b) for b in variants]
+    for losses in all_losses[1:]:
+        assert losses.keys() == all_losses[0].keys()
+        for name in losses:
+            torch.testing.assert_close(losses[name], all_losses[0][name], atol=0, rtol=0)
+    # ... but it does depend on the estimate.
+    moved = dataclasses.replace(result, transform_ref_src=random_gt)
+    assert not torch.allclose(model.compute_loss(moved, batch)["global"], all_losses[0]["global"])
+
+
+def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
+    model = _model().train()
+    optimizer = model.configure_optimizers()
+    assert isinstance(optimizer, torch.optim.Adam)
+    trained = {id(p) for group in optimizer.param_groups for p in group["params"]}
+    assert model.local_consistency is not None
+    assert all(id(p) not in trained for p in model.local_consistency.parameters())  # the FC metric stays frozen
+    history, recon = [], []
+    for _ in range(8):
+        losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+        history.append(float(losses["loss"].detach()))
+        recon.append(float(losses["recon"].detach()))
+        optimizer.zero_grad()
+        losses["loss"].backward()
+        optimizer.step()
+    # The estimate is re-solved every step, so the loss is noisy: compare the last steps with the first.
+    assert sum(history[-3:]) / 3 < 0.9 * history[0], history
+    assert recon[-1] < recon[0], recon
+
+
+def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> None:
+    cases = [
+        ({"lc_weight": 0.0}, "lc", "local_consistency"),
+        ({"lambda_recon": 0.0}, "recon", "decoder"),
+        ({"lambda_normal": 0.0}, "normal", "normal_head"),
+    ]
+    for overrides, term, module in cases:
+        model = _model(**overrides).train()
+        assert getattr(model, module) is None, module
+        losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+        assert term not in losses and "loss" in losses and torch.isfinite(losses["loss"])
+    model_a = _model(lc_weight=0.0, lambda_recon=0.0, lambda_normal=0.0).train()
+    losses = model_a.compute_loss(model_a(batch.points_src, batch.points_ref), batch)
+    assert set(losses) == {"global", "loss"}
+    torch.testing.assert_close(losses["loss"], losses["global"])
+    assert model_a.min_points == 3  # no LC: small clouds are fine
+    with pytest.raises(ValueError, match="lambda"):
+        _model(lambda_recon=-1.0)
+    with pytest.raises(ValueError, match="lc_weight"):
+        _model(lc_weight=-1.0)
+
+
+def test_missing_normals_fall_back_to_pca(batch: RegistrationBatch) -> None:
+    model = _model().train()
+    result = model(batch.points_src, batch.points_ref)
+    no_normals = dataclasses.replace(batch, normals_src=None, normals_ref=None)
+    losses = model.compute_loss(result, no_normals)
+    assert (
+        torch.isfinite(losses["normal"]) and 0 <= float(losses["normal"].detach()) <= 2
+    )  # |cos| in [0, 1], two clouds
+    with_normals = model.compute_loss(result, batch)
+    assert not torch.allclose(losses["normal"], with_normals["normal"])
+    losses["loss"].backward()
+    assert model.normal_head is not None
+    assert all(p.grad is not None for p in model.normal_head.parameters())
+    # PCA normals have no sign: flipping the predicted normals changes the oriented loss only.
+    code = model.encoder(batch.points_src).detach()
+    with torch.no_grad():
+        unoriented = model._normal_loss(batch.points_src, None, code)
+        oriented = model._normal_loss(batch.points_src, batch.normals_src, code)
+        last = model.normal_head.mlp.rest[-1]
+        assert isinstance(last, torch.nn.Linear)
+        last.weight.neg_()
+        last.bias.neg_()
+        torch.testing.assert_close(model._normal_loss(batch.points_src, None, code), unoriented)
+        flipped = model._normal_loss(batch.points_src, batch.normals_src, code)
+    torch.testing.assert_close(oriented + flipped, torch.tensor(2.0))  # (1 - c) + (1 + c)
+
+
+@pytest.mark.parametrize(
+    ("src", "error", "name"),
+    [
+        (torch.full((2, 32, 3), float("nan")), NonFiniteError, "points_src"),
+        (torch.full((2, 32, 3), float("inf")), NonFiniteError, "points_src"),
+        (torch.zeros(2, 0, 3), TooFewPointsError, "points_src"),
+        (torch.zeros(2, 32, 2), ShapeError, "points_src"),
+        (torch.zeros(32, 3), ShapeError, "points_src"),
+        (torch.zeros(2, 32, 3, dtype=torch.int32), TypeError, "points_src"),
+        (torch.randn(2, 10, 3), TooFewPointsError, "points_src"),  # < num_local_points
+        (torch.randn(3, 32, 3), ShapeError, "points_ref"),  # batch sizes differ
+    ],
+    ids=["nan", "inf", "empty", "two_columns", "unbatched", "int", "fewer_than_local", "batch_mismatch"],
+)
+def test_register_rejects_bad_inputs(src: torch.Tensor, error: type[Exception], name: str) -> None:
+    model = _model()
+    with pytest.raises(error, match=name):
+        model.register(src, torch.randn(2, 32, 3))
+    if name == "points_src":  # the same defect in the other argument is reported under its name
+        with pytest.raises(error, match="points_ref"):
+            model.register(torch.randn(2, 32, 3), src)
+
+
+def test_register_runs_in_eval_mode_and_restores_the_mode(batch: RegistrationBatch) -> None:
+    model = _model().train()
+    result = model.register(batch.points_src, batch.points_ref)
+    assert model.training and result.transform_ref_src.shape == (4, 4, 4)
+    model.eval()
+    model.register(batch.points_src, batch.points_ref)
+    assert not model.training
+
+
+def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
+    L.seed_everything(0)
+    model = DVDs(**{**TINY, "diagnostics_every_n_steps": 1})  # type: ignore[arg-type]
+    data = SyntheticDataModule(num_points=128, batch_size=2, num_train=4, num_val=2, num_test=2, points_per_shape=256)
+    trainer = L.Trainer(
+        fast_dev_run=True,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(model, datamodule=data)
+    logged = trainer.callback_metrics
+    for key in ("train/loss", "train/global", "train/lc", "val/loss", "val/rre_mean_deg"):
+        assert key in logged and torch.isfinite(logged[key]), key
+    assert "train/lc_grad_norm" in logged and float(logged["train/lc_grad_norm"]) > 0
+    trainer.test(model, datamodule=data)
+    assert "test/rre_mean_deg" in trainer.callback_metrics
+    assert "test/loss" not in trainer.callback_metrics  # the training losses are not computed at test time
+    rows = list(csv.reader((tmp_path / "test_per_pair.csv").open()))
+    assert rows[0] == ["index", "rotation_error_deg", "translation_error"] and len(rows) == 3
+
+
+class MinimalHost(RegistrationModule):
+    """A third-party host: an encoder, identity registration and its own loss."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = PointNetEncoder((16, 32))
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        b = points_src.shape[0]
+        return RegistrationResult(
+            transform_ref_src=se3.identity(b, dtype=points_src.dtype),
+            converged=torch.ones(b, dtype=torch.bool),
+            num_iters=torch.ones(b, dtype=torch.int64),
+        )
+
+    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        feats = self.encoder(torch.cat([batch.points_src, batch.points_ref]))
+        f_src, f_ref = feats.chunk(2)
+        return {"host": (f_src - f_ref).norm(dim=-1).mean(), "loss": (f_src - f_ref).norm(dim=-1).mean()}
+
+
+class Host(LocalConsistencyMixin, MinimalHost):
+    def __init__(self, lc_weight: float = 0.5) -> None:
+        super().__init__()
+        self.init_local_consistency(feature_dim=32, lc_weight=lc_weight, num_local_points=16)
+
+
+def test_local_consistency_mixin_on_a_minimal_host(batch: RegistrationBatch) -> None:
+    torch.manual_seed(0)
+    host = Host().train()
+    losses = host.compute_loss(host(batch.points_src, batch.points_ref), batch)
+    assert set(losses) == {"host", "lc", "loss"}
+    assert losses["lc"] > 0
+    torch.testing.assert_close(losses["loss"], losses["host"] + 0.5 * losses["lc"])
+    params = list(host.encoder.parameters())
+    grads = torch.autograd.grad(losses["lc"], params, allow_unused=True)
+    assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
+    off = Host(lc_weight=0.0)
+    assert off.local_consistency is None
+    assert set(off.compute_loss(off(batch.points_src, batch.points_ref), batch)) == {"host", "loss"}

@@ -1,0 +1,197 @@
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.geometry import se3, so3
+from lcreg.metrics.functional import rotation_error_deg, translation_error
+from lcreg.nn.lk import InverseCompositionalLK, twist_jacobian
+from lcreg.nn.pointnet import PointNetEncoder
+
+
+def _encoder(seed: int = 0) -> PointNetEncoder:
+    torch.manual_seed(seed)
+    return PointNetEncoder((32, 64, 128)).double().eval()
+
+
+def _problem(b: int = 3, n: int = 192) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Smooth asymmetric shapes, reference = T source (same sampling), rotations of 5-10 degrees."""
+    points, _, _ = synthetic_shapes(b, n, seed=3)
+    src = torch.tensor(points, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    axis = torch.randn(b, 3, generator=gen, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    angle = torch.deg2rad(torch.linspace(5.0, 10.0, b, dtype=torch.float64))
+    trans = (torch.rand(b, 3, generator=gen, dtype=torch.float64) * 2 - 1) * 0.05
+    transform = se3.make_transform(so3.exp(axis * angle[:, None]), trans)
+    return src, se3.transform_points(transform, src), transform
+
+
+@pytest.mark.parametrize("jacobian", ["analytic", "autodiff", "finite_difference"])
+def test_recovers_a_known_small_transform(jacobian: str) -> None:
+    src, ref, gt = _problem(b=2 if jacobian == "autodiff" else 3)
+    identity = se3.identity(len(src), dtype=torch.float64)
+    initial = rotation_error_deg(identity, gt)
+    assert (initial > 4.9).all()
+    result = InverseCompositionalLK(max_iterations=10, jacobian=jacobian)(_encoder(), src, ref)  # type: ignore[arg-type]
+    assert result.transform_ref_src.shape == (len(src), 4, 4)
+    assert result.transform_ref_src.dtype == torch.float64
+    err = rotation_error_deg(result.transform_ref_src, gt)
+    assert (err < 0.1 * initial).all(), (err, initial)
+    assert (translation_error(result.transform_ref_src, gt) < 0.02).all()
+    assert result.residual_history is not None and result.residual_history.shape[0] == len(src)
+    assert (result.residual_history[:, -1] < 0.1 * result.residual_history[:, 0]).all()
+    assert result.aux["feature_ref"].shape == (len(src), 128)
+
+
+@pytest.mark.parametrize("tolerance", [1e-7, 1e-3])
+def test_batched_equals_per_item_loop(tolerance: float) -> None:
+    # With tolerance 1e-3 items stop while their updates are still far from zero: updating an item after its
+    # convergence would show here.
+    src, ref, _ = _problem(b=3)
+    ref = torch.cat([ref, src[:1]])  # an identical pair: converges after one (zero) update
+    src = torch.cat([src, src[:1]])
+    enc = _encoder()
+    solver = InverseCompositionalLK(max_iterations=10, tolerance=tolerance)
+    batched = solver(enc, src, ref)
+    singles = [solver(enc, src[i : i + 1], ref[i : i + 1]) for i in range(len(src))]
+    iters = torch.cat([s.num_iters for s in singles])
+    assert len(set(iters.tolist())) > 1, iters  # the items stop at different iterations
+    assert iters[-1] == 1
+    torch.testing.assert_close(batched.num_iters, iters)
+    torch.testing.assert_close(batched.converged, torch.cat([s.converged for s in singles]))
+    torch.testing.assert_close(
+        batched.transform_ref_src, torch.cat([s.transform_ref_src for s in singles]), atol=1e-9, rtol=0
+    )
+    torch.testing.assert_close(batched.transform_ref_src[-1], torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0)
+
+
+def test_convergence_flags_and_iteration_limit() -> None:
+    src, ref, _ = _problem(b=2)
+    enc = _encoder()
+    loose = InverseCompositionalLK(max_iterations=10, tolerance=1e9)(enc, src, ref)
+    assert loose.num_iters.tolist() == [1, 1] and loose.converged.all()
+    assert loose.num_iters.dtype == torch.int64 and loose.converged.dtype == torch.bool
+    capped = InverseCompositionalLK(max_iterations=3, tolerance=0.0)(enc, src, ref)
+    assert capped.num_iters.tolist() == [3, 3] and not capped.converged.any()
+    assert capped.residual_history is not None and capped.residual_history.shape == (2, 3)
+
+
+class _Constant(nn.Module):
+    """Ignores the points: zero Jacobian."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.value = nn.Parameter(torch.linspace(-1.0, 1.0, 8, dtype=torch.float64))
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.value.expand(points.shape[0], -1) + 0 * points.sum()
+
+
+@pytest.mark.parametrize("jacobian", ["autodiff", "finite_difference", "analytic"])
+def test_zero_jacobian_gives_identity_and_no_nan(jacobian: str) -> None:
+    src, ref, _ = _problem(b=2)
+    if jacobian == "analytic":  # a PointNet whose last layer is dead outputs a constant too
+        encoder: nn.Module = _encoder()
+        with torch.no_grad():
+            encoder.linears[-1].weight.zero_()
+    else:
+        encoder = _Constant()
+    _, jac = twist_jacobian(encoder, ref, jacobian)  # type: ignore[arg-type]
+    assert torch.equal(jac, torch.zeros_like(jac))
+    result = InverseCompositionalLK(jacobian=jacobian)(encoder, src, ref)  # type: ignore[arg-type]
+    transform = result.transform_ref_src
+    assert torch.isfinite(transform).all()
+    torch.testing.assert_close(transform[:, :3, :3], torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
+    torch.testing.assert_close(transform[:, :3, 3], ref.mean(1) - src.mean(1))  # centring only
+    assert result.converged.all() and result.num_iters.tolist() == [1, 1]
+    uncentred = InverseCompositionalLK(jacobian=jacobian, center=False)(encoder, src, ref)  # type: ignore[arg-type]
+    torch.testing.assert_close(uncentred.transform_ref_src, se3.identity(2, dtype=torch.float64))
+
+
+def test_differentiable_flag() -> None:
+    src, ref, _ = _problem(b=2)
+    src.requires_grad_(True)
+    enc = _encoder()
+    frozen = InverseCompositionalLK(max_iterations=2)(enc, src, ref)
+    assert not frozen.transform_ref_src.requires_grad
+    assert not frozen.aux["feature_ref"].requires_grad
+    live = InverseCompositionalLK(max_iterations=2, differentiable=True)(enc, src, ref)
+    assert live.transform_ref_src.requires_grad
+    live.transform_ref_src.sum().backward()
+    assert src.grad is not None and torch.isfinite(src.grad).all()
+    assert enc.linears[0].weight.grad is not None and enc.linears[0].weight.grad.abs().sum() > 0
+    with torch.no_grad():  # differentiable=True still respects no_grad
+        assert not InverseCompositionalLK(max_iterations=1, differentiable=True)(
+            enc, src, ref
+        ).transform_ref_src.requires_grad
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"max_iterations": 0},
+        {"tolerance": -1.0},
+        {"damping": -1e-3},
+        {"fd_step": 0.0},
+        {"jacobian": "numerical"},
+    ],
+)
+def test_invalid_constructor_arguments(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        InverseCompositionalLK(**kwargs)
+
+
+def test_unknown_jacobian_mode_in_function() -> None:
+    with pytest.raises(ValueError, match="mode"):
+        twist_jacobian(_encoder(), torch.zeros(1, 4, 3, dtype=torch.float64), "numerical")  # type: ignore[arg-type]
+
+
+def test_encoder_mode_is_restored_and_running_stats_untouched() -> None:
+    src, ref, _ = _problem(b=2)
+    enc = _encoder().train()
+    stats = [n.running_mean.clone() for n in enc.norms]  # type: ignore[union-attr]
+    InverseCompositionalLK(max_iterations=2)(enc, src, ref)
+    assert enc.training and all(m.training for m in enc.modules())
+    for before, norm in zip(stats, enc.norms):
+        assert torch.equal(before, norm.running_mean)  # type: ignore[arg-type]
+    enc.eval()
+    InverseCompositionalLK(max_iterations=2)(enc, src, ref)
+    assert not enc.training
+
+
+class _MeanPoolMLP(nn.Module):
+    """A third-party encoder without `twist_jacobian`: smooth per-point MLP and mean pooling."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(3, 32), nn.Tanh(), nn.Linear(32, 24)).double()
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.mlp(points)).mean(dim=1)
+
+
+def test_autodiff_works_for_any_encoder_and_analytic_refuses() -> None:
+    torch.manual_seed(0)
+    enc = _MeanPoolMLP()
+    src, ref, _ = _problem(b=2, n=128)
+    _, jac_ad = twist_jacobian(enc, ref, "autodiff")
+    _, jac_fd = twist_jacobian(enc, ref, "finite_difference", fd_step=1e-6)
+    torch.testing.assert_close(jac_ad, jac_fd, atol=1e-5, rtol=1e-4)
+    result = InverseCompositionalLK(jacobian="autodiff")(enc, src, ref)
+    assert torch.isfinite(result.transform_ref_src).all()
+    assert result.residual_history is not None
+    assert (result.residual_history[:, -1] < result.residual_history[:, 0]).all()
+    with pytest.raises(ValueError, match="twist_jacobian"):
+        InverseCompositionalLK(jacobian="analytic")(enc, src, ref)
+
+
+def test_points_are_validated() -> None:
+    enc = _encoder()
+    good = torch.zeros(2, 16, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="points_src"):
+        InverseCompositionalLK()(enc, good[..., :2], good)
+    with pytest.raises(ValueError, match="points_ref"):
+        InverseCompositionalLK()(enc, good, good[:1])
