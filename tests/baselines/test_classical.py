@@ -2,8 +2,8 @@ import math
 
 import pytest
 import torch
-from _shared_data import shared_data  # type: ignore[import-not-found]
 
+from _shared_data import shared_data  # type: ignore[import-not-found]
 from lcreg.baselines.classical import ICP
 from lcreg.data.pairs import PairProtocol, make_pair
 from lcreg.data.synthetic import synthetic_shapes
@@ -20,7 +20,9 @@ def _pair(points: torch.Tensor, normals: torch.Tensor | None, angle: float, seed
 def _errors(model: ICP, pair: dict[str, torch.Tensor]) -> tuple[float, float]:
     result = model.register(pair["points_src"][None], pair["points_ref"][None])
     gt = pair["transform_ref_src"][None]
-    return float(rotation_error_deg(result.transform_ref_src, gt)), float(translation_error(result.transform_ref_src, gt))
+    return float(rotation_error_deg(result.transform_ref_src, gt)), float(
+        translation_error(result.transform_ref_src, gt)
+    )
 
 
 @pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
