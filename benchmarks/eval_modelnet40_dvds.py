@@ -57,7 +57,7 @@ def main() -> None:
     untrained = DVDs(**{k: v for k, v in trained.hparams.items() if not k.startswith("_")})
     reports: list[EvaluationReport] = [
         evaluate(trained, batches, f"DVDs (trained, {Path(args.ckpt).name})"),
-        evaluate(untrained, batches, "DVDs (untrained weights, seed %d)" % args.seed),
+        evaluate(untrained, batches, f"DVDs (untrained weights, seed {args.seed})"),
     ]
     for dist in args.icp_distances:
         icp = ICP(max_correspondence_distance=dist, max_iterations=50)
