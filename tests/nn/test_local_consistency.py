@@ -103,19 +103,29 @@ def _manual_sym_kl(
     lc: LocalConsistency, enc: nn.Module, src: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor
 ) -> torch.Tensor:
     x1, x2 = lc.subsets(src)
+
+    def feat(points: torch.Tensor) -> torch.Tensor:
+        f = enc(points)
+        if not lc.standardize:
+            return f
+        centred = f - f.mean(-1, keepdim=True)
+        return centred / (centred.pow(2).sum(-1, keepdim=True) / (f.shape[-1] - 1)).sqrt()
+
     with torch.no_grad():
-        tau1 = lc.metric(torch.cat([enc(x1), enc(w1)], -1)) / lc.temperature
-        tau2 = lc.metric(torch.cat([enc(x2), enc(w2)], -1)) / lc.temperature
+        tau1 = lc.metric(torch.cat([feat(x1), feat(w1)], -1)) / lc.temperature
+        tau2 = lc.metric(torch.cat([feat(x2), feat(w2)], -1)) / lc.temperature
     p, q = Categorical(logits=tau1), Categorical(logits=tau2)
     return (0.5 * (kl_divergence(p, q) + kl_divergence(q, p))).mean()
 
 
+@pytest.mark.parametrize("standardize", [True, False])
 @pytest.mark.parametrize("temperature", [1.0, 0.1])
-def test_symmetric_kl_matches_manual_computation(temperature: float) -> None:
+def test_symmetric_kl_matches_manual_computation(temperature: float, standardize: bool) -> None:
     src, ref, _ = _clouds()
     enc = _encoder()
     torch.manual_seed(1)
-    lc = LocalConsistency(feature_dim=K, num_local_points=16, temperature=temperature).double()
+    lc = LocalConsistency(feature_dim=K, num_local_points=16, temperature=temperature, standardize=standardize)
+    lc = lc.double()
     with torch.no_grad():
         loss = lc(enc, src, ref)
     w1, w2 = lc.subsets(ref)
@@ -123,6 +133,22 @@ def test_symmetric_kl_matches_manual_computation(temperature: float) -> None:
     assert loss.ndim == 0 and loss >= 0
     assert expected > 1e-6  # a non-trivial value
     torch.testing.assert_close(loss, expected, atol=1e-12, rtol=1e-10)
+
+
+def test_standardized_loss_ignores_the_encoder_output_scale() -> None:
+    src, ref, _ = _clouds()
+    enc = _encoder()
+    torch.manual_seed(1)
+    lc = LocalConsistency(feature_dim=K, num_local_points=16).double()
+    raw = LocalConsistency(feature_dim=K, num_local_points=16, standardize=False).double()
+    raw.load_state_dict(lc.state_dict())
+
+    def scaled(points: torch.Tensor) -> torch.Tensor:
+        return 100.0 * enc(points)
+
+    with torch.no_grad():
+        torch.testing.assert_close(lc(scaled, src, ref), lc(enc, src, ref), atol=1e-10, rtol=1e-8)
+        assert abs(float(raw(scaled, src, ref)) - float(raw(enc, src, ref))) > 1e-3  # the raw loss does depend on it
 
 
 def test_loss_is_zero_when_both_subsets_coincide() -> None:

@@ -62,6 +62,7 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         lc_outlier_quantile: Quantile-based alternative to ``c``.
         lc_temperature: Softmax temperature of ``tau``.
         lc_trainable_metric: Train the FC metric of LC (default frozen).
+        lc_standardize: Standardise descriptors before the LC metric (scale-free LC; see LocalConsistency).
         lambda_recon: ``lambda1`` (self-reconstruction; 0 disables it).
         lambda_normal: ``lambda2`` (normal estimation; 0 disables it).
         decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
@@ -90,6 +91,7 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         lc_outlier_quantile: float | None = None,
         lc_temperature: float = 1.0,
         lc_trainable_metric: bool = False,
+        lc_standardize: bool = True,
         lambda_recon: float = 0.5,
         lambda_normal: float = 0.1,
         decoder_grid_size: int = 32,
@@ -118,6 +120,7 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
             lc_outlier_quantile,
             lc_temperature,
             lc_trainable_metric,
+            lc_standardize,
         )
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal

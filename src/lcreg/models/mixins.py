@@ -34,6 +34,7 @@ class LocalConsistencyMixin:
         outlier_quantile: float | None = None,
         temperature: float = 1.0,
         trainable_metric: bool = False,
+        standardize: bool = True,
     ) -> None:
         """Create the LC module (``None`` when ``lc_weight == 0``)."""
         if lc_weight < 0:
@@ -48,6 +49,7 @@ class LocalConsistencyMixin:
                 outlier_quantile,
                 temperature,
                 trainable_metric,
+                standardize,
             )
             if lc_weight > 0
             else None

@@ -7,7 +7,9 @@ For a source cloud ``X`` (and its reference ``Y``):
    closest point ``x_c = argmin ||x_i - x_b||``.
 2. Local subsets ``X1 = kNN(x_f, N_l)``, ``X2 = kNN(x_c, N_l)``.
 3. ``tau(X_k) = FC[psi(X_k) (+) psi(W(X_k))]`` with ``FC: R^{2K} -> R^K`` and ``psi`` the host's encoder.
-4. Loss ``1/2 (KL(p1 || p2) + KL(p2 || p1))`` with ``p_k = softmax(tau(X_k) / temperature)`` over the K channels.
+4. Loss ``1/2 (KL(p1 || p2) + KL(p2 || p1))`` with ``p_k = softmax(tau(X_k) / temperature)`` over the K channels;
+   by default each descriptor is standardised over its channels first (``standardize=True``), so the loss does
+   not vanish or explode with the encoder's output scale.
 
 What ``W(X_k)`` is (see ``docs/local_consistency.md``):
 
@@ -93,6 +95,9 @@ class LocalConsistency(nn.Module):
         outlier_quantile: Alternative robust cap: quantile of the barycenter distances (e.g. 0.98 on real scans).
         temperature: Softmax temperature turning ``tau`` into a distribution.
         trainable_metric: Train the FC metric (default frozen, see module docstring).
+        standardize: Standardise each descriptor over its K channels (zero mean, unit variance) before the FC, so
+            the loss does not depend on the encoder's output scale (an untrained PointNet without BatchNorm outputs
+            values ~1e-2, which makes both softmaxes uniform and the loss ~1e-6).
 
     Example:
         >>> from lcreg import LocalConsistency
@@ -113,6 +118,7 @@ class LocalConsistency(nn.Module):
         outlier_quantile: float | None = None,
         temperature: float = 1.0,
         trainable_metric: bool = False,
+        standardize: bool = True,
     ) -> None:
         super().__init__()
         if feature_dim < 1 or num_local_points < 1:
@@ -131,6 +137,7 @@ class LocalConsistency(nn.Module):
         self.outlier_threshold = outlier_threshold
         self.outlier_quantile = outlier_quantile
         self.temperature = temperature
+        self.standardize = standardize
         self.metric = nn.Linear(2 * feature_dim, feature_dim)
         self.metric.requires_grad_(trainable_metric)
 
@@ -185,6 +192,8 @@ class LocalConsistency(nn.Module):
         feats = _descriptor(encoder, torch.cat([x1, x2, w1, w2]))  # (4B, K), one encoder pass
         if feats.shape[1] != self.feature_dim:
             raise ValueError(f"encoder returns {feats.shape[1]} features, LocalConsistency expects {self.feature_dim}")
+        if self.standardize:
+            feats = (feats - feats.mean(-1, keepdim=True)) / feats.std(-1, keepdim=True).clamp_min(1e-6)
         f1, f2, g1, g2 = feats.chunk(4)
         tau1 = self.metric(torch.cat([f1, g1], dim=-1)) / self.temperature
         tau2 = self.metric(torch.cat([f2, g2], dim=-1)) / self.temperature
