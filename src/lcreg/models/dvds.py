@@ -114,13 +114,13 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         self.init_local_consistency(
             k,
             lc_weight,
-            num_local_points,
-            lc_pairing,
-            lc_outlier_threshold,
-            lc_outlier_quantile,
-            lc_temperature,
-            lc_trainable_metric,
-            lc_standardize,
+            num_local_points=num_local_points,
+            pairing=lc_pairing,
+            outlier_threshold=lc_outlier_threshold,
+            outlier_quantile=lc_outlier_quantile,
+            temperature=lc_temperature,
+            trainable_metric=lc_trainable_metric,
+            standardize=lc_standardize,
         )
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal

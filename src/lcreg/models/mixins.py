@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from lcreg.nn.local_consistency import LocalConsistency, Pairing
+from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["LocalConsistencyMixin"]
@@ -24,36 +24,18 @@ class LocalConsistencyMixin:
     local_consistency: LocalConsistency | None
     lc_weight: float
 
-    def init_local_consistency(
-        self,
-        feature_dim: int,
-        lc_weight: float = 1.0,
-        num_local_points: int = 64,
-        pairing: Pairing = "target",
-        outlier_threshold: float | None = None,
-        outlier_quantile: float | None = None,
-        temperature: float = 1.0,
-        trainable_metric: bool = False,
-        standardize: bool = True,
-    ) -> None:
-        """Create the LC module (``None`` when ``lc_weight == 0``)."""
+    def init_local_consistency(self, feature_dim: int, lc_weight: float = 1.0, **lc_kwargs: Any) -> None:
+        """Create the LC module (``None`` when ``lc_weight == 0``).
+
+        Args:
+            feature_dim: Descriptor size ``K`` of the host's encoder.
+            lc_weight: Weight of the LC term in the loss.
+            **lc_kwargs: Forwarded to :class:`~lcreg.nn.local_consistency.LocalConsistency`.
+        """
         if lc_weight < 0:
             raise ValueError(f"`lc_weight` must be >= 0, got {lc_weight}")
         self.lc_weight = lc_weight
-        self.local_consistency = (
-            LocalConsistency(
-                feature_dim,
-                num_local_points,
-                pairing,
-                outlier_threshold,
-                outlier_quantile,
-                temperature,
-                trainable_metric,
-                standardize,
-            )
-            if lc_weight > 0
-            else None
-        )
+        self.local_consistency = LocalConsistency(feature_dim, **lc_kwargs) if lc_weight > 0 else None
 
     def lc_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """The host's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""
