@@ -4,6 +4,7 @@ import csv
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -69,6 +70,12 @@ def test_fit_then_test_from_the_saved_config(tmp_path: Path) -> None:
     per_pair = list(csv.reader((tmp_path / "runs" / "lcreg" / "version_1" / "test_per_pair.csv").open()))
     assert per_pair[0] == ["index", "rotation_error_deg", "translation_error"]
     assert [int(row[0]) for row in per_pair[1:]] == [0, 1]
+
+    main(["predict", "--config", str(saved), "--ckpt_path", str(last)])
+    predictions = np.load(tmp_path / "runs" / "lcreg" / "version_2" / "predictions.npz")
+    assert predictions["transform_ref_src"].shape == (2, 4, 4) and predictions["transform_gt"].shape == (2, 4, 4)
+    assert predictions["index"].tolist() == [0, 1] and predictions["converged"].dtype == bool
+    assert np.isfinite(predictions["transform_ref_src"]).all()
 
 
 def test_fit_with_the_wandb_logging_fragment(tmp_path: Path) -> None:

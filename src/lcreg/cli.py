@@ -32,7 +32,8 @@ class LcregCLI(LightningCLI):
     """LightningCLI with lcreg's base classes in subclass mode and default callbacks.
 
     Unless disabled in the trainer config, adds ``ModelCheckpoint(monitor="val/loss", save_last=True)`` and a
-    ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well.
+    ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well. ``lcreg predict`` writes
+    ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory.
     """
 
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
@@ -49,6 +50,10 @@ class LcregCLI(LightningCLI):
                     auto_insert_metric_name=False,
                 )
             )
+        if self.subcommand == "predict":
+            from lcreg.callbacks import TransformWriter
+
+            callbacks.append(TransformWriter())
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TQDMProgressBar(refresh_rate=20))
         return super()._instantiate_trainer(config, callbacks)

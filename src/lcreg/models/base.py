@@ -131,9 +131,14 @@ class RegistrationModule(LightningModule):
         self._common_step(batch, "test")
 
     def predict_step(self, batch: RegistrationBatch, batch_idx: int) -> RegistrationResult:
-        """Registration results for a batch (``lcreg predict``)."""
+        """Registration results for a batch (``lcreg predict``); ``aux`` carries ``index``/``transform_gt``."""
         self.validate_inputs(batch.points_src, batch.points_ref)
-        return self(batch.points_src, batch.points_ref)
+        result = self(batch.points_src, batch.points_ref)
+        if batch.index is not None:
+            result.aux["index"] = batch.index
+        if batch.transform_ref_src is not None:
+            result.aux["transform_gt"] = batch.transform_ref_src
+        return result
 
     def _summary(self, stage: Stage) -> None:
         keys = ("rre_mean_deg", "rre_median_deg", "rmse_r_deg", "rte_mean", "recall_r2_t0p01")
