@@ -55,5 +55,5 @@ class TransformWriter(BasePredictionWriter):
         directory = Path(trainer.log_dir or trainer.default_root_dir)
         directory.mkdir(parents=True, exist_ok=True)
         path = directory / self.filename
-        np.savez(path, **out)
+        np.savez(path, **out)  # type: ignore[arg-type]  # numpy stubs type **kwds as allow_pickle
         rank_zero_info(f"{len(out['index'])} predictions written to {path}")
