@@ -44,3 +44,15 @@ def test_evaluate_needs_ground_truth() -> None:
     batch = RegistrationBatch(torch.rand(1, 8, 3), torch.rand(1, 8, 3))
     with pytest.raises(ValueError, match="ground-truth"):
         evaluate(_Oracle(torch.eye(4)[None]), [batch], "x")
+
+
+def test_mean_std_row_over_seeds() -> None:
+    from lcreg.evaluation import mean_std_row
+
+    gt, _ = random_euler_transform(4, generator=torch.Generator().manual_seed(2))
+    bad = gt.clone()
+    bad[:2] = float("nan")
+    reports = [evaluate(_Oracle(gt), _batches(gt, 4), "a"), evaluate(_Oracle(bad), _batches(gt, 4), "b")]
+    row = mean_std_row(reports, "two seeds")
+    # recall 100 % and 50 %: mean 75 %, sample std 35.4 %
+    assert row.startswith("| two seeds |") and "75 ± 35 %" in row and row.endswith("| 4 |")

@@ -16,7 +16,7 @@ from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
 
-__all__ = ["EvaluationReport", "evaluate", "markdown_table"]
+__all__ = ["EvaluationReport", "evaluate", "markdown_table", "mean_std_row"]
 
 COLUMNS = (
     ("rmse_r_deg", "RMSE(R) °"),
@@ -86,3 +86,17 @@ def markdown_table(reports: list[EvaluationReport]) -> str:
             cells.append(f"{100 * v:.1f} %" if key.startswith("recall") else f"{v:.4g}")
         rows.append(f"| {r.name} | " + " | ".join(cells) + f" | {r.ms_per_pair:.1f} | {r.num_pairs} |")
     return "\n".join([head, sep, *rows])
+
+
+def _cell(key: str, values: list[float]) -> str:
+    t = torch.tensor(values, dtype=torch.float64)
+    scale, unit = (100.0, " %") if key.startswith("recall") else (1.0, "")
+    mean, std = float(t.mean()) * scale, float(t.std()) * scale if len(values) > 1 else 0.0
+    return f"{mean:.3g} ± {std:.2g}{unit}"
+
+
+def mean_std_row(reports: list[EvaluationReport], name: str) -> str:
+    """One Markdown row with ``mean ± std`` over ``reports`` (e.g. seeds) for every column of :func:`markdown_table`."""
+    cells = [_cell(key, [r.metrics[key] for r in reports]) for key, _ in COLUMNS]
+    ms = _cell("ms", [r.ms_per_pair for r in reports])
+    return f"| {name} | " + " | ".join(cells) + f" | {ms} | {reports[0].num_pairs} |"
