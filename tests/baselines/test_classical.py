@@ -3,11 +3,12 @@ import math
 import pytest
 import torch
 
-from _shared_data import shared_data  # type: ignore[import-not-found]
 from lcreg.baselines.classical import ICP
 from lcreg.data.pairs import PairProtocol, make_pair
 from lcreg.data.synthetic import synthetic_shapes
 from lcreg.metrics.functional import rotation_error_deg, translation_error
+
+from _shared_data import shared_data  # type: ignore[import-not-found]
 
 pytest.importorskip("open3d")
 

@@ -6,7 +6,6 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from _shared_data import shared_data
 
 from lcreg.data.datamodule import ModelNet40DataModule
 from lcreg.data.modelnet40 import (
@@ -16,6 +15,8 @@ from lcreg.data.modelnet40 import (
     modelnet40_objects,
 )
 from lcreg.types import RegistrationBatch
+
+from _shared_data import shared_data
 
 
 def _write_layout(

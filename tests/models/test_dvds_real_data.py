@@ -5,9 +5,10 @@ import math
 import lightning as L
 import pytest
 
-from _shared_data import shared_data  # type: ignore[import-not-found]
 from lcreg.data.datamodule import ModelNet40DataModule
 from lcreg.models.dvds import DVDs
+
+from _shared_data import shared_data  # type: ignore[import-not-found]
 
 
 @pytest.mark.slow
