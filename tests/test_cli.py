@@ -56,9 +56,12 @@ def test_fit_then_test_from_the_saved_config(tmp_path: Path) -> None:
     last = run_dir / "checkpoints" / "last.ckpt"
     saved = run_dir / "config.yaml"
     assert last.is_file() and saved.is_file()
-    assert len(list((run_dir / "checkpoints").glob("epoch000-val_loss*.ckpt"))) == 1
+    assert len(list((run_dir / "checkpoints").glob("epoch000-rre*.ckpt"))) == 1
     checkpoint = torch.load(last, map_location="cpu", weights_only=False)
-    assert any("'monitor': 'val/loss'" in key for key in checkpoint["callbacks"])  # label-free model selection
+    # selected on the validation registration error (configs/dvds.yaml), a single checkpoint callback
+    assert [k for k in checkpoint["callbacks"] if "ModelCheckpoint" in k] == [
+        k for k in checkpoint["callbacks"] if "'monitor': 'val/rre_mean_deg'" in k
+    ]
     assert checkpoint["hyper_parameters"]["encoder_channels"] == [16, 32]
     config = yaml.safe_load(saved.read_text())
     assert config["model"]["class_path"] == "lcreg.models.dvds.DVDs"
@@ -178,3 +181,11 @@ def test_ablation_configs_match_the_paper_rows() -> None:
     assert len(names) == len(ABLATION)  # every run logs under its own name
     readme = (CONFIGS / "ablation" / "README.md").read_text()
     assert all(f"`{stem}.yaml`" in readme for stem in ABLATION)
+
+
+def test_default_checkpoint_is_label_free_when_the_config_lists_none(tmp_path: Path) -> None:
+    main(["fit", "--config", str(DVDS), "--trainer.callbacks=[]", *TINY, *_outputs(tmp_path)])
+    checkpoints = tmp_path / "runs" / "lcreg" / "version_0" / "checkpoints"
+    assert len(list(checkpoints.glob("epoch000-val_loss*.ckpt"))) == 1 and (checkpoints / "last.ckpt").is_file()
+    checkpoint = torch.load(checkpoints / "last.ckpt", map_location="cpu", weights_only=False)
+    assert any("'monitor': 'val/loss'" in key for key in checkpoint["callbacks"])
