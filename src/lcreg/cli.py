@@ -2,9 +2,10 @@
 
 Models are any :class:`~lcreg.models.base.RegistrationModule` subclass (``model.class_path``), data any
 :class:`~lcreg.data.datamodule.PairDataModule` subclass (``data.class_path``); both are picked in YAML.
-Defaults: CSV logging under ``runs/``, checkpoints selected on ``val/loss`` (label-free, as in the DVDs paper) plus
-``last.ckpt``, and a TQDM bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments
-(``model.init_args.optimizer``), so the top-level ``optimizer:`` key of LightningCLI is not used.
+Defaults: CSV logging under ``runs/``, checkpoints selected on ``val/loss`` (label-free, as in the DVDs paper; a
+config that lists its own ``ModelCheckpoint`` replaces it, as the DVDs configs do) plus ``last.ckpt``, and a TQDM
+bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments (``model.init_args.optimizer``),
+so the top-level ``optimizer:`` key of LightningCLI is not used.
 
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).

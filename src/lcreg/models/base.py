@@ -14,7 +14,6 @@ logger's directory. Optimisers are injected (``optimizer``/``lr_scheduler`` call
 from __future__ import annotations
 
 import csv
-import logging
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, Literal
@@ -29,7 +28,6 @@ from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["RegistrationModule"]
 
-log = logging.getLogger(__name__)
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
 SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
