@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from lcreg.baselines.classical import ICP
 from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
@@ -65,14 +66,8 @@ def train_step_memory(device: str, batch_size: int = 32, num_points: int = 1024)
     model = DVDs().to(device).train()
     dm = SyntheticDataModule(num_points=num_points, batch_size=batch_size, num_train=batch_size)
     dm.setup("fit")
-    batch = next(iter(dm.train_dataloader()))
-    batch = RegistrationBatch(
-        batch.points_src.to(device),
-        batch.points_ref.to(device),
-        None,
-        batch.normals_src.to(device) if batch.normals_src is not None else None,
-        batch.normals_ref.to(device) if batch.normals_ref is not None else None,
-    )
+    batch = move_data_to_device(next(iter(dm.train_dataloader())), device)
+    batch.transform_ref_src = None  # self-supervised: the training step never sees the pose
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from lcreg.data.datamodule import ModelNet40DataModule
-from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.evaluation import EvaluationReport, evaluate, format_mean_std
 from lcreg.models.dvds import DVDs
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -56,22 +56,16 @@ def run(dm: ModelNet40DataModule, seed: int, steps: int, lr: float = 1e-3, **mod
     return report
 
 
-def _mean_std(values: list[float], fmt: str) -> str:
-    t = torch.tensor(values, dtype=torch.float64)
-    std = float(t.std()) if len(values) > 1 else 0.0
-    return f"{float(t.mean()):{fmt}} ± {std:{fmt}}"
-
-
 def row(name: str, steps: int, reports: list[EvaluationReport]) -> str:
     """Markdown row: mean ± std over seeds of the validation metrics and the last training-loss terms."""
     cols = [
-        _mean_std([r.metrics["rre_mean_deg"] for r in reports], ".2f"),
-        _mean_std([r.metrics["rre_median_deg"] for r in reports], ".2f"),
-        _mean_std([r.metrics["rte_mean"] for r in reports], ".4f"),
-        _mean_std([100 * r.metrics["recall_r2_t0p01"] for r in reports], ".1f") + " %",
+        format_mean_std([r.metrics["rre_mean_deg"] for r in reports], ".2f", ".2f"),
+        format_mean_std([r.metrics["rre_median_deg"] for r in reports], ".2f", ".2f"),
+        format_mean_std([r.metrics["rte_mean"] for r in reports], ".4f", ".4f"),
+        format_mean_std([r.metrics["recall_r2_t0p01"] for r in reports], ".1f", ".1f", scale=100.0) + " %",
     ]
     keys = sorted({k for r in reports for k in r.extra if k.startswith("last_") and k != "last_loss"})
-    terms = ", ".join(f"{k[5:]} {_mean_std([r.extra[k] for r in reports], '.2g')}" for k in keys) or "-"
+    terms = ", ".join(f"{k[5:]} {format_mean_std([r.extra[k] for r in reports], '.2g', '.2g')}" for k in keys) or "-"
     seconds = sum(r.extra["seconds"] for r in reports)
     return f"| {name} | {steps} | " + " | ".join(cols) + f" | {terms} | {seconds:.0f} |"
 

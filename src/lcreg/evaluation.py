@@ -16,7 +16,7 @@ from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
 
-__all__ = ["EvaluationReport", "evaluate", "markdown_table", "mean_std_row"]
+__all__ = ["EvaluationReport", "evaluate", "format_mean_std", "markdown_table", "mean_std_row"]
 
 COLUMNS = (
     ("rmse_r_deg", "RMSE(R) °"),
@@ -88,11 +88,17 @@ def markdown_table(reports: list[EvaluationReport]) -> str:
     return "\n".join([head, sep, *rows])
 
 
+def format_mean_std(values: list[float], mean_fmt: str = ".3g", std_fmt: str = ".2g", scale: float = 1.0) -> str:
+    """``"mean ± std"`` of ``values`` times ``scale`` (sample std; 0 for a single value)."""
+    t = torch.tensor(values, dtype=torch.float64) * scale
+    std = float(t.std()) if len(values) > 1 else 0.0
+    return f"{float(t.mean()):{mean_fmt}} ± {std:{std_fmt}}"
+
+
 def _cell(key: str, values: list[float]) -> str:
-    t = torch.tensor(values, dtype=torch.float64)
-    scale, unit = (100.0, " %") if key.startswith("recall") else (1.0, "")
-    mean, std = float(t.mean()) * scale, float(t.std()) * scale if len(values) > 1 else 0.0
-    return f"{mean:.3g} ± {std:.2g}{unit}"
+    if key.startswith("recall"):
+        return format_mean_std(values, scale=100.0) + " %"
+    return format_mean_std(values)
 
 
 def mean_std_row(reports: list[EvaluationReport], name: str) -> str:

@@ -78,3 +78,21 @@ def test_icp_rejects_bad_clouds() -> None:
     bad[0, 0, 0] = float("nan")
     with pytest.raises(NonFiniteError, match="points_src"):
         ICP().register(bad, torch.rand(1, 32, 3))
+
+
+def test_icp_validates_and_tests_through_the_shared_step_without_a_loss() -> None:
+    import lightning as L
+
+    from lcreg.data.datamodule import SyntheticDataModule
+
+    dm = SyntheticDataModule(num_points=128, batch_size=2, num_train=4, num_val=2, num_test=2, max_angle_deg=10.0)
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False)
+    icp = ICP(max_correspondence_distance=0.5)
+    val = trainer.validate(icp, dm, verbose=False)[0]
+    test = trainer.test(icp, dm, verbose=False)[0]
+    assert "val/loss" not in val and all(math.isfinite(v) for v in val.values())
+    from lcreg.evaluation import evaluate
+
+    direct = evaluate(icp, list(dm.test_dataloader()), "icp").metrics
+    assert test["test/rre_mean_deg"] == pytest.approx(direct["rre_mean_deg"], rel=1e-5)
+    assert test["test/rmse_t"] == pytest.approx(direct["rmse_t"], rel=1e-5)

@@ -36,6 +36,8 @@ def _cloud(points: np.ndarray) -> Any:
 class ICP(RegistrationModule):
     """Open3D ICP (point-to-point or point-to-plane).
 
+    Nothing to train: ``has_loss = False`` (validation/test only update metrics) and ``configure_optimizers`` raises.
+
     Args:
         method: ``"point_to_point"`` or ``"point_to_plane"``.
         max_correspondence_distance: Inlier distance of the correspondences.
@@ -45,6 +47,8 @@ class ICP(RegistrationModule):
         normal_radius: Search radius of the reference normals (point-to-plane).
         normal_max_nn: Maximum neighbours of the normal estimation.
     """
+
+    has_loss = False
 
     def __init__(
         self,
@@ -101,18 +105,6 @@ class ICP(RegistrationModule):
     def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Classical methods have no training objective."""
         raise RuntimeError(f"{type(self).__name__} is a classical method with nothing to train; use `lcreg test`")
-
-    def validation_step(self, batch: RegistrationBatch, batch_idx: int) -> None:
-        """Metrics only (no loss)."""
-        self._metrics_only(batch, "val")
-
-    def _metrics_only(self, batch: RegistrationBatch, stage: Literal["val", "test"]) -> None:
-        self.validate_inputs(batch.points_src, batch.points_ref)
-        if batch.transform_ref_src is not None:
-            result = self(batch.points_src, batch.points_ref)
-            metrics = self.val_metrics if stage == "val" else self.test_metrics
-            metrics.update(transform_pred=result.transform_ref_src, transform_gt=batch.transform_ref_src)
-            self.log_dict(metrics, batch_size=len(batch))
 
     def configure_optimizers(self) -> Any:
         """Refuse training with a clear message."""

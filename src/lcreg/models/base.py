@@ -36,11 +36,16 @@ SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
 class RegistrationModule(LightningModule):
     """Base LightningModule for registration methods.
 
+    Class attribute ``has_loss``: ``False`` for methods with nothing to train (classical baselines); their
+    validation then only updates metrics.
+
     Args:
         optimizer: Callable building the optimiser from the trainable parameters (default Adam, lr 1e-3).
         lr_scheduler: Optional callable building a scheduler from the optimiser (stepped per epoch).
         min_points: Smallest cloud size accepted by :meth:`validate_inputs`.
     """
+
+    has_loss: bool = True
 
     def __init__(
         self,
@@ -89,7 +94,7 @@ class RegistrationModule(LightningModule):
         result = self(batch.points_src, batch.points_ref)
         bs = len(batch)
         loss = None
-        if stage != "test":
+        if stage == "train" or (stage == "val" and self.has_loss):
             losses = self.compute_loss(result, batch)
             loss = losses["loss"]
             for name, value in losses.items():
