@@ -12,7 +12,7 @@ import torch
 
 from lcreg.checks import ShapeError, TooFewPointsError, check_float, check_points, check_same_batch, check_shape
 
-__all__ = ["gather_points", "knn", "pairwise_sq_distances", "safe_norm"]
+__all__ = ["gather_points", "knn", "knn_indices", "pairwise_sq_distances", "safe_norm"]
 
 # Upper bound on the number of entries of one distance-matrix chunk (2^24 floats = 64 MiB in float32).
 _CHUNK_ELEMENTS = 1 << 24
@@ -101,8 +101,12 @@ def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     return torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
 
 
-def _knn_indices(query: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices ``(B, Q, k)`` of the ``k`` nearest ``points (B, N, 3)`` of each ``query (B, Q, 3)``, no autograd."""
+def knn_indices(query: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices ``(B, Q, k)`` of the ``k`` nearest ``points (B, N, D)`` of each ``query (B, Q, D)``, no autograd.
+
+    Works in any dimension ``D`` (coordinates or feature space, e.g. dynamic DGCNN graphs); ascending distance
+    order. Inputs are not validated beyond :func:`pairwise_sq_distances`; ``k <= N`` is the caller's contract.
+    """
     chunk = max(1, _CHUNK_ELEMENTS // (query.shape[0] * points.shape[1]))
     with torch.no_grad():
         parts = [
@@ -143,7 +147,7 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor
         raise ValueError(f"`k` must be >= 1, got {k}")
     if k > points.shape[1]:
         raise TooFewPointsError(f"`points` has {points.shape[1]} points; k={k} neighbours are needed")
-    idx = _knn_indices(query, points, k)  # (B, Q, k)
+    idx = knn_indices(query, points, k)  # (B, Q, k)
     dists = safe_norm(query[:, :, None, :] - gather_points(points, idx), dim=-1)  # (B, Q, k)
     # Exact distances may reorder near-ties of the expanded ones; re-sort so the output is ascending.
     dists, order = dists.sort(dim=-1)

@@ -72,6 +72,14 @@ class RegistrationModule(LightningModule):
         raise NotImplementedError
 
     # --- shared machinery ------------------------------------------------------------------------------------
+    def ground_truth(self, batch: RegistrationBatch) -> torch.Tensor:
+        """``batch.transform_ref_src`` for supervised losses; a clear error when the batch has none."""
+        if batch.transform_ref_src is None:
+            raise ValueError(
+                f"{type(self).__name__} is trained with a ground-truth pose, but the batch has no `transform_ref_src`"
+            )
+        return batch.transform_ref_src
+
     def validate_inputs(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> None:
         """Raise a typed error (naming the argument) for bad clouds: type, dtype, shape, size, NaN/Inf."""
         check_points(points_src, "points_src", self.min_points)

@@ -16,9 +16,12 @@ __all__ = ["LocalConsistencyMixin"]
 class LocalConsistencyMixin:
     """Adds ``lc_weight * LocalConsistency(encoder, src, ref, estimate)`` to a host's ``compute_loss``.
 
-    The host only declares its encoder by overriding :meth:`lc_encoder` (default: ``self.encoder``) and calls
-    :meth:`init_local_consistency` in its constructor. Place the mixin first: ``class X(LocalConsistencyMixin, Host)``.
-    The term is logged as ``{stage}/lc``.
+    The host only declares its encoder by overriding :meth:`lc_encoder` (default: ``self.encoder``) and, in its
+    constructor, either builds the module (:meth:`init_local_consistency`, DVDs' flat arguments) or receives one
+    (:meth:`attach_local_consistency`: the baselines take ``local_consistency: LocalConsistency | None`` and
+    ``lc_weight``, so a YAML config switches LC on with one block). Place the mixin first:
+    ``class X(LocalConsistencyMixin, RegistrationModule)``; the host's own ``compute_loss`` stays LC-free and the
+    mixin's ``compute_loss`` adds the term. It is logged as ``{stage}/lc``.
     """
 
     local_consistency: LocalConsistency | None
@@ -32,10 +35,27 @@ class LocalConsistencyMixin:
             lc_weight: Weight of the LC term in the loss.
             **lc_kwargs: Forwarded to :class:`~lcreg.nn.local_consistency.LocalConsistency`.
         """
+        module = LocalConsistency(feature_dim, **lc_kwargs) if lc_weight > 0 else None
+        self.attach_local_consistency(module, lc_weight)
+
+    def attach_local_consistency(self, module: LocalConsistency | None, lc_weight: float = 1.0) -> None:
+        """Use ``module`` (``None``: LC off) with weight ``lc_weight`` (``0`` also switches it off).
+
+        Raises:
+            ValueError: If ``lc_weight < 0``.
+            TypeError: If ``module`` is not a :class:`LocalConsistency`.
+        """
         if lc_weight < 0:
             raise ValueError(f"`lc_weight` must be >= 0, got {lc_weight}")
+        if module is not None and not isinstance(module, LocalConsistency):
+            raise TypeError(f"`local_consistency` must be a LocalConsistency module, got {type(module).__name__}")
         self.lc_weight = lc_weight
-        self.local_consistency = LocalConsistency(feature_dim, **lc_kwargs) if lc_weight > 0 else None
+        self.local_consistency = module if lc_weight > 0 else None
+
+    @property
+    def lc_min_points(self) -> int:
+        """Smallest cloud LC accepts (``N_l``), 0 when LC is off; hosts fold it into ``min_points``."""
+        return 0 if self.local_consistency is None else self.local_consistency.num_local_points
 
     def lc_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """The host's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""

@@ -1,14 +1,79 @@
-"""Shared per-point MLP building blocks (used by the decoder and the normal head; never copied per model)."""
+"""Shared per-point MLP building blocks (decoder, normal head, baselines' 1x1 convolutions; never copied per model)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from itertools import pairwise
+from typing import Literal
 
 import torch
 from torch import nn
 
-__all__ = ["ConditionedPointMLP"]
+__all__ = ["ConditionedPointMLP", "PointwiseMLP", "activation"]
+
+Activation = Literal["relu", "leaky_relu"]
+
+
+def activation(name: Activation) -> nn.Module:
+    """``"relu"`` or ``"leaky_relu"`` (slope 0.2, as in DGCNN/PRNet)."""
+    if name == "relu":
+        return nn.ReLU()
+    if name == "leaky_relu":
+        return nn.LeakyReLU(0.2)
+    raise ValueError(f"unknown activation {name!r}; expected 'relu' or 'leaky_relu'")
+
+
+class PointwiseMLP(nn.Module):
+    """Shared per-point layers (PointNet's 1x1 convolutions) on channels-last features ``(..., C)``.
+
+    Each layer is ``Linear -> [BatchNorm] -> activation``; the last layer's activation (and norm) can be dropped
+    with ``last_plain=True``. BatchNorm normalises over every leading dimension (batch, points, neighbours), which is
+    what ``BatchNorm1d/2d`` on channels-first tensors do.
+
+    Args:
+        channels: ``(C_in, C_1, ..., C_out)``.
+        batch_norm: BatchNorm after each linear layer.
+        bias: Bias in the linear layers (originals often use ``bias=False`` with BatchNorm).
+        act: Activation name.
+        last_plain: Leave the last layer linear (no norm, no activation).
+    """
+
+    def __init__(
+        self,
+        channels: Sequence[int],
+        batch_norm: bool = True,
+        bias: bool = True,
+        act: Activation = "relu",
+        last_plain: bool = False,
+    ) -> None:
+        super().__init__()
+        if len(channels) < 2:
+            raise ValueError(f"`channels` needs an input and at least one output width, got {list(channels)}")
+        self.linears = nn.ModuleList()
+        self.norms = nn.ModuleList()
+        self.acts = nn.ModuleList()
+        num = len(channels) - 1
+        for i, (c_in, c_out) in enumerate(pairwise(channels)):
+            plain = last_plain and i == num - 1
+            self.linears.append(nn.Linear(c_in, c_out, bias=bias or plain or not batch_norm))
+            self.norms.append(nn.BatchNorm1d(c_out) if batch_norm and not plain else nn.Identity())
+            self.acts.append(nn.Identity() if plain else activation(act))
+
+    @property
+    def out_channels(self) -> int:
+        """Output width."""
+        last = self.linears[-1]
+        assert isinstance(last, nn.Linear)
+        return last.out_features
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Map ``(..., C_in)`` to ``(..., C_out)``."""
+        for linear, norm, act in zip(self.linears, self.norms, self.acts, strict=True):
+            x = linear(x)
+            if isinstance(norm, nn.BatchNorm1d):
+                x = norm(x.reshape(-1, x.shape[-1])).reshape(x.shape)
+            x = act(x)
+        return x
 
 
 class ConditionedPointMLP(nn.Module):

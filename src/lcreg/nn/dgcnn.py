@@ -1,0 +1,96 @@
+"""DGCNN per-point embedding (Wang et al. 2019) in the two variants the registration baselines use.
+
+* ``graph="static"`` (DCP): the k-NN graph is built once on the input coordinates; the edge tensor
+  ``[x_j, x_i]`` (neighbour, centre; 6 channels) goes through the edge layers *sequentially*, and after each layer
+  the maximum over the ``k`` neighbours is kept as that layer's per-point output.
+* ``graph="dynamic"`` (PRNet, standard DGCNN): before every edge layer the graph is rebuilt on the current
+  per-point features, and the edge tensor is ``[f_j, f_i]`` of those features.
+
+Both concatenate the per-layer outputs (64 + 64 + 128 + 256 = 512 channels by default) and map them with a final
+per-point layer to ``emb_dims``. No global pooling: the output is per point. Edge features are ``[neighbour,
+centre]`` as in the DCP/PRNet code (not DGCNN's ``[neighbour - centre, centre]``; see docs/baselines.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import torch
+from torch import nn
+
+from lcreg.checks import TooFewPointsError
+from lcreg.geometry.neighbors import gather_points, knn_indices
+from lcreg.nn.mlp import Activation, PointwiseMLP
+
+__all__ = ["DGCNN", "edge_features"]
+
+Graph = Literal["static", "dynamic"]
+
+
+def edge_features(features: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``[f_j, f_i]`` for each point ``i`` and neighbour ``j``.
+
+    Args:
+        features: Per-point features ``(B, N, C)``.
+        idx: Neighbour indices ``(B, N, k)``.
+
+    Returns:
+        ``(B, N, k, 2C)``.
+    """
+    neighbours = gather_points(features, idx)  # (B, N, k, C)
+    centre = features[:, :, None, :].expand_as(neighbours)
+    return torch.cat([neighbours, centre], dim=-1)
+
+
+class DGCNN(nn.Module):
+    """Per-point DGCNN embedding ``(B, N, 3) -> (B, N, emb_dims)``.
+
+    Args:
+        emb_dims: Output width (DCP/PRNet: 512).
+        k: Neighbours per point (DCP/PRNet: 20). Clouds need at least ``k`` points.
+        graph: ``"static"`` (DCP) or ``"dynamic"`` (PRNet), see the module docstring.
+        channels: Widths of the edge layers (default 64, 64, 128, 256).
+        act: ``"relu"`` (DCP) or ``"leaky_relu"`` (PRNet, slope 0.2).
+    """
+
+    def __init__(
+        self,
+        emb_dims: int = 512,
+        k: int = 20,
+        graph: Graph = "static",
+        channels: Sequence[int] = (64, 64, 128, 256),
+        act: Activation = "relu",
+    ) -> None:
+        super().__init__()
+        if graph not in ("static", "dynamic"):
+            raise ValueError(f"`graph` must be 'static' or 'dynamic', got {graph!r}")
+        if k < 1:
+            raise ValueError(f"`k` must be >= 1, got {k}")
+        self.k, self.graph, self.emb_dims = k, graph, emb_dims
+        layers = []
+        c_in = 3
+        for i, c_out in enumerate(channels):
+            # Static: layer i > 0 consumes the previous layer's edge tensor; dynamic: edge features of the last output.
+            width = 2 * c_in if graph == "dynamic" or i == 0 else c_in
+            layers.append(PointwiseMLP([width, c_out], bias=False, act=act))
+            c_in = c_out
+        self.edge_layers = nn.ModuleList(layers)
+        self.head = PointwiseMLP([sum(channels), emb_dims], bias=False, act=act)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """Per-point embeddings ``(B, N, emb_dims)`` of ``points (B, N, 3)``."""
+        if points.shape[1] < self.k:
+            raise TooFewPointsError(f"DGCNN needs at least k={self.k} points per cloud, got {points.shape[1]}")
+        outputs = []
+        if self.graph == "static":
+            h = edge_features(points, knn_indices(points, points, self.k))  # (B, N, k, 6)
+            for layer in self.edge_layers:
+                h = layer(h)
+                outputs.append(h.amax(dim=2))
+        else:
+            f = points
+            for layer in self.edge_layers:
+                f = layer(edge_features(f, knn_indices(f, f, self.k))).amax(dim=2)
+                outputs.append(f)
+        return self.head(torch.cat(outputs, dim=-1))

@@ -1,0 +1,28 @@
+"""Pose losses of the supervised baselines (shared, never copied per model).
+
+All take transforms ``(B, 4, 4)`` mapping source into reference and return a scalar (PyTorch ``mse_loss``
+reduction: mean over every element).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from lcreg.geometry import se3
+
+__all__ = ["rotation_translation_mse", "transform_mse"]
+
+
+def rotation_translation_mse(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
+    """DCP/PRNet pose loss ``MSE(R_pred^T R_gt, I) + MSE(t_pred, t_gt)``."""
+    rot_p, t_p = se3.split(transform_pred)
+    rot_g, t_g = se3.split(transform_gt)
+    eye = torch.eye(3, dtype=rot_p.dtype, device=rot_p.device).expand_as(rot_p)
+    return F.mse_loss(rot_p.transpose(1, 2) @ rot_g, eye) + F.mse_loss(t_p, t_g)
+
+
+def transform_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch.Tensor:
+    """``MSE(T_a T_b, I_4)`` (DeepGMR's and PointNetLK's pose loss with ``T_b`` the inverse ground truth)."""
+    eye = torch.eye(4, dtype=transform_a.dtype, device=transform_a.device).expand_as(transform_a)
+    return F.mse_loss(transform_a @ transform_b, eye)

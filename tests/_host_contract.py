@@ -1,0 +1,136 @@
+"""Checks every learned registration host must pass; model test files call them with their own tiny model.
+
+Each function asserts real behaviour (no shape-only checks) and is parametrised by a factory so the caller decides the
+model's size. Batches are small synthetic pairs with a ground truth (``tiny_batch``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import pytest
+import torch
+
+from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
+from lcreg.data.datamodule import PairDataset, collate_pairs
+from lcreg.data.pairs import PairProtocol
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.geometry import se3
+from lcreg.models.base import RegistrationModule
+from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+ModelFactory = Callable[[], RegistrationModule]
+
+
+def tiny_batch(batch_size: int = 4, num_points: int = 96, seed: int = 0, **protocol: object) -> RegistrationBatch:
+    """Deterministic synthetic pairs (the package's pair protocol) with ground truth and normals."""
+    points, normals, _ = synthetic_shapes(batch_size, max(256, 2 * num_points), seed=seed)
+    dataset = PairDataset(
+        points, normals, PairProtocol(num_points=num_points, **protocol), deterministic=True, seed=seed
+    )
+    return collate_pairs([dataset[i] for i in range(batch_size)])
+
+
+def check_forward_backward(factory: ModelFactory, batch: RegistrationBatch) -> RegistrationResult:
+    """Forward returns a valid ``RegistrationResult``; the training loss back-propagates finite gradients."""
+    model = factory().train()
+    result = model(batch.points_src, batch.points_ref)
+    b = len(batch)
+    assert isinstance(result, RegistrationResult)
+    assert result.transform_ref_src.shape == (b, 4, 4)
+    assert torch.isfinite(result.transform_ref_src).all()
+    assert result.converged.shape == (b,) and result.converged.dtype == torch.bool
+    assert result.num_iters.shape == (b,) and result.num_iters.dtype == torch.int64
+    rot = result.rotation
+    eye = torch.eye(3, dtype=rot.dtype).expand_as(rot)
+    torch.testing.assert_close(rot @ rot.transpose(1, 2), eye, atol=1e-4, rtol=0)
+    assert torch.allclose(torch.linalg.det(rot), torch.ones(b, dtype=rot.dtype), atol=1e-4)
+    losses = model.compute_loss(result, batch)
+    assert "loss" in losses
+    for name, value in losses.items():
+        assert value.ndim == 0 and torch.isfinite(value), name
+    losses["loss"].backward()
+    grads = [p.grad for p in model.parameters() if p.requires_grad and p.grad is not None]
+    assert grads, "no parameter received a gradient"
+    assert all(torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+    return result
+
+
+def check_training_lowers_loss(
+    factory: ModelFactory, batch: RegistrationBatch, steps: int = 15, lr: float = 1e-3, seed: int = 0
+) -> tuple[float, float]:
+    """``steps`` Adam steps on one fixed batch lower the training loss (returns first and last loss)."""
+    torch.manual_seed(seed)
+    model = factory().train()
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
+    history = []
+    for _ in range(steps):
+        torch.manual_seed(seed)  # identical stochastic choices (sampling, Gumbel noise) every step
+        opt.zero_grad()
+        loss = model.compute_loss(model(batch.points_src, batch.points_ref), batch)["loss"]
+        loss.backward()
+        opt.step()
+        history.append(float(loss))
+    assert history[-1] < history[0], f"loss did not decrease: {history}"
+    return history[0], history[-1]
+
+
+def check_local_consistency_gradient(
+    factory: Callable[[LocalConsistency | None], RegistrationModule],
+    batch: RegistrationBatch,
+    feature_dim: int,
+    num_local_points: int = 16,
+) -> None:
+    """With LC attached the loss gains a finite ``lc`` term whose gradient reaches the host's encoder."""
+    torch.manual_seed(0)
+    host = factory(None).train()
+    assert "lc" not in host.compute_loss(host(batch.points_src, batch.points_ref), batch)
+    torch.manual_seed(0)
+    model = factory(LocalConsistency(feature_dim, num_local_points=num_local_points)).train()
+    losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+    assert "lc" in losses and torch.isfinite(losses["lc"]) and losses["lc"] > 0
+    encoder = model.lc_encoder()  # type: ignore[attr-defined]
+    assert isinstance(encoder, torch.nn.Module)
+    params = [p for p in encoder.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(losses["lc"], params, allow_unused=True)
+    norms = [g.norm() for g in grads if g is not None]
+    assert norms and all(torch.isfinite(n) for n in norms)
+    assert sum(norms) > 0, "LC adds no gradient to the encoder"
+
+
+def check_bad_inputs(factory: ModelFactory, num_points: int = 64) -> None:
+    """Bad clouds raise typed errors naming the argument (through the validated ``register`` entry point)."""
+    model = factory()
+    good = torch.randn(2, num_points, 3)
+    nan = good.clone()
+    nan[0, 0, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match="points_src"):
+        model.register(nan, good)
+    with pytest.raises(ShapeError, match="points_ref"):
+        model.register(good, good[..., :2])
+    with pytest.raises(TypeError, match="points_src"):
+        model.register(good.long(), good)
+    with pytest.raises(TooFewPointsError, match="points_src"):
+        model.register(good[:, :1], good)
+    with pytest.raises(ShapeError):
+        model.register(good, good[:1])
+
+
+def check_rotation_equivariance(
+    estimate: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    points_src: torch.Tensor,
+    points_ref: torch.Tensor,
+    atol: float = 1e-4,
+    seed: int = 0,
+) -> None:
+    """Rotating the source by ``G`` turns the estimate ``T`` into ``T G^-1`` (``estimate`` returns ``(B, 4, 4)``)."""
+    from lcreg.geometry.random_transforms import random_rotation
+
+    gen = torch.Generator().manual_seed(seed)
+    rot = random_rotation(points_src.shape[0], generator=gen).to(points_src.dtype)
+    g = se3.make_transform(rot, torch.zeros(points_src.shape[0], 3, dtype=points_src.dtype))
+    base = estimate(points_src, points_ref)
+    moved = estimate(se3.transform_points(g, points_src), points_ref)
+    torch.testing.assert_close(moved, se3.compose(base, se3.inverse(g)), atol=atol, rtol=0)
