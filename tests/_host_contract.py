@@ -35,7 +35,7 @@ def tiny_batch(batch_size: int = 4, num_points: int = 96, seed: int = 0, **proto
 def check_forward_backward(factory: ModelFactory, batch: RegistrationBatch) -> RegistrationResult:
     """Forward returns a valid ``RegistrationResult``; the training loss back-propagates finite gradients."""
     model = factory().train()
-    result = model(batch.points_src, batch.points_ref)
+    result = model.training_forward(batch)
     b = len(batch)
     assert isinstance(result, RegistrationResult)
     assert result.transform_ref_src.shape == (b, 4, 4)
@@ -69,7 +69,7 @@ def check_training_lowers_loss(
     for _ in range(steps):
         torch.manual_seed(seed)  # identical stochastic choices (sampling, Gumbel noise) every step
         opt.zero_grad()
-        loss = model.compute_loss(model(batch.points_src, batch.points_ref), batch)["loss"]
+        loss = model.compute_loss(model.training_forward(batch), batch)["loss"]
         loss.backward()
         opt.step()
         history.append(float(loss))
@@ -86,10 +86,10 @@ def check_local_consistency_gradient(
     """With LC attached the loss gains a finite ``lc`` term whose gradient reaches the host's encoder."""
     torch.manual_seed(0)
     host = factory(None).train()
-    assert "lc" not in host.compute_loss(host(batch.points_src, batch.points_ref), batch)
+    assert "lc" not in host.compute_loss(host.training_forward(batch), batch)
     torch.manual_seed(0)
     model = factory(LocalConsistency(feature_dim, num_local_points=num_local_points)).train()
-    losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+    losses = model.compute_loss(model.training_forward(batch), batch)
     assert "lc" in losses and torch.isfinite(losses["lc"]) and losses["lc"] > 0
     encoder = model.lc_encoder()  # type: ignore[attr-defined]
     assert isinstance(encoder, torch.nn.Module)

@@ -71,6 +71,14 @@ class RegistrationModule(LightningModule):
         """Training objective terms; must contain ``"loss"``."""
         raise NotImplementedError
 
+    def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
+        """The forward pass whose result ``compute_loss`` receives during training.
+
+        Default: ``forward`` on the batch's clouds. Override only when training needs more than the clouds (IDAM
+        samples its training points with the ground-truth correspondences).
+        """
+        return self(batch.points_src, batch.points_ref)
+
     # --- shared machinery ------------------------------------------------------------------------------------
     def ground_truth(self, batch: RegistrationBatch) -> torch.Tensor:
         """``batch.transform_ref_src`` for supervised losses; a clear error when the batch has none."""
@@ -99,7 +107,7 @@ class RegistrationModule(LightningModule):
 
     def _common_step(self, batch: RegistrationBatch, stage: Stage) -> torch.Tensor | None:
         self.validate_inputs(batch.points_src, batch.points_ref)
-        result = self(batch.points_src, batch.points_ref)
+        result = self.training_forward(batch) if stage == "train" else self(batch.points_src, batch.points_ref)
         bs = len(batch)
         loss = None
         if stage == "train" or (stage == "val" and self.has_loss):
