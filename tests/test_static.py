@@ -24,12 +24,12 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_ruff_check() -> None:
-    proc = _run(str(_tool("ruff")), "check", "--no-cache", "src", "tests", "benchmarks")
+    proc = _run(str(_tool("ruff")), "check", "--no-cache", "src", "tests", "benchmarks", "examples")
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
 def test_ruff_format() -> None:
-    proc = _run(str(_tool("ruff")), "format", "--check", "--no-cache", "src", "tests", "benchmarks")
+    proc = _run(str(_tool("ruff")), "format", "--check", "--no-cache", "src", "tests", "benchmarks", "examples")
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 

@@ -264,3 +264,18 @@ def test_third_party_usage_with_a_plain_torch_encoder() -> None:
     assert loss.dtype == torch.float32 and torch.isfinite(loss) and loss > 0
     loss.backward()
     assert encoder[0].weight.grad is not None and encoder[0].weight.grad.abs().sum() > 0
+
+
+def test_metric_initialisation_is_seeded_and_leaves_the_global_rng_alone() -> None:
+    torch.manual_seed(123)
+    expected_next = torch.rand(3)
+    torch.manual_seed(123)
+    a = LocalConsistency(feature_dim=8, num_local_points=4, metric_seed=7)
+    torch.testing.assert_close(torch.rand(3), expected_next)  # building LC consumed no global randomness
+    b = LocalConsistency(feature_dim=8, num_local_points=4, metric_seed=7)
+    c = LocalConsistency(feature_dim=8, num_local_points=4, metric_seed=8)
+    torch.testing.assert_close(a.metric.weight, b.metric.weight)
+    assert not torch.allclose(a.metric.weight, c.metric.weight)
+    bound = 1 / 16**0.5
+    assert a.metric.weight.abs().max() <= bound and a.metric.bias.abs().max() <= bound
+    assert a.metric.weight.std() > 0.5 * bound / 3**0.5  # uniform(-b, b) has std b/sqrt(3)

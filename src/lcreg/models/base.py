@@ -41,7 +41,8 @@ class RegistrationModule(LightningModule):
 
     Args:
         optimizer: Callable building the optimiser from the trainable parameters (default Adam, lr 1e-3).
-        lr_scheduler: Optional callable building a scheduler from the optimiser (stepped per epoch).
+        lr_scheduler: Optional callable building a scheduler from the optimiser (stepped per epoch;
+            ``ReduceLROnPlateau`` steps on ``val/loss``).
         min_points: Smallest cloud size accepted by :meth:`validate_inputs`.
     """
 
@@ -199,4 +200,8 @@ class RegistrationModule(LightningModule):
         optimizer = self.optimizer_factory(params)
         if self.scheduler_factory is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer)}
+        scheduler = self.scheduler_factory(optimizer)
+        if isinstance(scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
+            # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
+            return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
+        return {"optimizer": optimizer, "lr_scheduler": scheduler}

@@ -98,6 +98,8 @@ class LocalConsistency(nn.Module):
         standardize: Standardise each descriptor over its K channels (zero mean, unit variance) before the FC, so
             the loss does not depend on the encoder's output scale (an untrained PointNet without BatchNorm outputs
             values ~1e-2, which makes both softmaxes uniform and the loss ~1e-6).
+        metric_seed: Seed of the FC metric's initialisation (a private generator: building the module does not
+            consume the global RNG, so a host initialised after it gets the same weights with and without LC).
 
     Example:
         >>> from lcreg import LocalConsistency
@@ -119,6 +121,7 @@ class LocalConsistency(nn.Module):
         temperature: float = 1.0,
         trainable_metric: bool = False,
         standardize: bool = True,
+        metric_seed: int = 0,
     ) -> None:
         super().__init__()
         if feature_dim < 1 or num_local_points < 1:
@@ -138,8 +141,18 @@ class LocalConsistency(nn.Module):
         self.outlier_quantile = outlier_quantile
         self.temperature = temperature
         self.standardize = standardize
-        self.metric = nn.Linear(2 * feature_dim, feature_dim)
+        with torch.random.fork_rng(devices=[]):  # Linear's own init must not advance the global RNG
+            self.metric = nn.Linear(2 * feature_dim, feature_dim)
+        self._init_metric(metric_seed)
         self.metric.requires_grad_(trainable_metric)
+
+    @torch.no_grad()
+    def _init_metric(self, seed: int) -> None:
+        """PyTorch's default ``Linear`` initialisation (uniform in ``+-1/sqrt(fan_in)``), from a private generator."""
+        gen = torch.Generator().manual_seed(seed)
+        bound = 1.0 / (2 * self.feature_dim) ** 0.5
+        for param in (self.metric.weight, self.metric.bias):
+            param.copy_(torch.rand(param.shape, generator=gen) * 2 * bound - bound)
 
     def subsets(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Far and close subsets ``(B, N_l, 3)`` each of ``points (B, N, 3)``."""

@@ -1,0 +1,67 @@
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import pytest
+import torch
+
+from lcreg.geometry import se3
+from lcreg.models.base import RegistrationModule
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+
+class _Translate(RegistrationModule):
+    """Estimates a learned translation; the training pass records that it was used."""
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(**kwargs)  # type: ignore[arg-type]
+        self.shift = torch.nn.Parameter(torch.zeros(3))
+        self.training_passes = 0
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        b = points_src.shape[0]
+        transform = se3.make_transform(torch.eye(3).expand(b, 3, 3), self.shift.expand(b, 3))
+        return RegistrationResult(transform, torch.ones(b, dtype=torch.bool), torch.ones(b, dtype=torch.int64))
+
+    def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
+        self.training_passes += 1
+        return super().training_forward(batch)
+
+    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        gt = self.ground_truth(batch)
+        return {"loss": (result.translation - gt[:, :3, 3]).pow(2).mean()}
+
+
+def _batch(with_gt: bool = True) -> RegistrationBatch:
+    src = torch.randn(2, 16, 3, generator=torch.Generator().manual_seed(0))
+    gt = se3.make_transform(torch.eye(3).expand(2, 3, 3), torch.tensor([[0.1, 0.2, 0.3]] * 2))
+    return RegistrationBatch(src, se3.transform_points(gt, src), gt if with_gt else None)
+
+
+def test_training_step_uses_training_forward_and_other_stages_do_not() -> None:
+    model = _Translate()
+    loss = model.training_step(_batch(), 0)
+    assert model.training_passes == 1
+    torch.testing.assert_close(loss, torch.tensor((0.01 + 0.04 + 0.09) / 3))
+    model.eval()
+    model.register(_batch().points_src, _batch().points_ref)
+    assert model.training_passes == 1
+
+
+def test_ground_truth_missing_is_a_clear_error() -> None:
+    model = _Translate()
+    with pytest.raises(ValueError, match="_Translate is trained with a ground-truth pose"):
+        model.compute_loss(model(_batch().points_src, _batch().points_ref), _batch(with_gt=False))
+    assert dataclasses.replace(_batch(), transform_ref_src=None).transform_ref_src is None
+
+
+def test_plateau_scheduler_is_monitored_on_the_validation_loss() -> None:
+    plateau = partial(torch.optim.lr_scheduler.ReduceLROnPlateau, factor=0.5)
+    config = _Translate(lr_scheduler=plateau).configure_optimizers()
+    assert isinstance(config["lr_scheduler"]["scheduler"], torch.optim.lr_scheduler.ReduceLROnPlateau)
+    assert config["lr_scheduler"]["monitor"] == "val/loss"
+    step = partial(torch.optim.lr_scheduler.StepLR, step_size=3)
+    config = _Translate(lr_scheduler=step).configure_optimizers()
+    assert isinstance(config["lr_scheduler"], torch.optim.lr_scheduler.StepLR)
+    assert isinstance(_Translate().configure_optimizers(), torch.optim.Adam)
