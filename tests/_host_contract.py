@@ -46,7 +46,7 @@ def check_forward_backward(factory: ModelFactory, batch: RegistrationBatch) -> R
     eye = torch.eye(3, dtype=rot.dtype).expand_as(rot)
     torch.testing.assert_close(rot @ rot.transpose(1, 2), eye, atol=1e-4, rtol=0)
     assert torch.allclose(torch.linalg.det(rot), torch.ones(b, dtype=rot.dtype), atol=1e-4)
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     assert "loss" in losses
     for name, value in losses.items():
         assert value.ndim == 0 and torch.isfinite(value), name
@@ -69,7 +69,7 @@ def check_training_lowers_loss(
     for _ in range(steps):
         torch.manual_seed(seed)  # identical stochastic choices (sampling, Gumbel noise) every step
         opt.zero_grad()
-        loss = model.compute_loss(model.training_forward(batch), batch)["loss"]
+        loss = model.training_losses(model.training_forward(batch), batch)["loss"]
         loss.backward()
         opt.step()
         history.append(float(loss))
@@ -86,10 +86,10 @@ def check_local_consistency_gradient(
     """With LC attached the loss gains a finite ``lc`` term whose gradient reaches the host's encoder."""
     torch.manual_seed(0)
     host = factory(None).train()
-    assert "lc" not in host.compute_loss(host.training_forward(batch), batch)
+    assert "lc" not in host.training_losses(host.training_forward(batch), batch)
     torch.manual_seed(0)
     model = factory(LocalConsistency(feature_dim, num_local_points=num_local_points)).train()
-    losses = model.compute_loss(model.training_forward(batch), batch)
+    losses = model.training_losses(model.training_forward(batch), batch)
     assert "lc" in losses and torch.isfinite(losses["lc"]) and losses["lc"] > 0
     encoder = model.lc_encoder()  # type: ignore[attr-defined]
     assert isinstance(encoder, torch.nn.Module)
@@ -129,7 +129,7 @@ def check_rotation_equivariance(
     from lcreg.geometry.random_transforms import random_rotation
 
     gen = torch.Generator().manual_seed(seed)
-    rot = random_rotation(points_src.shape[0], generator=gen).to(points_src.dtype)
+    rot = random_rotation(points_src.shape[0], generator=gen, dtype=points_src.dtype)
     g = se3.make_transform(rot, torch.zeros(points_src.shape[0], 3, dtype=points_src.dtype))
     base = estimate(points_src, points_ref)
     moved = estimate(se3.transform_points(g, points_src), points_ref)

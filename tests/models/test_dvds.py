@@ -60,7 +60,7 @@ def test_compute_loss_terms_are_finite_and_weighted(batch: RegistrationBatch) ->
     model = _model().train()
     result = model(batch.points_src, batch.points_ref)
     assert model.training and model.encoder.training  # the solver restored the mode
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     assert set(losses) == {"global", "recon", "normal", "lc", "loss"}
     for name, value in losses.items():
         assert value.ndim == 0 and torch.isfinite(value), name
@@ -79,14 +79,14 @@ def test_loss_does_not_depend_on_the_ground_truth(batch: RegistrationBatch) -> N
         dataclasses.replace(batch, transform_ref_src=random_gt),
         dataclasses.replace(batch, transform_ref_src=None),
     ]
-    all_losses = [model.compute_loss(result, b) for b in variants]
+    all_losses = [model.training_losses(result, b) for b in variants]
     for losses in all_losses[1:]:
         assert losses.keys() == all_losses[0].keys()
         for name in losses:
             torch.testing.assert_close(losses[name], all_losses[0][name], atol=0, rtol=0)
     # ... but it does depend on the estimate.
     moved = dataclasses.replace(result, transform_ref_src=random_gt)
-    assert not torch.allclose(model.compute_loss(moved, batch)["global"], all_losses[0]["global"])
+    assert not torch.allclose(model.training_losses(moved, batch)["global"], all_losses[0]["global"])
 
 
 def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
@@ -98,7 +98,7 @@ def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
     assert all(id(p) not in trained for p in model.local_consistency.parameters())  # the FC metric stays frozen
     history, recon = [], []
     for _ in range(8):
-        losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+        losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
         history.append(float(losses["loss"].detach()))
         recon.append(float(losses["recon"].detach()))
         optimizer.zero_grad()
@@ -118,10 +118,10 @@ def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> No
     for overrides, term, module in cases:
         model = _model(**overrides).train()
         assert getattr(model, module) is None, module
-        losses = model.compute_loss(model(batch.points_src, batch.points_ref), batch)
+        losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
         assert term not in losses and "loss" in losses and torch.isfinite(losses["loss"])
     model_a = _model(lc_weight=0.0, lambda_recon=0.0, lambda_normal=0.0).train()
-    losses = model_a.compute_loss(model_a(batch.points_src, batch.points_ref), batch)
+    losses = model_a.training_losses(model_a(batch.points_src, batch.points_ref), batch)
     assert set(losses) == {"global", "loss"}
     torch.testing.assert_close(losses["loss"], losses["global"])
     assert model_a.min_points == 3  # no LC: small clouds are fine
@@ -135,11 +135,11 @@ def test_missing_normals_fall_back_to_pca(batch: RegistrationBatch) -> None:
     model = _model().train()
     result = model(batch.points_src, batch.points_ref)
     no_normals = dataclasses.replace(batch, normals_src=None, normals_ref=None)
-    losses = model.compute_loss(result, no_normals)
+    losses = model.training_losses(result, no_normals)
     assert (
         torch.isfinite(losses["normal"]) and 0 <= float(losses["normal"].detach()) <= 2
     )  # |cos| in [0, 1], two clouds
-    with_normals = model.compute_loss(result, batch)
+    with_normals = model.training_losses(result, batch)
     assert not torch.allclose(losses["normal"], with_normals["normal"])
     losses["loss"].backward()
     assert model.normal_head is not None
@@ -244,13 +244,14 @@ class Host(LocalConsistencyMixin, MinimalHost):
 def test_local_consistency_mixin_on_a_minimal_host(batch: RegistrationBatch) -> None:
     torch.manual_seed(0)
     host = Host().train()
-    losses = host.compute_loss(host(batch.points_src, batch.points_ref), batch)
+    losses = host.training_losses(host(batch.points_src, batch.points_ref), batch)
     assert set(losses) == {"host", "lc", "loss"}
     assert losses["lc"] > 0
+    assert "lc" not in host.compute_loss(host(batch.points_src, batch.points_ref), batch)  # the host stays LC-free
     torch.testing.assert_close(losses["loss"], losses["host"] + 0.5 * losses["lc"])
     params = list(host.encoder.parameters())
     grads = torch.autograd.grad(losses["lc"], params, allow_unused=True)
     assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
     off = Host(lc_weight=0.0)
     assert off.local_consistency is None
-    assert set(off.compute_loss(off(batch.points_src, batch.points_ref), batch)) == {"host", "loss"}
+    assert set(off.training_losses(off(batch.points_src, batch.points_ref), batch)) == {"host", "loss"}

@@ -30,7 +30,10 @@ __all__ = ["RegistrationModule"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
-SchedulerFactory = Callable[[torch.optim.Optimizer], Any]
+# Typed return (not Any): jsonargparse only accepts a scheduler `class_path` for a callable returning a scheduler.
+SchedulerFactory = Callable[
+    [torch.optim.Optimizer], torch.optim.lr_scheduler.LRScheduler | torch.optim.lr_scheduler.ReduceLROnPlateau
+]
 
 
 class RegistrationModule(LightningModule):
@@ -72,6 +75,14 @@ class RegistrationModule(LightningModule):
         """Training objective terms; must contain ``"loss"``."""
         raise NotImplementedError
 
+    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """All loss terms the shared step logs and optimises: ``compute_loss`` plus whatever mixins add.
+
+        Hosts implement ``compute_loss`` only; composable terms (:class:`~lcreg.models.mixins.LocalConsistencyMixin`)
+        override this method, so a host's code never has to call them.
+        """
+        return self.compute_loss(result, batch)
+
     def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
         """The forward pass whose result ``compute_loss`` receives during training.
 
@@ -112,7 +123,7 @@ class RegistrationModule(LightningModule):
         bs = len(batch)
         loss = None
         if stage == "train" or (stage == "val" and self.has_loss):
-            losses = self.compute_loss(result, batch)
+            losses = self.training_losses(result, batch)
             loss = losses["loss"]
             for name, value in losses.items():
                 self.log(

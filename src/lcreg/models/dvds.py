@@ -169,7 +169,11 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
             normal = self._normal_loss(x, batch.normals_src, f_x) + self._normal_loss(y, batch.normals_ref, f_y)
             losses["normal"] = normal
             losses["loss"] = losses["loss"] + self.lambda_normal * normal
-        losses = self.add_local_consistency(losses, result, batch)
+        return losses
+
+    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """``compute_loss`` plus LC (the mixin), then the gradient-norm diagnostics."""
+        losses = super().training_losses(result, batch)
         self._diagnostics(losses)
         return losses
 

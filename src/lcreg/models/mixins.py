@@ -20,8 +20,8 @@ class LocalConsistencyMixin:
     constructor, either builds the module (:meth:`init_local_consistency`, DVDs' flat arguments) or receives one
     (:meth:`attach_local_consistency`: the baselines take ``local_consistency: LocalConsistency | None`` and
     ``lc_weight``, so a YAML config switches LC on with one block). Place the mixin first:
-    ``class X(LocalConsistencyMixin, RegistrationModule)``; the host's own ``compute_loss`` stays LC-free and the
-    mixin's ``compute_loss`` adds the term. It is logged as ``{stage}/lc``.
+    ``class X(LocalConsistencyMixin, RegistrationModule)``. The host's ``compute_loss`` never mentions LC: the shared
+    step calls :meth:`training_losses`, which this mixin extends with the weighted term (logged as ``{stage}/lc``).
     """
 
     local_consistency: LocalConsistency | None
@@ -71,7 +71,7 @@ class LocalConsistencyMixin:
             losses["loss"] = losses["loss"] + self.lc_weight * lc
         return losses
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """The host's losses plus the weighted LC term."""
-        losses: dict[str, Any] = super().compute_loss(result, batch)  # type: ignore[misc]
+    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """The host's losses (its ``compute_loss``, untouched) plus the weighted LC term."""
+        losses: dict[str, Any] = super().training_losses(result, batch)  # type: ignore[misc]
         return self.add_local_consistency(losses, result, batch)

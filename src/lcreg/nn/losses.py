@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from lcreg.geometry import se3
 
-__all__ = ["rotation_translation_mse", "transform_mse"]
+__all__ = ["cycle_consistency_mse", "rotation_translation_mse", "transform_mse"]
 
 
 def rotation_translation_mse(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
@@ -26,3 +26,14 @@ def transform_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch
     """``MSE(T_a T_b, I_4)`` (DeepGMR's and PointNetLK's pose loss with ``T_b`` the inverse ground truth)."""
     eye = torch.eye(4, dtype=transform_a.dtype, device=transform_a.device).expand_as(transform_a)
     return F.mse_loss(transform_a @ transform_b, eye)
+
+
+def cycle_consistency_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch.Tensor:
+    """``MSE(R_a R_b, I) + MSE(R_a t_b + t_a, 0)``: how far ``T_a T_b`` is from the identity.
+
+    Zero exactly when ``T_b = T_a^-1``. DCP and PRNet penalise their forward/reverse estimates with it; their original
+    translation terms (``R_ba^T t_ab + t_ba`` in DCP, ``t_ab + t_ba`` in PRNet) are not zero at exact inverses.
+    """
+    rot, trans = se3.split(se3.compose(transform_a, transform_b))
+    eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand_as(rot)
+    return F.mse_loss(rot, eye) + F.mse_loss(trans, torch.zeros_like(trans))

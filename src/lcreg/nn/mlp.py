@@ -33,7 +33,8 @@ class PointwiseMLP(nn.Module):
     Args:
         channels: ``(C_in, C_1, ..., C_out)``.
         batch_norm: BatchNorm after each linear layer.
-        bias: Bias in the linear layers (originals often use ``bias=False`` with BatchNorm).
+        bias: Bias in the linear layers followed by BatchNorm (originals often use ``bias=False`` there); layers
+            without BatchNorm always have a bias.
         act: Activation name.
         last_plain: Leave the last layer linear (no norm, no activation).
     """

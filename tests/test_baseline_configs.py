@@ -1,0 +1,106 @@
+"""The baselines' configs: X and LC + X differ by the LC block only, and `lcreg fit` runs them end to end."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+import yaml
+
+from lcreg.cli import main
+
+from _shared_data import shared_data
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+HOSTS = ["dcp", "prnet", "idam", "deepgmr"]
+LC_KEYS = {"local_consistency", "lc_weight"}
+
+
+def _load(path: Path) -> dict[str, Any]:
+    return yaml.safe_load(path.read_text())
+
+
+@pytest.fixture(autouse=True)
+def _isolated(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    monkeypatch.setattr(sys, "argv", ["lcreg"])
+    monkeypatch.chdir(tmp_path)
+
+
+@pytest.mark.parametrize("folder", ["", "embedded"])
+@pytest.mark.parametrize("host", HOSTS)
+def test_lc_variant_differs_by_the_lc_block_only(host: str, folder: str) -> None:
+    base, lc = _load(CONFIGS / folder / f"{host}.yaml"), _load(CONFIGS / folder / f"{host}_lc.yaml")
+    base_args, lc_args = base["model"]["init_args"], lc["model"]["init_args"]
+    assert LC_KEYS.isdisjoint(base_args)
+    assert {k: v for k, v in lc_args.items() if k not in LC_KEYS} == base_args
+    assert lc_args["lc_weight"] > 0
+    assert lc_args["local_consistency"]["class_path"] == "lcreg.nn.local_consistency.LocalConsistency"
+    assert lc_args["local_consistency"]["init_args"]["num_local_points"] == 64
+    for key in ("data", "seed_everything"):
+        assert base[key] == lc[key]
+    base["trainer"].pop("logger"), lc["trainer"].pop("logger")
+    assert base["trainer"] == lc["trainer"]
+
+
+@pytest.mark.parametrize("host", HOSTS)
+def test_modelnet_configs_follow_the_table_protocol(host: str) -> None:
+    config = _load(CONFIGS / f"{host}.yaml")
+    embedded = _load(CONFIGS / "embedded" / f"{host}.yaml")
+    assert config["model"] == embedded["model"]  # the embedded demo trains the same model
+    data = config["data"]
+    assert data["class_path"] == "lcreg.data.datamodule.ModelNet40DataModule"
+    assert data["init_args"]["protocol"] == "unseen_objects"
+    assert data["init_args"]["root"] == "../shared/data/modelnet40_mini"
+    protocol = {k: data["init_args"][k] for k in ("independent_sampling", "noise_sigma", "noise_clip")}
+    assert protocol == {"independent_sampling": False, "noise_sigma": 0.01, "noise_clip": 0.05}
+    checkpoints = [c for c in config["trainer"]["callbacks"] if c["class_path"].endswith("ModelCheckpoint")]
+    assert [c["init_args"]["monitor"] for c in checkpoints] == ["val/rre_mean_deg"]  # never the test split
+
+
+@pytest.mark.parametrize("host", HOSTS)
+def test_lc_feature_dim_matches_the_host_encoder(host: str) -> None:
+    from lcreg.cli import TRAINER_DEFAULTS, LcregCLI
+    from lcreg.data.datamodule import PairDataModule
+    from lcreg.models.base import RegistrationModule
+
+    cli = LcregCLI(
+        RegistrationModule,
+        PairDataModule,
+        subclass_mode_model=True,
+        subclass_mode_data=True,
+        auto_configure_optimizers=False,
+        trainer_defaults=TRAINER_DEFAULTS,
+        args=["--config", str(CONFIGS / f"{host}_lc.yaml")],
+        run=False,
+    )
+    model = cli.model.eval()
+    with torch.no_grad():
+        features = model.lc_encoder()(torch.randn(2, 64, 3))  # type: ignore[operator]
+    lc = model.local_consistency  # type: ignore[attr-defined]
+    assert lc is not None and features.shape[-1] == lc.feature_dim
+
+
+TINY_RUN = [
+    "--trainer.fast_dev_run=true",
+    "--trainer.enable_progress_bar=false",
+    "--trainer.enable_model_summary=false",
+    "--data.init_args.num_points=96",
+    "--data.init_args.batch_size=2",
+]
+
+
+@pytest.mark.parametrize("host", HOSTS)
+def test_fit_embedded_lc_config_end_to_end(host: str, tmp_path: Path) -> None:
+    extra = ["--data.init_args.num_train=2", "--data.init_args.num_val=2", "--data.init_args.num_test=2"]
+    main(["fit", "--config", str(CONFIGS / "embedded" / f"{host}_lc.yaml"), *TINY_RUN, *extra])
+    main(["test", "--config", str(CONFIGS / "embedded" / f"{host}_lc.yaml"), *TINY_RUN, *extra])
+
+
+@pytest.mark.data
+def test_fit_dcp_lc_on_modelnet40(tmp_path: Path) -> None:
+    root = shared_data("modelnet40_mini")
+    main(["fit", "--config", str(CONFIGS / "dcp_lc.yaml"), *TINY_RUN, f"--data.init_args.root={root}"])
