@@ -56,7 +56,7 @@ def step_seconds(model: RegistrationModule, batch: RegistrationBatch, opt: torch
         torch.cuda.synchronize()
     start = time.perf_counter()
     opt.zero_grad()
-    model.compute_loss(model.training_forward(batch), batch)["loss"].backward()
+    model.training_losses(model.training_forward(batch), batch)["loss"].backward()
     opt.step()
     if sync:
         torch.cuda.synchronize()

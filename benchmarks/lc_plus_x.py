@@ -39,7 +39,22 @@ METRICS = {
 }
 
 
-def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path) -> dict[str, Any]:
+def budget(host: str, args: argparse.Namespace) -> dict[str, int | None]:
+    """Steps, points and batch size of a host: ``--host-budget host=steps,points,batch`` or the global options."""
+    for item in args.host_budget:
+        name, values = item.split("=")
+        if name == host:
+            steps, points, batch = (int(v) for v in values.split(","))
+            return {"max_steps": steps, "num_points": points, "batch_size": batch, "val_every": max(1, steps // 3)}
+    return {
+        "max_steps": args.max_steps,
+        "num_points": args.num_points,
+        "batch_size": args.batch_size,
+        "val_every": args.val_every,
+    }
+
+
+def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, plan: dict) -> dict[str, Any]:
     """Train and test one (config, seed); returns the test metrics and bookkeeping."""
     from lcreg.cli import TRAINER_DEFAULTS, LcregCLI
     from lcreg.data.datamodule import PairDataModule
@@ -47,9 +62,9 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path) ->
 
     overrides = [
         f"--seed_everything={seed}",
-        f"--trainer.max_steps={args.max_steps}",
+        f"--trainer.max_steps={plan['max_steps']}",
         "--trainer.max_epochs=-1",
-        f"--trainer.val_check_interval={args.val_every}",
+        f"--trainer.val_check_interval={plan['val_every']}",
         "--trainer.check_val_every_n_epoch=null",
         "--trainer.enable_progress_bar=false",
         "--trainer.enable_model_summary=false",
@@ -61,10 +76,10 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path) ->
         "--data.init_args.seed=1234",
         f"--data.init_args.num_workers={args.num_workers}",
     ]
-    if args.batch_size:
-        overrides.append(f"--data.init_args.batch_size={args.batch_size}")
-    if args.num_points:
-        overrides.append(f"--data.init_args.num_points={args.num_points}")
+    if plan["batch_size"]:
+        overrides.append(f"--data.init_args.batch_size={plan['batch_size']}")
+    if plan["num_points"]:
+        overrides.append(f"--data.init_args.num_points={plan['num_points']}")
     cli = LcregCLI(
         RegistrationModule,
         PairDataModule,
@@ -88,8 +103,17 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path) ->
         "steps": int(cli.trainer.global_step),
         "best_ckpt": best,
         "num_test_pairs": len(cli.datamodule.test_set),
+        "num_points": cli.datamodule.hparams.num_points,
+        "batch_size": cli.datamodule.hparams.batch_size,
+        "lc_final": _last_logged(cli.trainer, "train/lc"),
         **{k: float(tested[f"test/{k}"]) for k in METRICS},
     }
+
+
+def _last_logged(trainer: Any, key: str) -> float | None:
+    """Last value of a logged training metric (``None`` when the run did not log it)."""
+    value = trainer.callback_metrics.get(f"{key}_epoch", trainer.callback_metrics.get(f"{key}_step"))
+    return None if value is None else float(value)
 
 
 def _mean_std(values: list[float], digits: int) -> str:
@@ -100,8 +124,8 @@ def _mean_std(values: list[float], digits: int) -> str:
 def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
     """Markdown: one line per (host, variant) with mean ± std, then the LC - X differences."""
     lines = [
-        "| method | " + " | ".join(METRICS.values()) + " | seeds | test pairs | train s/run |",
-        "|---" * (len(METRICS) + 4) + "|",
+        "| method | " + " | ".join(METRICS.values()) + " | seeds | test pairs | budget | train s/run |",
+        "|---" * (len(METRICS) + 5) + "|",
     ]
     verdicts = []
     for host in args.hosts:
@@ -116,9 +140,10 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
             cells = [_mean_std([r[k] for r in runs], 2 if k.endswith("deg") else 4) for k in METRICS]
             cells[-1] = _mean_std([100 * r["recall_r2_t0p01"] for r in runs], 1) + " %"
             train_s = statistics.fmean(r["train_s"] for r in runs)
-            lines.append(
-                f"| {name} | " + " | ".join(cells) + f" | {len(runs)} | {runs[0]['num_test_pairs']} | {train_s:.0f} |"
-            )
+            r0 = runs[0]
+            plan = f"{r0['steps']} steps x {r0['batch_size']} pairs x {r0['num_points']} pts"
+            tail = f" | {len(runs)} | {r0['num_test_pairs']} | {plan} | {train_s:.0f} |"
+            lines.append(f"| {name} | " + " | ".join(cells) + tail)
         if len(by_variant) == 2:
             verdicts.append(_verdict(NAMES.get(host, host), by_variant["X"], by_variant["LC + X"]))
     return "\n".join(lines) + "\n\n" + "\n".join(verdicts) + "\n"
@@ -149,6 +174,12 @@ def main() -> None:
     parser.add_argument("--val-every", type=int, default=40)
     parser.add_argument("--batch-size", type=int, default=None, help="override the configs' batch size")
     parser.add_argument("--num-points", type=int, default=None, help="override the configs' points per cloud")
+    parser.add_argument(
+        "--host-budget",
+        nargs="*",
+        default=[],
+        help="per-host budget overriding the global one: host=steps,points,batch (validation every steps/3)",
+    )
     parser.add_argument("--num-workers", type=int, default=0)
     parser.add_argument("--run-dir", default="runs/lc_plus_x")
     parser.add_argument("--out", default="docs/results/lc_plus_x.md")
@@ -164,7 +195,7 @@ def main() -> None:
                 if any(r["config"] == str(config) and r["seed"] == seed for r in rows):
                     continue
                 run_dir = Path(args.run_dir) / f"{host}{suffix}" / f"seed{seed}"
-                row = run_one(config, seed, args, run_dir)
+                row = run_one(config, seed, args, run_dir, budget(host, args))
                 rows.append(row)
                 jsonl.parent.mkdir(parents=True, exist_ok=True)
                 with jsonl.open("a") as fh:
@@ -177,9 +208,11 @@ def main() -> None:
         f"--seeds {' '.join(map(str, args.seeds))} --max-steps {args.max_steps} --val-every {args.val_every}"
         + (f" --batch-size {args.batch_size}" if args.batch_size else "")
         + (f" --num-points {args.num_points}" if args.num_points else "")
+        + (f" --host-budget {' '.join(args.host_budget)}" if args.host_budget else "")
         + f"`\n\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads. Budget per run: {args.max_steps} optimiser steps, validation every "
-        f"{args.val_every} steps, checkpoint chosen on val/rre_mean_deg, tested once.\n\n"
+        f"{torch.get_num_threads()} threads. Budget per run: the optimiser steps, pairs per batch and points per "
+        "cloud in the table (the same for X and LC + X), validation three times per run, checkpoint chosen on "
+        "val/rre_mean_deg, tested once on the same test pairs.\n\n"
     )
     out.write_text(header + table(rows, args))
     print(out.read_text())

@@ -57,6 +57,25 @@ class RegistrationResult:
     residual_history: torch.Tensor | None = None
     aux: dict[str, Any] = field(default_factory=dict)
 
+    @classmethod
+    def fixed_iterations(
+        cls, transform_ref_src: torch.Tensor, num_iters: int = 1, aux: dict[str, Any] | None = None
+    ) -> RegistrationResult:
+        """Result of a method that always runs ``num_iters`` steps (one-shot or fixed loops: nothing to converge).
+
+        Args:
+            transform_ref_src: Estimates ``(B, 4, 4)``.
+            num_iters: Steps run by every item.
+            aux: Model-specific extras.
+        """
+        batch, device = transform_ref_src.shape[0], transform_ref_src.device
+        return cls(
+            transform_ref_src=transform_ref_src,
+            converged=torch.ones(batch, dtype=torch.bool, device=device),
+            num_iters=torch.full((batch,), num_iters, dtype=torch.int64, device=device),
+            aux={} if aux is None else aux,
+        )
+
     @property
     def rotation(self) -> torch.Tensor:
         """Estimated rotations ``(B, 3, 3)``."""

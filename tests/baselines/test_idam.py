@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -36,15 +35,6 @@ from _host_contract import (  # type: ignore[import-not-found]
 EMB = 16
 TINY = {"emb_dims": EMB, "k": 8, "gnn_channels": (16, 16), "hidden": 16}
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread() -> Iterator[None]:
-    # Tiny tensors gain nothing from intra-op threads; on a busy machine OpenMP waits make them ~30x slower.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _model(seed: int = 0, **overrides: object) -> IDAM:

@@ -1,6 +1,5 @@
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -36,15 +35,6 @@ def _tiny(local_consistency: LocalConsistency | None = None, **kwargs: object) -
     args: dict[str, object] = {"emb_dims": EMB, "k": 8, "num_heads": 4, "ff_dims": 64, "num_keypoints": 32}
     args.update(kwargs)
     return PRNet(local_consistency=local_consistency, **args)  # type: ignore[arg-type]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    """The tiny models are faster single-threaded on a shared CPU (restored afterwards)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

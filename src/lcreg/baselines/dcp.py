@@ -130,21 +130,14 @@ class DCP(LocalConsistencyMixin, RegistrationModule):
             aux["transform_src_ref"] = self.head(points_ref, points_src, scores.transpose(1, 2).softmax(dim=-1))[0]
         if self.return_probabilities:
             aux["probabilities"] = probabilities
-        batch = points_src.shape[0]
-        return RegistrationResult(
-            transform_ref_src=transform,
-            converged=torch.ones(batch, dtype=torch.bool, device=points_src.device),
-            num_iters=torch.ones(batch, dtype=torch.int64, device=points_src.device),
-            aux=aux,
-        )
+        return RegistrationResult.fixed_iterations(transform, aux=aux)
 
     def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """``pose`` (rotation/translation MSE), optional ``cycle`` (weighted by 0.1), ``lc`` and the total ``loss``."""
+        """``pose`` (rotation/translation MSE), optional ``cycle`` (weight 0.1) and the total ``loss``."""
         pose = rotation_translation_mse(result.transform_ref_src, self.ground_truth(batch))
         losses = {"pose": pose, "loss": pose}
         if self.cycle:
             cycle = cycle_consistency_mse(result.aux["transform_src_ref"], result.transform_ref_src)  # T_ba T_ab
             losses["cycle"] = cycle
             losses["loss"] = pose + CYCLE_WEIGHT * cycle
-        # A subclass's compute_loss shadows the mixin's, so the LC term is added here (as DVDs does).
         return losses

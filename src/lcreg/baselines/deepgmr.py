@@ -196,7 +196,6 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         pi_r, mu_r, sigma2_r = gmm_params(gamma_ref, points_ref)
         transform_12 = gmm_register(pi_s, mu_s, mu_r, sigma2_r)
         transform_21 = gmm_register(pi_r, mu_r, mu_s, sigma2_s)
-        b = points_src.shape[0]
         aux = {
             "transform_21": transform_21,
             "gamma_src": gamma_src,
@@ -208,12 +207,7 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
             "mu_ref": mu_r,
             "sigma2_ref": sigma2_r,
         }
-        return RegistrationResult(
-            transform_ref_src=transform_12,
-            converged=torch.ones(b, dtype=torch.bool, device=points_src.device),
-            num_iters=torch.ones(b, dtype=torch.int64, device=points_src.device),
-            aux=aux,
-        )
+        return RegistrationResult.fixed_iterations(transform_12, aux=aux)
 
     def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``MSE(T12 T_gt^-1, I4) + MSE(T21 T_gt, I4)`` (logged as ``mse_12``/``mse_21``), plus LC when attached."""
@@ -221,5 +215,4 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         mse_12 = transform_mse(result.transform_ref_src, se3.inverse(transform_gt))
         mse_21 = transform_mse(result.aux["transform_21"], transform_gt)
         losses = {"loss": mse_12 + mse_21, "mse_12": mse_12, "mse_21": mse_21}
-        # This method shadows the mixin's compute_loss, so the LC term is added here.
         return losses

@@ -379,7 +379,6 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
             gather_points(feat_src, index_src),
             gather_points(feat_ref, index_ref),
         )
-        batch, device = transform.shape[0], transform.device
         aux = {
             "index_src": index_src,
             "index_ref": index_ref,
@@ -388,12 +387,7 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
             "similarity": similarity,
             "weight_logits": logits,
         }
-        return RegistrationResult(
-            transform_ref_src=transform,
-            converged=torch.ones(batch, dtype=torch.bool, device=device),
-            num_iters=torch.full((batch,), self.num_iters, dtype=torch.int64, device=device),
-            aux=aux,
-        )
+        return RegistrationResult.fixed_iterations(transform, self.num_iters, aux)
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
@@ -430,7 +424,7 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         return nearest[..., 0], dist[..., 0] < self.positive_threshold
 
     def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """``score`` (iteration 0), ``match`` and ``weight`` (summed over iterations), ``lc`` and the sum ``loss``."""
+        """``score`` (iteration 0), ``match`` and ``weight`` (summed over iterations) and the sum ``loss``."""
         aux = result.aux
         similarity, weight_logits = aux["similarity"], aux["weight_logits"]  # (B, T, n, m), (B, T, n)
         first = similarity[:, 0].detach()
@@ -445,5 +439,4 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         correct = (similarity.argmax(dim=-1) == target).to(weight_logits.dtype)  # (B, T, n)
         weight = F.binary_cross_entropy_with_logits(weight_logits, correct, reduction="none").mean(dim=(0, 2)).sum()
         losses = {"score": score, "match": match, "weight": weight, "loss": score + match + weight}
-        # A subclass's compute_loss shadows the mixin's, so the LC term is added here (as DVDs and DCP do).
         return losses

@@ -270,12 +270,8 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
             src = se3.transform_points(transform_ab, src)  # not detached: gradients flow through the moved source
             for key, value in zip(history, (transform_ab, transform_ba, cumulative, temperature, disparity)):
                 history[key].append(value)
-        return RegistrationResult(
-            transform_ref_src=cumulative,
-            converged=torch.ones(batch, dtype=torch.bool, device=points_src.device),
-            num_iters=torch.full((batch,), self.num_iterations, dtype=torch.int64, device=points_src.device),
-            aux={key: torch.stack(values, dim=1) for key, values in history.items()},
-        )
+        aux = {key: torch.stack(values, dim=1) for key, values in history.items()}
+        return RegistrationResult.fixed_iterations(cumulative, self.num_iterations, aux)
 
     def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Discounted sum over iterations of the pose, feature-alignment and cycle-consistency terms (+ LC)."""
@@ -291,5 +287,4 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         alignment = self.feature_alignment_weight * alignment
         cycle = self.cycle_weight * cycle
         losses = {"loss": pose + alignment + cycle, "pose": pose, "feature_alignment": alignment, "cycle": cycle}
-        # A subclass's compute_loss shadows the mixin's, so the (optional) LC term is added here.
         return losses
