@@ -3,8 +3,8 @@
     python benchmarks/bench_baselines.py [--root ../shared/data/modelnet40_mini] [--device cpu|cuda]
 
 * Inference ms/pair of DCP-v2, PRNet, IDAM and DeepGMR (default constructor arguments = the originals' sizes) at
-  500/1000/2000 points, batch 1 and batch 16, on real ModelNet40 test pairs (synthetic shapes without the data),
-  with Open3D point-to-point ICP on the same pairs as the in-process peer;
+  500/1000/2000 points, batch 1 and batch 8 (``--batch-sizes``), on real ModelNet40 test pairs (synthetic shapes
+  without the data), with Open3D point-to-point ICP on the same pairs as the in-process peer;
 * one training step (forward, loss, backward, Adam step) of each host without and with LC
   (``LocalConsistency(K, 64)``, weight 1), same weights and batch, steps alternated to cancel drift; reports the
   median step time and the LC overhead in % (target: at most 10 %).
@@ -86,8 +86,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--pairs", type=int, default=16)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--pairs", type=int, default=8)
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 8])
+    parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--train-batch", type=int, default=16)
     parser.add_argument("--train-points", type=int, default=1024)
     parser.add_argument("--skip-inference", action="store_true")
@@ -99,13 +100,14 @@ def main() -> None:
         torch.manual_seed(0)
         models = {name: make(None).to(args.device) for name, make in factories.items()}
         icp = ICP(max_correspondence_distance=0.2)
-        print("\n| points | " + " | ".join(f"{n} b=1 | {n} b=16" for n in models) + " | ICP |")
-        print("|---" * (2 * len(models) + 2) + "|")
+        header = " | ".join(f"{n} b={b}" for n in models for b in args.batch_sizes)
+        print(f"\n| points | {header} | ICP |")
+        print("|---" * (len(args.batch_sizes) * len(models) + 2) + "|")
         for n in (500, 1000, 2000):
             batch, source = pairs(n, args.pairs, args.root)
             cells = []
             for model in models.values():
-                cells += [f"{time_model(model, batch, b, args.device, args.repeats):.1f}" for b in (1, 16)]
+                cells += [f"{time_model(model, batch, b, args.device, args.repeats):.1f}" for b in args.batch_sizes]
             cells.append(f"{time_model(icp, batch, 1, 'cpu', args.repeats):.1f}")
             print(f"| {n} | " + " | ".join(cells) + " |")
         print(f"ms/pair; pairs from: {source}")
