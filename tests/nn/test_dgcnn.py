@@ -5,7 +5,7 @@ import torch
 from torch import nn
 
 from lcreg.checks import TooFewPointsError
-from lcreg.nn.dgcnn import DGCNN, edge_features
+from lcreg.nn.dgcnn import DGCNN, edge_conv, edge_features
 from lcreg.nn.mlp import PointwiseMLP
 
 CHANNELS = (6, 8, 10, 12)
@@ -156,3 +156,17 @@ def test_bad_arguments() -> None:
         DGCNN(k=0)
     with pytest.raises(TooFewPointsError, match="k=5"):
         DGCNN(EMB, K, channels=CHANNELS)(torch.randn(1, 4, 3))
+
+
+@pytest.mark.parametrize("batch_norm", [True, False])
+def test_edge_conv_equals_the_layer_on_explicit_edge_features(batch_norm: bool) -> None:
+    torch.manual_seed(0)
+    layer = PointwiseMLP([2 * 5, 7, 4], batch_norm=batch_norm, act="leaky_relu").double().train()
+    features = torch.randn(2, 30, 5, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, 30, (2, 30, 6))
+    direct = layer(edge_features(features, idx))
+    fast = edge_conv(layer, features, idx)
+    torch.testing.assert_close(fast, direct, atol=1e-12, rtol=0)
+    (g_direct,) = torch.autograd.grad(direct.square().sum(), features)
+    (g_fast,) = torch.autograd.grad(fast.square().sum(), features)
+    torch.testing.assert_close(g_fast, g_direct, atol=1e-10, rtol=0)

@@ -69,8 +69,17 @@ class PointwiseMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Map ``(..., C_in)`` to ``(..., C_out)``."""
-        for linear, norm, act in zip(self.linears, self.norms, self.acts, strict=True):
-            x = linear(x)
+        return self.after_first_linear(self.linears[0](x))
+
+    def after_first_linear(self, x: torch.Tensor) -> torch.Tensor:
+        """The rest of the MLP, given the first linear layer's output ``(..., C_1)``.
+
+        For callers that compute the first layer more cheaply themselves (e.g. on a concatenation, see
+        :func:`lcreg.nn.dgcnn.edge_conv`).
+        """
+        for i, (linear, norm, act) in enumerate(zip(self.linears, self.norms, self.acts, strict=True)):
+            if i > 0:
+                x = linear(x)
             if isinstance(norm, nn.BatchNorm1d):
                 x = norm(x.reshape(-1, x.shape[-1])).reshape(x.shape)
             x = act(x)
