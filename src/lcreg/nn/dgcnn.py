@@ -43,7 +43,7 @@ def edge_features(features: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return torch.cat([neighbours, centre], dim=-1)
 
 
-def edge_conv(layer: PointwiseMLP, features: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+def edge_conv(layer: nn.Module, features: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """``layer(edge_features(features, idx))`` without building the ``2C``-wide edge tensor.
 
     The first linear map splits over the concatenation, ``W [f_j, f_i] = W_a f_j + W_b f_i``, so it is applied once
@@ -51,13 +51,15 @@ def edge_conv(layer: PointwiseMLP, features: torch.Tensor, idx: torch.Tensor) ->
     backward pass. Same function as the direct form (pinned by a test).
 
     Args:
-        layer: An edge layer whose first linear map takes ``2C`` channels.
+        layer: A :class:`~lcreg.nn.mlp.PointwiseMLP` edge layer whose first linear map takes ``2C`` channels.
         features: Per-point features ``(B, N, C)``.
         idx: Neighbour indices ``(B, N, k)``.
 
     Returns:
         ``(B, N, k, C_out)``.
     """
+    if not isinstance(layer, PointwiseMLP):
+        raise TypeError(f"`layer` must be a PointwiseMLP, got {type(layer).__name__}")
     first = layer.linears[0]
     assert isinstance(first, nn.Linear)
     channels = features.shape[-1]
