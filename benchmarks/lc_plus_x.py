@@ -20,6 +20,7 @@ to ``--out``. The budget arguments override the configs (batch size, points, ste
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import platform
 import statistics
@@ -95,6 +96,7 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, pl
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     train_s = time.perf_counter() - start
     best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
+    lc_final = _last_logged(cli.trainer, "train/lc")  # before testing, which resets the logged metrics
     tested = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=best or None, verbose=False)[0]
     return {
         "config": str(config),
@@ -105,7 +107,7 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, pl
         "num_test_pairs": len(cli.datamodule.test_set),
         "num_points": cli.datamodule.hparams.num_points,
         "batch_size": cli.datamodule.hparams.batch_size,
-        "lc_final": _last_logged(cli.trainer, "train/lc"),
+        "lc_final": lc_final,
         **{k: float(tested[f"test/{k}"]) for k in METRICS},
     }
 
@@ -114,6 +116,20 @@ def _last_logged(trainer: Any, key: str) -> float | None:
     """Last value of a logged training metric (``None`` when the run did not log it)."""
     value = trainer.callback_metrics.get(f"{key}_epoch", trainer.callback_metrics.get(f"{key}_step"))
     return None if value is None else float(value)
+
+
+def lc_trajectory(row: dict[str, Any]) -> tuple[float, float, float] | None:
+    """First and last logged ``train/lc`` and the last ``train/loss`` of a run (from its ``metrics.csv``)."""
+    if not row.get("best_ckpt"):
+        return None
+    path = Path(row["best_ckpt"]).parents[1] / "metrics.csv"
+    if not path.is_file():
+        return None
+    with path.open() as fh:
+        steps = [r for r in csv.DictReader(fh) if r.get("train/lc_step")]
+    if not steps:
+        return None
+    return float(steps[0]["train/lc_step"]), float(steps[-1]["train/lc_step"]), float(steps[-1]["train/loss_step"])
 
 
 def _mean_std(values: list[float], digits: int) -> str:
@@ -146,6 +162,7 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
             lines.append(f"| {name} | " + " | ".join(cells) + tail)
         if len(by_variant) == 2:
             verdicts.append(_verdict(NAMES.get(host, host), by_variant["X"], by_variant["LC + X"]))
+            verdicts.append(_lc_share(NAMES.get(host, host), by_variant["LC + X"]))
     return "\n".join(lines) + "\n\n" + "\n".join(verdicts) + "\n"
 
 
@@ -161,6 +178,18 @@ def _verdict(name: str, base: list[dict[str, Any]], lc: list[dict[str, Any]]) ->
         label = METRICS[key].removesuffix(" °")
         parts.append(f"{label} {diff:+.2f}° ({rel:+.1f} %, {beyond} the larger seed std {spread:.2f}°)")
     return f"- LC + {name} vs {name}: " + "; ".join(parts)
+
+
+def _lc_share(name: str, runs: list[dict[str, Any]]) -> str:
+    """How large the LC term was during training (first and last logged step, mean over seeds)."""
+    traj = [t for t in (lc_trajectory(r) for r in runs) if t is not None]
+    if not traj:
+        return f"  - LC + {name}: no logged LC values found"
+    first, last, loss = (statistics.fmean(v) for v in zip(*traj))
+    return (
+        f"  - LC + {name}: LC term {first:.3g} at the first logged step, {last:.3g} at the last "
+        f"({100 * last / loss:.1f} % of the total training loss {loss:.3g}; weight 1)"
+    )
 
 
 def main() -> None:
