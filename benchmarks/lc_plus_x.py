@@ -188,7 +188,7 @@ def _lc_share(name: str, runs: list[dict[str, Any]]) -> str:
     first, last, loss = (statistics.fmean(v) for v in zip(*traj))
     return (
         f"  - LC + {name}: LC term {first:.3g} at the first logged step, {last:.3g} at the last "
-        f"({100 * last / loss:.1f} % of the total training loss {loss:.3g}; weight 1)"
+        f"({100 * last / loss:.2g} % of the total training loss {loss:.3g}; weight 1)"
     )
 
 
