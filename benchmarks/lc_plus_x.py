@@ -57,9 +57,7 @@ def budget(host: str, args: argparse.Namespace) -> dict[str, int | None]:
 
 def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, plan: dict) -> dict[str, Any]:
     """Train and test one (config, seed); returns the test metrics and bookkeeping."""
-    from lcreg.cli import TRAINER_DEFAULTS, LcregCLI
-    from lcreg.data.datamodule import PairDataModule
-    from lcreg.models.base import RegistrationModule
+    from lcreg.cli import build_cli
 
     overrides = [
         f"--seed_everything={seed}",
@@ -81,17 +79,7 @@ def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, pl
         overrides.append(f"--data.init_args.batch_size={plan['batch_size']}")
     if plan["num_points"]:
         overrides.append(f"--data.init_args.num_points={plan['num_points']}")
-    cli = LcregCLI(
-        RegistrationModule,
-        PairDataModule,
-        subclass_mode_model=True,
-        subclass_mode_data=True,
-        auto_configure_optimizers=False,
-        save_config_kwargs={"overwrite": True},
-        trainer_defaults=TRAINER_DEFAULTS,
-        args=["--config", str(config), *overrides],
-        run=False,
-    )
+    cli = build_cli(["--config", str(config), *overrides], run=False)
     start = time.perf_counter()
     cli.trainer.fit(cli.model, datamodule=cli.datamodule)
     train_s = time.perf_counter() - start
@@ -174,8 +162,11 @@ def _verdict(name: str, base: list[dict[str, Any]], lc: list[dict[str, Any]]) ->
         diff = statistics.fmean(c) - statistics.fmean(b)
         spread = max(statistics.stdev(b) if len(b) > 1 else 0.0, statistics.stdev(c) if len(c) > 1 else 0.0)
         rel = 100 * diff / statistics.fmean(b)
-        beyond = "exceeds" if abs(diff) > spread else "within"
         label = METRICS[key].removesuffix(" °")
+        if min(len(b), len(c)) < 2:
+            parts.append(f"{label} {diff:+.2f}° ({rel:+.1f} %, one seed: no spread to compare with)")
+            continue
+        beyond = "exceeds" if abs(diff) > spread else "within"
         parts.append(f"{label} {diff:+.2f}° ({rel:+.1f} %, {beyond} the larger seed std {spread:.2f}°)")
     return f"- LC + {name} vs {name}: " + "; ".join(parts)
 

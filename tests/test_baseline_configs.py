@@ -10,7 +10,7 @@ import pytest
 import torch
 import yaml
 
-from lcreg.cli import main
+from lcreg.cli import build_cli, main
 
 from _shared_data import shared_data
 
@@ -63,20 +63,7 @@ def test_modelnet_configs_follow_the_table_protocol(host: str) -> None:
 
 @pytest.mark.parametrize("host", HOSTS)
 def test_lc_feature_dim_matches_the_host_encoder(host: str) -> None:
-    from lcreg.cli import TRAINER_DEFAULTS, LcregCLI
-    from lcreg.data.datamodule import PairDataModule
-    from lcreg.models.base import RegistrationModule
-
-    cli = LcregCLI(
-        RegistrationModule,
-        PairDataModule,
-        subclass_mode_model=True,
-        subclass_mode_data=True,
-        auto_configure_optimizers=False,
-        trainer_defaults=TRAINER_DEFAULTS,
-        args=["--config", str(CONFIGS / f"{host}_lc.yaml")],
-        run=False,
-    )
+    cli = build_cli(["--config", str(CONFIGS / f"{host}_lc.yaml")], run=False)
     model = cli.model.eval()
     with torch.no_grad():
         features = model.lc_encoder()(torch.randn(2, 64, 3))  # type: ignore[operator]

@@ -22,7 +22,7 @@ from lightning.pytorch.cli import ArgsType, LightningCLI
 from lcreg.data.datamodule import PairDataModule
 from lcreg.models.base import RegistrationModule
 
-__all__ = ["LcregCLI", "main"]
+__all__ = ["LcregCLI", "build_cli", "main"]
 
 TRAINER_DEFAULTS: dict[str, Any] = {
     "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs", "name": "lcreg"}},
@@ -83,11 +83,14 @@ def _config_mentions_wandb(argv: list[str]) -> list[str]:
     return texts
 
 
-def main(args: ArgsType = None) -> None:
-    """Entry point of the ``lcreg`` console script (``args=None`` reads ``sys.argv``; tests pass a list)."""
-    argv = list(args) if isinstance(args, (list, tuple)) else sys.argv[1:]
-    _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
-    LcregCLI(
+def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
+    """The ``lcreg`` CLI; ``run=False`` only instantiates model, data and trainer (scripts and tests use it).
+
+    Args:
+        args: Command-line arguments (``None`` reads ``sys.argv``); with ``run=False`` no subcommand is given.
+        run: Run the subcommand.
+    """
+    return LcregCLI(
         RegistrationModule,
         PairDataModule,
         subclass_mode_model=True,
@@ -97,7 +100,15 @@ def main(args: ArgsType = None) -> None:
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
         args=args,
+        run=run,
     )
+
+
+def main(args: ArgsType = None) -> None:
+    """Entry point of the ``lcreg`` console script (``args=None`` reads ``sys.argv``; tests pass a list)."""
+    argv = list(args) if isinstance(args, (list, tuple)) else sys.argv[1:]
+    _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
+    build_cli(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

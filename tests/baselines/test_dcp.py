@@ -250,9 +250,9 @@ def test_cycle_term_uses_the_exact_inverse_identity(batch: RegistrationBatch) ->
 
 # --- configs -----------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("folder", [CONFIGS, CONFIGS / "embedded"])
-def test_configs_follow_the_original_and_differ_only_by_lc(folder: Path) -> None:
+def test_configs_follow_the_original(folder: Path) -> None:
+    # That X and LC + X differ by the LC block only is checked for every host in tests/test_baseline_configs.py.
     plain = yaml.safe_load((folder / "dcp.yaml").read_text())
-    lc = yaml.safe_load((folder / "dcp_lc.yaml").read_text())
     args = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.dcp.DCP"
     assert (args["emb_dims"], args["k"], args["pointer"], args["heads"], args["ff_dims"]) == (
@@ -264,9 +264,3 @@ def test_configs_follow_the_original_and_differ_only_by_lc(folder: Path) -> None
     )
     assert args["optimizer"]["init_args"] == {"lr": 0.001, "weight_decay": 0.0001}
     assert args["lr_scheduler"]["init_args"] == {"milestones": [75, 150, 200], "gamma": 0.1}
-    block = lc["model"]["init_args"].pop("local_consistency")
-    assert block["init_args"]["feature_dim"] == 512
-    assert lc["model"]["init_args"].pop("lc_weight") == 1.0
-    lc["trainer"]["logger"]["init_args"].pop("name")
-    plain["trainer"]["logger"]["init_args"].pop("name")
-    assert lc == plain

@@ -353,9 +353,9 @@ def test_validation_labels_come_from_the_ground_truth(batch: RegistrationBatch) 
 
 # --- configs -----------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("folder", [CONFIGS, CONFIGS / "embedded"])
-def test_configs_follow_the_original_and_differ_only_by_lc(folder: Path) -> None:
+def test_configs_follow_the_original(folder: Path) -> None:
+    # That X and LC + X differ by the LC block only is checked for every host in tests/test_baseline_configs.py.
     plain = yaml.safe_load((folder / "idam.yaml").read_text())
-    lc = yaml.safe_load((folder / "idam_lc.yaml").read_text())
     args = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.idam.IDAM"
     assert (args["emb_dims"], args["k"], args["num_iters"], args["num_kept"], args["positive_threshold"]) == (
@@ -368,9 +368,3 @@ def test_configs_follow_the_original_and_differ_only_by_lc(folder: Path) -> None
     assert args["optimizer"]["init_args"] == {"lr": 0.0001, "weight_decay": 0.001}
     assert args["lr_scheduler"]["init_args"] == {"milestones": [30], "gamma": 0.1}
     assert plain["data"]["init_args"]["batch_size"] == 16
-    block = lc["model"]["init_args"].pop("local_consistency")
-    assert block["init_args"] == {"feature_dim": 64, "num_local_points": 64}
-    assert lc["model"]["init_args"].pop("lc_weight") == 1.0
-    for config in (lc, plain):  # the logger's run name may differ
-        config["trainer"].get("logger", {}).get("init_args", {}).pop("name", None)
-    assert lc == plain

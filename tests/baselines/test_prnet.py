@@ -248,17 +248,9 @@ def test_configs_carry_the_original_hyperparameters() -> None:
     def load(name: str) -> dict:
         return yaml.safe_load((CONFIGS / name).read_text())
 
-    plain, lc = load("prnet.yaml"), load("prnet_lc.yaml")
+    plain = load("prnet.yaml")  # X vs LC + X: tests/test_baseline_configs.py
     model = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.prnet.PRNet"
     assert model["optimizer"]["init_args"] == {"lr": 1e-3, "weight_decay": 1e-4}
     assert model["lr_scheduler"]["init_args"]["milestones"] == [30, 60, 80]
     assert plain["trainer"]["max_epochs"] == 100 and plain["data"]["init_args"]["batch_size"] == 36
-    lc_block = lc["model"]["init_args"].pop("local_consistency")
-    assert lc_block["init_args"]["feature_dim"] == model.get("emb_dims", 512)
-    assert lc["model"]["init_args"].pop("lc_weight") == 1.0
-    assert lc["model"] == plain["model"]
-    for name in ("prnet", "prnet_lc"):
-        embedded = load(f"embedded/{name}.yaml")
-        assert embedded["model"] == load(f"{name}.yaml")["model"]
-        assert embedded["data"]["class_path"] == "lcreg.data.datamodule.SyntheticDataModule"
