@@ -14,7 +14,7 @@ __all__ = ["LocalConsistencyMixin"]
 
 
 class LocalConsistencyMixin:
-    """Adds ``lc_weight * LocalConsistency(encoder, src, ref, estimate)`` to a host's ``compute_loss``.
+    """Adds ``lc_weight * LocalConsistency(encoder, src, ref, estimate)`` to a host's training losses.
 
     The host only declares its encoder by overriding :meth:`lc_encoder` (default: ``self.encoder``) and, in its
     constructor, either builds the module (:meth:`init_local_consistency`, DVDs' flat arguments) or receives one
