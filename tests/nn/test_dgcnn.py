@@ -4,7 +4,7 @@ import pytest
 import torch
 from torch import nn
 
-from lcreg.checks import TooFewPointsError
+from lcreg.checks import ShapeError, TooFewPointsError
 from lcreg.nn.dgcnn import DGCNN, edge_conv, edge_features
 from lcreg.nn.mlp import PointwiseMLP
 
@@ -170,3 +170,11 @@ def test_edge_conv_equals_the_layer_on_explicit_edge_features(batch_norm: bool) 
     (g_direct,) = torch.autograd.grad(direct.square().sum(), features)
     (g_fast,) = torch.autograd.grad(fast.square().sum(), features)
     torch.testing.assert_close(g_fast, g_direct, atol=1e-10, rtol=0)
+
+
+def test_edge_conv_rejects_a_foreign_layer_or_a_width_mismatch() -> None:
+    features, idx = torch.randn(1, 10, 5), torch.randint(0, 10, (1, 10, 3))
+    with pytest.raises(TypeError, match="PointwiseMLP"):
+        edge_conv(nn.Linear(10, 4), features, idx)
+    with pytest.raises(ShapeError, match="features"):
+        edge_conv(PointwiseMLP([8, 4]), features, idx)  # expects 4 input channels, gets 5

@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from lcreg.checks import TooFewPointsError
+from lcreg.checks import ShapeError, TooFewPointsError
 from lcreg.geometry.neighbors import gather_points, knn_indices
 from lcreg.nn.mlp import Activation, PointwiseMLP
 
@@ -60,9 +60,10 @@ def edge_conv(layer: nn.Module, features: torch.Tensor, idx: torch.Tensor) -> to
     """
     if not isinstance(layer, PointwiseMLP):
         raise TypeError(f"`layer` must be a PointwiseMLP, got {type(layer).__name__}")
-    first = layer.linears[0]
-    assert isinstance(first, nn.Linear)
+    first = layer.first_linear
     channels = features.shape[-1]
+    if first.in_features != 2 * channels:
+        raise ShapeError("features", ("B", "N", first.in_features // 2), features.shape)
     h = gather_points(features @ first.weight[:, :channels].T, idx)  # (B, N, k, C_1): W_a f_j
     h = h + (features @ first.weight[:, channels:].T)[:, :, None, :]  # + W_b f_i
     if first.bias is not None:

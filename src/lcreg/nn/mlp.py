@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from itertools import pairwise
-from typing import Literal
+from typing import Literal, cast
 
 import torch
 from torch import nn
@@ -59,13 +59,12 @@ class PointwiseMLP(nn.Module):
             self.linears.append(nn.Linear(c_in, c_out, bias=bias or plain or not batch_norm))
             self.norms.append(nn.BatchNorm1d(c_out) if batch_norm and not plain else nn.Identity())
             self.acts.append(nn.Identity() if plain else activation(act))
+        self.out_channels = int(channels[-1])  # output width
 
     @property
-    def out_channels(self) -> int:
-        """Output width."""
-        last = self.linears[-1]
-        assert isinstance(last, nn.Linear)
-        return last.out_features
+    def first_linear(self) -> nn.Linear:
+        """The first linear map (``C_in -> C_1``); built by the constructor, so always an ``nn.Linear``."""
+        return cast(nn.Linear, self.linears[0])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Map ``(..., C_in)`` to ``(..., C_out)``."""
