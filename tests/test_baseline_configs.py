@@ -91,3 +91,15 @@ def test_fit_embedded_lc_config_end_to_end(host: str, tmp_path: Path) -> None:
 def test_fit_dcp_lc_on_modelnet40(tmp_path: Path) -> None:
     root = shared_data("modelnet40_mini")
     main(["fit", "--config", str(CONFIGS / "dcp_lc.yaml"), *TINY_RUN, f"--data.init_args.root={root}"])
+
+
+@pytest.mark.parametrize("host", HOSTS)
+def test_every_host_rejects_an_lc_module_of_the_wrong_width(host: str) -> None:
+    from importlib import import_module
+
+    from lcreg.nn.local_consistency import LocalConsistency
+
+    cls = {"dcp": "DCP", "prnet": "PRNet", "idam": "IDAM", "deepgmr": "DeepGMR"}[host]
+    model_cls = getattr(import_module(f"lcreg.baselines.{host}"), cls)
+    with pytest.raises(ValueError, match=r"`local_consistency.feature_dim` \(7\) must equal the encoder's width"):
+        model_cls(local_consistency=LocalConsistency(feature_dim=7, num_local_points=64))

@@ -93,16 +93,12 @@ class DCP(LocalConsistencyMixin, RegistrationModule):
         super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
         if pointer not in ("transformer", "identity"):
             raise ValueError(f"`pointer` must be 'transformer' or 'identity', got {pointer!r}")
-        if local_consistency is not None and local_consistency.feature_dim != emb_dims:
-            raise ValueError(
-                f"`local_consistency.feature_dim` ({local_consistency.feature_dim}) must equal `emb_dims` ({emb_dims})"
-            )
         self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
         self.encoder = DGCNN(emb_dims, k, "static", channels=tuple(edge_channels), act="relu")
         self.pointer = PointerTransformer(emb_dims, heads, ff_dims, "relu") if pointer == "transformer" else None
         self.cycle = cycle
         self.return_probabilities = return_probabilities
-        self.attach_local_consistency(local_consistency, lc_weight)
+        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
         self.min_points = max(k, self.lc_min_points)
 
     def embed(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

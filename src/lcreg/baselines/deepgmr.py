@@ -176,7 +176,7 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
         self.encoder = DeepGMREncoder(d_model, k, use_rri)
         self.cluster_head = PointwiseMLP((2 * d_model, 512, 256, 128, num_clusters), bias=False, last_plain=True)
-        self.attach_local_consistency(local_consistency, lc_weight)
+        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=d_model)
         self.min_points = max(k + 1 if use_rri else 3, self.lc_min_points)
 
     def posteriors(self, points: torch.Tensor) -> torch.Tensor:

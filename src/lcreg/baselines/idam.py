@@ -321,10 +321,6 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
             raise ValueError(f"`num_kept` must be >= 1 or None, got {num_kept}")
         if positive_threshold <= 0:
             raise ValueError(f"`positive_threshold` must be > 0, got {positive_threshold}")
-        if local_consistency is not None and local_consistency.feature_dim != emb_dims:
-            raise ValueError(
-                f"`local_consistency.feature_dim` ({local_consistency.feature_dim}) must equal `emb_dims` ({emb_dims})"
-            )
         self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
         self.encoder = GNNEncoder(emb_dims, k, gnn_channels)
         self.score_head = PointwiseMLP([emb_dims, 64, 32, 1], last_plain=True)
@@ -332,7 +328,7 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         self.num_iters = num_iters
         self.num_kept = num_kept
         self.positive_threshold = positive_threshold
-        self.attach_local_consistency(local_consistency, lc_weight)
+        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
         self.min_points = max(k, self.lc_min_points)
 
     def kept(self, num_src: int, num_ref: int) -> int:

@@ -210,7 +210,7 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         self.discount = discount
         self.feature_alignment_weight = feature_alignment_weight
         self.cycle_weight = cycle_weight
-        self.attach_local_consistency(local_consistency, lc_weight)
+        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
         self.min_points = max(k, 3, self.lc_min_points)
 
     def head(

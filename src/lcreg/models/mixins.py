@@ -38,17 +38,28 @@ class LocalConsistencyMixin:
         module = LocalConsistency(feature_dim, **lc_kwargs) if lc_weight > 0 else None
         self.attach_local_consistency(module, lc_weight)
 
-    def attach_local_consistency(self, module: LocalConsistency | None, lc_weight: float = 1.0) -> None:
+    def attach_local_consistency(
+        self, module: LocalConsistency | None, lc_weight: float = 1.0, feature_dim: int | None = None
+    ) -> None:
         """Use ``module`` (``None``: LC off) with weight ``lc_weight`` (``0`` also switches it off).
 
+        Args:
+            module: The injected LC module.
+            lc_weight: Weight of the LC term.
+            feature_dim: The host encoder's width ``K``, checked against ``module.feature_dim`` at construction.
+
         Raises:
-            ValueError: If ``lc_weight < 0``.
+            ValueError: If ``lc_weight < 0`` or the module's ``feature_dim`` is not the encoder's width.
             TypeError: If ``module`` is not a :class:`LocalConsistency`.
         """
         if lc_weight < 0:
             raise ValueError(f"`lc_weight` must be >= 0, got {lc_weight}")
         if module is not None and not isinstance(module, LocalConsistency):
             raise TypeError(f"`local_consistency` must be a LocalConsistency module, got {type(module).__name__}")
+        if module is not None and feature_dim is not None and module.feature_dim != feature_dim:
+            raise ValueError(
+                f"`local_consistency.feature_dim` ({module.feature_dim}) must equal the encoder's width ({feature_dim})"
+            )
         self.lc_weight = lc_weight
         self.local_consistency = module if lc_weight > 0 else None
 
