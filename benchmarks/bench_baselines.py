@@ -99,7 +99,7 @@ def main() -> None:
     if not args.skip_inference:
         torch.manual_seed(0)
         models = {name: make(None).to(args.device) for name, make in factories.items()}
-        icp = ICP(max_correspondence_distance=0.2)
+        icp = ICP(voxel_size=0.05, distance_factor=4.0, method="point_to_point")  # gate 0.2
         header = " | ".join(f"{n} b={b}" for n in models for b in args.batch_sizes)
         print(f"\n| points | {header} | ICP |")
         print("|---" * (len(args.batch_sizes) * len(models) + 2) + "|")

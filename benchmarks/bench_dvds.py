@@ -100,7 +100,7 @@ def main() -> None:
 
     torch.manual_seed(0)
     dvds = (DVDs.load_from_checkpoint(args.ckpt, map_location=args.device) if args.ckpt else DVDs()).to(args.device)
-    icp = ICP(max_correspondence_distance=0.2)
+    icp = ICP(voxel_size=0.05, distance_factor=4.0, method="point_to_point")  # gate 0.2
     print(
         f"device {args.device}, torch threads {torch.get_num_threads()}, {args.pairs} pairs per size, "
         f"median of {args.repeats} runs"

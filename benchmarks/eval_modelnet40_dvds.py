@@ -70,7 +70,7 @@ def main() -> None:
         *untrained_reports,
     ]
     for dist in args.icp_distances:
-        icp = ICP(max_correspondence_distance=dist, max_iterations=50)
+        icp = ICP(voxel_size=dist, distance_factor=1.0, method="point_to_point", max_iterations=50)  # gate = dist
         reports.append(evaluate(icp, batches, f"Open3D ICP p2p (identity init, dist {dist}, 50 it.)"))
     seeds = ", ".join(str(s) for s in args.init_seeds)
     table = (

@@ -72,7 +72,7 @@ def check_training_lowers_loss(
         loss = model.training_losses(model.training_forward(batch), batch)["loss"]
         loss.backward()
         opt.step()
-        history.append(float(loss))
+        history.append(float(loss.detach()))
     assert history[-1] < history[0], f"loss did not decrease: {history}"
     return history[0], history[-1]
 

@@ -36,3 +36,11 @@ def test_lazy_attributes_resolve_and_unknown_ones_raise() -> None:
         assert "NotAThing" in str(err)
     else:  # pragma: no cover
         raise AssertionError("expected AttributeError")
+
+
+def test_every_lazy_export_resolves_to_its_name() -> None:
+    import lcreg
+
+    for name in lcreg.__all__:
+        if name != "__version__":
+            assert getattr(lcreg, name).__name__ == name, name

@@ -7,6 +7,12 @@ config that lists its own ``ModelCheckpoint`` replaces it, as the DVDs configs d
 bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments (``model.init_args.optimizer``),
 so the top-level ``optimizer:`` key of LightningCLI is not used.
 
+Any model can be followed by ICP refinement at validation/test/predict time: a top-level ``refine:`` block
+(``class_path: lcreg.baselines.classical.ICP`` with its ``init_args``), or ``--refine lcreg.baselines.classical.ICP
+--refine.voxel_size 0.02`` on the command line; it starts from the model's estimate
+(:meth:`~lcreg.models.base.RegistrationModule.set_refiner`). ``lcreg fit`` refuses models with nothing to train
+(classical methods) before anything runs.
+
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
 """
@@ -17,7 +23,7 @@ import os
 import sys
 from typing import Any
 
-from lightning.pytorch.cli import ArgsType, LightningCLI
+from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 
 from lcreg.data.datamodule import PairDataModule
 from lcreg.models.base import RegistrationModule
@@ -30,12 +36,35 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 
 
 class LcregCLI(LightningCLI):
-    """LightningCLI with lcreg's base classes in subclass mode and default callbacks.
+    """LightningCLI with lcreg's base classes in subclass mode, default callbacks and the ``refine`` option.
 
     Unless disabled in the trainer config, adds ``ModelCheckpoint(monitor="val/loss", save_last=True)`` and a
     ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well. ``lcreg predict`` writes
     ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory.
     """
+
+    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+        """Add ``refine``: an optional ICP run after the model's estimate (validation, test, predict)."""
+        from lcreg.baselines.classical import ICP
+
+        parser.add_argument(
+            "--refine",
+            type=ICP | None,
+            default=None,
+            help="ICP refinement after the model's estimate (lcreg.baselines.classical.ICP), none by default",
+        )
+
+    def instantiate_classes(self) -> None:
+        """Build model, data and trainer; attach the refiner; refuse ``fit`` for models without a loss."""
+        super().instantiate_classes()
+        config = self.config_init[self.subcommand] if self.subcommand else self.config_init
+        if config.get("refine") is not None:
+            self.model.set_refiner(config["refine"])
+        if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
+            raise RuntimeError(
+                f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
+                "apply, evaluate it with `lcreg test` (or `lcreg validate`)"
+            )
 
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
         from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar

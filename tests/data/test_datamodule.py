@@ -131,7 +131,14 @@ def test_synthetic_datamodule_loaders() -> None:
         assert batch.transform_ref_src is not None and batch.transform_ref_src.shape == (4, 4, 4)
         assert batch.normals_src is not None and batch.normals_src.shape == (4, 48, 3)
         assert batch.points_src.dtype == torch.float32
-    assert sum(len(b) for b in loaders["test"]) == 6  # drop_last=False everywhere
+    assert sum(len(b) for b in loaders["test"]) == 6  # evaluation keeps every pair
+    assert [len(b) for b in loaders["train"]] == [4, 4, 4]  # 12 pairs: nothing dropped
+    dm.batch_size = 5
+    assert [len(b) for b in dm.train_dataloader()] == [5, 5]  # the incomplete last batch is dropped (BatchNorm)
+    assert [len(b) for b in dm.test_dataloader()] == [5, 1]
+    dm.batch_size = 32
+    assert [len(b) for b in dm.train_dataloader()] == [12]  # fewer pairs than a batch: keep them
+    dm.batch_size = 4
     first_val = [b.points_src for b in dm.val_dataloader()]
     again = [b.points_src for b in dm.val_dataloader()]
     assert all(torch.equal(x, y) for x, y in zip(first_val, again))  # same val pairs every epoch

@@ -186,3 +186,18 @@ def test_errors() -> None:
         se3.compose(eye, torch.zeros(2, 3, 3))
     with pytest.raises(TypeError, match="transform_a_b"):
         se3.compose(eye.long(), eye)
+
+
+def test_uncenter_matches_the_translation_sandwich() -> None:
+    gen = torch.Generator().manual_seed(3)
+    g = se3.exp(torch.randn(4, 6, generator=gen, dtype=torch.float64))
+    mean_src, mean_ref = (
+        torch.randn(4, 3, generator=gen, dtype=torch.float64),
+        torch.randn(4, 3, generator=gen, dtype=torch.float64),
+    )
+    eye = torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    expected = se3.make_transform(eye, mean_ref) @ g @ se3.make_transform(eye, -mean_src)
+    torch.testing.assert_close(se3.uncenter(g, mean_src, mean_ref), expected)
+    points = torch.randn(4, 10, 3, generator=gen, dtype=torch.float64)
+    centred = se3.transform_points(g, points - mean_src[:, None]) + mean_ref[:, None]
+    torch.testing.assert_close(se3.transform_points(se3.uncenter(g, mean_src, mean_ref), points), centred)

@@ -161,3 +161,77 @@ def test_errors() -> None:
         so3.hat(torch.zeros(2))
     with pytest.raises(ShapeError, match="mat"):
         so3.vee(torch.zeros(4, 4))
+
+
+# --- quaternions -------------------------------------------------------------------------------------------------
+def _wxyz(quat_xyzw: np.ndarray) -> np.ndarray:
+    """scipy's scalar-last ``(x, y, z, w)`` to our scalar-first ``(w, x, y, z)``."""
+    return np.roll(quat_xyzw, 1, axis=-1)
+
+
+def test_quaternion_to_matrix_matches_scipy(dtype: torch.dtype) -> None:
+    rots = Rotation.random(64, random_state=12)
+    quat = torch.tensor(_wxyz(rots.as_quat()), dtype=dtype)
+    mats = so3.quaternion_to_matrix(quat)
+    assert mats.dtype == dtype and mats.shape == (64, 3, 3)
+    np.testing.assert_allclose(mats.double().numpy(), rots.as_matrix(), atol=TOL[dtype])
+    # One axis by hand: (w, x, y, z) = (cos 30deg, sin 30deg, 0, 0) is 60 degrees about x.
+    half = math.radians(30)
+    about_x = so3.quaternion_to_matrix(torch.tensor([math.cos(half), math.sin(half), 0.0, 0.0], dtype=dtype))
+    np.testing.assert_allclose(
+        about_x.double().numpy(), Rotation.from_euler("x", 60, degrees=True).as_matrix(), atol=TOL[dtype]
+    )
+
+
+def test_quaternion_to_matrix_normalises_and_ignores_sign(dtype: torch.dtype) -> None:
+    gen = np.random.default_rng(13)
+    raw = gen.normal(size=(32, 4)) * gen.uniform(1e-3, 1e3, size=(32, 1))  # arbitrary norms
+    expected = Rotation.from_quat(np.roll(raw, -1, axis=-1)).as_matrix()  # scipy normalises too
+    quat = torch.tensor(raw, dtype=dtype)
+    torch.testing.assert_close(so3.quaternion_to_matrix(quat).double(), torch.tensor(expected), atol=TOL[dtype], rtol=0)
+    torch.testing.assert_close(so3.quaternion_to_matrix(-quat), so3.quaternion_to_matrix(quat))
+    rot = so3.quaternion_to_matrix(quat)
+    eye = torch.eye(3, dtype=dtype).expand_as(rot)
+    torch.testing.assert_close(rot.transpose(-1, -2) @ rot, eye, atol=10 * TOL[dtype], rtol=0)
+    torch.testing.assert_close(torch.linalg.det(rot), torch.ones(32, dtype=dtype), atol=10 * TOL[dtype], rtol=0)
+
+
+def test_quaternion_to_matrix_agrees_with_exp(dtype: torch.dtype) -> None:
+    """``q = (cos(theta/2), sin(theta/2) axis)`` is the rotation ``exp(theta axis)``."""
+    rotvecs = torch.tensor(random_rotvecs(16, seed=14), dtype=dtype)
+    half = rotvecs.norm(dim=-1, keepdim=True) / 2
+    quat = torch.cat([half.cos(), half.sin() * rotvecs / (2 * half)], dim=-1)
+    torch.testing.assert_close(so3.quaternion_to_matrix(quat), so3.exp(rotvecs), atol=10 * TOL[dtype], rtol=0)
+
+
+def test_quaternion_to_matrix_batched_matches_per_item(dtype: torch.dtype) -> None:
+    quat = torch.randn(2, 3, 5, 4, dtype=dtype, generator=torch.Generator().manual_seed(15))
+    mats = so3.quaternion_to_matrix(quat)
+    assert mats.shape == (2, 3, 5, 3, 3)
+    for index in np.ndindex(2, 3, 5):
+        torch.testing.assert_close(mats[index], so3.quaternion_to_matrix(quat[index]))
+
+
+def test_quaternion_to_matrix_zero_norm_is_the_identity_with_finite_gradient(dtype: torch.dtype) -> None:
+    quat = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=dtype, requires_grad=True)
+    mats = so3.quaternion_to_matrix(quat)
+    torch.testing.assert_close(mats[0], torch.eye(3, dtype=dtype))
+    torch.testing.assert_close(mats[1], torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=dtype)))
+    mats.square().sum().backward()
+    assert quat.grad is not None and torch.isfinite(quat.grad).all()
+    assert (quat.grad[0] == 0).all()
+
+
+def test_gradcheck_quaternion_to_matrix() -> None:
+    quat = torch.randn(5, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(16)).requires_grad_(True)
+    assert torch.autograd.gradcheck(so3.quaternion_to_matrix, (quat,))
+    # The gradient is tangent to the scale: d R / d q . q = 0 (R does not depend on |q|).
+    (jac,) = torch.autograd.functional.jacobian(so3.quaternion_to_matrix, (quat[0].detach(),))
+    torch.testing.assert_close(jac @ quat[0].detach(), torch.zeros(3, 3, dtype=torch.float64), atol=1e-12, rtol=0)
+
+
+def test_quaternion_to_matrix_errors() -> None:
+    with pytest.raises(ShapeError, match="quat"):
+        so3.quaternion_to_matrix(torch.zeros(2, 3))
+    with pytest.raises(TypeError, match="quat"):
+        so3.quaternion_to_matrix(torch.zeros(2, 4, dtype=torch.int64))

@@ -65,3 +65,48 @@ def test_plateau_scheduler_is_monitored_on_the_validation_loss() -> None:
     config = _Translate(lr_scheduler=step).configure_optimizers()
     assert isinstance(config["lr_scheduler"], torch.optim.lr_scheduler.StepLR)
     assert isinstance(_Translate().configure_optimizers(), torch.optim.Adam)
+
+
+class _CountingRefiner:
+    """Moves the estimate by a fixed translation and counts its calls (stands in for ICP)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+        self.offset = se3.make_transform(torch.eye(3)[None], torch.tensor([[0.0, 0.0, 0.5]]))
+
+    def __call__(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
+        self.calls += 1
+        transform = self.offset.expand_as(init) @ init
+        return RegistrationResult.fixed_iterations(transform, num_iters=3, aux={"refined": True})
+
+
+def test_refiner_runs_after_forward_outside_training_only() -> None:
+    model, refiner = _Translate(), _CountingRefiner()
+    with torch.no_grad():
+        model.shift.copy_(torch.tensor([0.1, 0.0, 0.0]))
+    model.set_refiner(refiner)
+    batch = _batch()
+    result = model.register(batch.points_src, batch.points_ref)
+    expected_coarse = model(batch.points_src, batch.points_ref).transform_ref_src
+    torch.testing.assert_close(result.aux["coarse_transform_ref_src"], expected_coarse)
+    torch.testing.assert_close(result.translation, torch.tensor([[0.1, 0.0, 0.5]] * 2))
+    assert result.num_iters.tolist() == [4, 4] and result.aux["refined"] is True
+    model.training_step(batch, 0)  # training never refines
+    assert refiner.calls == 1
+    model.eval().validation_step(batch, 0)
+    model.predict_step(batch, 0)
+    assert refiner.calls == 3
+
+
+def test_refiner_is_neither_a_submodule_nor_saved() -> None:
+    from lcreg.baselines.classical import ICP
+
+    model = _Translate()
+    keys = set(model.state_dict())
+    model.set_refiner(ICP())
+    assert set(model.state_dict()) == keys and isinstance(model.refiner, ICP)
+    assert all(not isinstance(m, ICP) for m in model.modules())
+    model.set_refiner(None)
+    assert model.refiner is None
+    with pytest.raises(TypeError, match="refiner"):
+        model.set_refiner(3)  # type: ignore[arg-type]

@@ -255,14 +255,19 @@ class PairDataModule(LightningDataModule):
             self.test_set = PairDataset.from_objects(test, self.pair_protocol, deterministic=True, seed=self.seed)
 
     def _loader(self, dataset: PairDataset | None, name: str, shuffle: bool) -> DataLoader[Any]:
-        """A DataLoader over ``dataset`` with :func:`collate_pairs`."""
+        """A DataLoader over ``dataset`` with :func:`collate_pairs`.
+
+        The shuffled (training) loader drops the last incomplete batch when there is a full one (as the DCP/PCRNet
+        originals do): a batch of one pair breaks batch-wise BatchNorm (FMR-Net's decoder, PCRNet-style MLPs).
+        Validation and test keep every pair.
+        """
         if dataset is None:
             raise RuntimeError(f"the {name} set is not built; call `setup()` with the matching stage first")
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
             shuffle=shuffle,
-            drop_last=False,
+            drop_last=shuffle and len(dataset) > self.batch_size,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             collate_fn=collate_pairs,

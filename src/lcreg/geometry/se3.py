@@ -27,6 +27,7 @@ __all__ = [
     "split",
     "transform_normals",
     "transform_points",
+    "uncenter",
 ]
 
 
@@ -81,6 +82,22 @@ def inverse(transform: torch.Tensor) -> torch.Tensor:
     rot, trans = split(transform)
     rot_t = rot.transpose(-1, -2)
     return make_transform(rot_t, -(rot_t @ trans[..., None]).squeeze(-1))
+
+
+def uncenter(transform: torch.Tensor, mean_src: torch.Tensor, mean_ref: torch.Tensor) -> torch.Tensor:
+    """Undo a centring: ``Trans(mean_ref) G Trans(-mean_src)`` for ``G (B, 4, 4)`` estimated on centred clouds.
+
+    Args:
+        transform: ``G (B, 4, 4)`` mapping the centred source onto the centred reference.
+        mean_src: Source centroids ``(B, 3)``.
+        mean_ref: Reference centroids ``(B, 3)``.
+
+    Returns:
+        ``(B, 4, 4)`` transforms ``[R, t + mean_ref - R mean_src; 0 1]`` on the original clouds.
+    """
+    _check_transform_like(transform, "transform")
+    rot, trans = split(transform)
+    return make_transform(rot, trans + mean_ref - (rot @ mean_src[..., None]).squeeze(-1))
 
 
 def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

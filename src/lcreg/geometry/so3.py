@@ -3,6 +3,7 @@
 Rotation vectors ``omega`` have shape ``(..., 3)`` (axis times angle, radians); rotation matrices ``(..., 3, 3)``.
 Small angles use Taylor series behind a "safe where" (the unselected branch never sees a division by ~0), so
 values and gradients stay finite at ``theta = 0``; the log map has a dedicated branch near ``theta = pi``.
+Quaternions (:func:`quaternion_to_matrix`) are ``(..., 4)`` in scalar-first ``(w, x, y, z)`` order.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import torch
 from lcreg.checks import ShapeError, check_float
 from lcreg.geometry._eps import near_pi, small_angle
 
-__all__ = ["exp", "hat", "log", "vee"]
+__all__ = ["exp", "hat", "log", "quaternion_to_matrix", "vee"]
 
 
 def hat(omega: torch.Tensor) -> torch.Tensor:
@@ -98,3 +99,47 @@ def log(rot: torch.Tensor) -> torch.Tensor:
     if bool(near.any()):
         omega = torch.where(near[..., None], _log_near_pi(rot, theta, skew), omega)
     return omega
+
+
+def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices of quaternions in **scalar-first** ``(w, x, y, z)`` order (scipy uses ``(x, y, z, w)``).
+
+    The input need not be unit: it is normalised inside, so ``q`` and ``c q`` (any ``c != 0``, ``-q`` included)
+    give the same rotation. A quaternion whose squared norm is below ``torch.finfo(dtype).tiny`` (zero, or
+    underflowing) maps to the identity with a zero gradient instead of raising: the function runs inside networks
+    (PCRNet's pose head), where a data-dependent check would force a device synchronisation and a division by
+    the norm would give NaN. Callers that need to reject such inputs must check the norm themselves.
+
+    Args:
+        quat: Quaternions ``(..., 4)`` as ``(w, x, y, z)``.
+
+    Returns:
+        Rotation matrices ``(..., 3, 3)`` (column-vector convention, ``p' = R p``).
+
+    Raises:
+        ShapeError: If the last dimension is not 4.
+        TypeError: If ``quat`` is not a float32/float64 tensor.
+
+    Example:
+        >>> quaternion_to_matrix(torch.tensor([0.0, 0.0, 0.0, 2.0]))  # 180 degrees about z, not unit
+        tensor([[-1.,  0.,  0.],
+                [ 0., -1.,  0.],
+                [ 0.,  0.,  1.]])
+    """
+    check_float(quat, "quat")
+    if quat.shape[-1:] != (4,):
+        raise ShapeError("quat", ("...", 4), quat.shape)
+    sq = (quat * quat).sum(-1, keepdim=True)  # (..., 1)
+    degenerate = sq < torch.finfo(quat.dtype).tiny
+    # Safe where: the degenerate rows divide by 1 (finite gradient) and are then replaced by the identity.
+    unit = quat / torch.where(degenerate, torch.ones_like(sq), sq).sqrt()
+    identity = torch.zeros_like(quat)
+    identity[..., 0] = 1
+    w, x, y, z = torch.where(degenerate, identity, unit).unbind(-1)
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    rows = [
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    ]  # fmt: skip
+    return torch.stack(rows, dim=-1).reshape(*quat.shape[:-1], 3, 3)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import csv
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import torch
 from lightning.pytorch import LightningModule
@@ -26,7 +26,7 @@ from lcreg.checks import check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["RegistrationModule"]
+__all__ = ["Refiner", "RegistrationModule"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
@@ -34,6 +34,14 @@ OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimize
 SchedulerFactory = Callable[
     [torch.optim.Optimizer], torch.optim.lr_scheduler.LRScheduler | torch.optim.lr_scheduler.ReduceLROnPlateau
 ]
+
+
+class Refiner(Protocol):
+    """A local method that improves a coarse estimate, e.g. :class:`lcreg.baselines.classical.ICP`."""
+
+    def __call__(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
+        """Refine ``init (B, 4, 4)`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``."""
+        ...
 
 
 class RegistrationModule(LightningModule):
@@ -50,6 +58,7 @@ class RegistrationModule(LightningModule):
     """
 
     has_loss: bool = True
+    _refiner: Refiner | None = None
 
     def __init__(
         self,
@@ -92,6 +101,40 @@ class RegistrationModule(LightningModule):
         return self(batch.points_src, batch.points_ref)
 
     # --- shared machinery ------------------------------------------------------------------------------------
+    @property
+    def refiner(self) -> Refiner | None:
+        """The refinement step run after ``forward`` outside training (``None``: none)."""
+        return self._refiner
+
+    def set_refiner(self, refiner: Refiner | None) -> None:
+        """Follow every validation/test/predict/``register`` estimate by ``refiner`` (``None`` removes it).
+
+        The refiner starts from this model's estimate (``init``); training never uses it. It is kept outside the
+        module tree, so it is neither trained nor saved in checkpoints: ``lcreg test --config x.yaml --refine ...``
+        adds it to any trained checkpoint (see :mod:`lcreg.cli`).
+
+        Raises:
+            TypeError: If ``refiner`` is not callable.
+        """
+        if refiner is not None and not callable(refiner):
+            raise TypeError(f"`refiner` must be callable (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}")
+        object.__setattr__(self, "_refiner", refiner)  # bypass nn.Module registration on purpose
+
+    def estimate(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """``forward``, then the refiner (if any) from its estimate.
+
+        The refined result keeps the coarse estimate in ``aux["coarse_transform_ref_src"]`` and adds the refiner's
+        iterations to ``num_iters``.
+        """
+        result = self(points_src, points_ref)
+        if self._refiner is None:
+            return result
+        coarse = result.transform_ref_src.detach()
+        refined = self._refiner(points_src, points_ref, init=coarse)
+        refined.aux = {**result.aux, **refined.aux, "coarse_transform_ref_src": coarse}
+        refined.num_iters = refined.num_iters.to(result.num_iters.device) + result.num_iters
+        return refined
+
     def ground_truth(self, batch: RegistrationBatch) -> torch.Tensor:
         """``batch.transform_ref_src`` for supervised losses; a clear error when the batch has none."""
         if batch.transform_ref_src is None:
@@ -113,13 +156,13 @@ class RegistrationModule(LightningModule):
         was_training = self.training
         self.eval()
         try:
-            return self(points_src, points_ref)
+            return self.estimate(points_src, points_ref)
         finally:
             self.train(was_training)
 
     def _common_step(self, batch: RegistrationBatch, stage: Stage) -> torch.Tensor | None:
         self.validate_inputs(batch.points_src, batch.points_ref)
-        result = self.training_forward(batch) if stage == "train" else self(batch.points_src, batch.points_ref)
+        result = self.training_forward(batch) if stage == "train" else self.estimate(batch.points_src, batch.points_ref)
         bs = len(batch)
         loss = None
         if stage == "train" or (stage == "val" and self.has_loss):
@@ -164,7 +207,7 @@ class RegistrationModule(LightningModule):
     def predict_step(self, batch: RegistrationBatch, batch_idx: int) -> RegistrationResult:
         """Registration results for a batch (``lcreg predict``); ``aux`` carries ``index``/``transform_gt``."""
         self.validate_inputs(batch.points_src, batch.points_ref)
-        result = self(batch.points_src, batch.points_ref)
+        result = self.estimate(batch.points_src, batch.points_ref)
         if batch.index is not None:
             result.aux["index"] = batch.index
         if batch.transform_ref_src is not None:

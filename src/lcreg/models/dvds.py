@@ -33,20 +33,20 @@ import torch
 from lcreg.geometry import se3
 from lcreg.geometry.chamfer import chamfer_distance
 from lcreg.geometry.normals import estimate_normals
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
+from lcreg.models.base import OptimizerFactory, SchedulerFactory
+from lcreg.models.lucas_kanade import LucasKanadeModule
 from lcreg.models.mixins import LocalConsistencyMixin
 from lcreg.nn.folding import FoldingDecoder
 from lcreg.nn.heads import NormalHead
-from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
+from lcreg.nn.lk import JacobianMode
 from lcreg.nn.local_consistency import Pairing
-from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["DVDs"]
 
 
-class DVDs(LocalConsistencyMixin, RegistrationModule):
-    """DVDs model.
+class DVDs(LocalConsistencyMixin, LucasKanadeModule):
+    """DVDs model (encoder, solver and ``forward`` from :class:`~lcreg.models.lucas_kanade.LucasKanadeModule`).
 
     Args:
         encoder_channels: PointNet widths; the last is the descriptor size ``K`` (paper: 1024).
@@ -102,15 +102,22 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         optimizer: OptimizerFactory = torch.optim.Adam,
         lr_scheduler: SchedulerFactory | None = None,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(
+            encoder_channels,
+            batch_norm,
+            max_iterations,
+            tolerance=tolerance,
+            damping=damping,
+            jacobian=jacobian,
+            optimizer=optimizer,
+            lr_scheduler=lr_scheduler,
+        )
         if lambda_recon < 0 or lambda_normal < 0:
             raise ValueError(
                 f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}"
             )
         self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
-        self.encoder = PointNetEncoder(encoder_channels, batch_norm)
         k = self.encoder.feature_dim
-        self.solver = InverseCompositionalLK(max_iterations, tolerance, damping, jacobian)
         self.init_local_consistency(
             k,
             lc_weight,
@@ -131,10 +138,6 @@ class DVDs(LocalConsistencyMixin, RegistrationModule):
         self.global_loss = global_loss
         self.diagnostics_every_n_steps = diagnostics_every_n_steps
         self.min_points = max(3, num_local_points if lc_weight > 0 else 3)
-
-    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
-        """IC-LK registration with the current (frozen) descriptor."""
-        return self.solver(self.encoder, points_src, points_ref)
 
     def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
         """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""

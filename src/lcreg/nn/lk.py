@@ -76,12 +76,6 @@ def twist_jacobian(
     raise ValueError(f"unknown Jacobian mode {mode!r}; expected 'analytic', 'autodiff' or 'finite_difference'")
 
 
-def _translation(offset: torch.Tensor) -> torch.Tensor:
-    """Pure translations ``(B, 4, 4)`` by ``offset (B, 3)``."""
-    eye = torch.eye(3, dtype=offset.dtype, device=offset.device).expand(offset.shape[0], 3, 3)
-    return se3.make_transform(eye, offset)
-
-
 class InverseCompositionalLK(nn.Module):
     """IC-LK solver; holds hyper-parameters only, the encoder is passed at call time.
 
@@ -131,14 +125,28 @@ class InverseCompositionalLK(nn.Module):
         return torch.linalg.solve(jtj + lam[:, None, None] * eye, j64.transpose(1, 2)).to(jac.dtype)
 
     def forward(
-        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor
+        self,
+        encoder: Encoder | nn.Module,
+        points_src: torch.Tensor,
+        points_ref: torch.Tensor,
+        max_iterations: int | None = None,
     ) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
 
+        Args:
+            encoder: The descriptor ``psi``.
+            points_src: Source clouds ``(B, N, 3)``.
+            points_ref: Reference clouds ``(B, M, 3)``.
+            max_iterations: Overrides the solver's ``max_iterations`` for this call (PointNetLK: 10 in training,
+                20 at test).
+
         Returns:
-            :class:`RegistrationResult` with ``residual_history (B, iterations)`` (``||r||`` before each update)
-            and ``aux["feature_ref"] (B, K)``.
+            :class:`RegistrationResult` with ``residual_history (B, iterations)`` (``||r||`` before each update),
+            ``aux["feature_ref"] (B, K)`` and ``aux["residual"] (B, K)``, the last residual ``r`` (before the last
+            update; differentiable when the solver is).
         """
+        if max_iterations is not None and max_iterations < 1:
+            raise ValueError(f"`max_iterations` must be >= 1, got {max_iterations}")
         check_points(points_src, "points_src")
         check_points(points_ref, "points_ref")
         check_same_batch(points_src=points_src, points_ref=points_ref)
@@ -147,13 +155,13 @@ class InverseCompositionalLK(nn.Module):
             encoder.eval()
         try:
             with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
-                return self._solve(encoder, points_src, points_ref)
+                return self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations)
         finally:
             if was_training and isinstance(encoder, nn.Module):
                 encoder.train()
 
     def _solve(
-        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor
+        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor, max_iterations: int
     ) -> RegistrationResult:
         b = points_src.shape[0]
         mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
@@ -165,7 +173,7 @@ class InverseCompositionalLK(nn.Module):
         active = torch.ones(b, dtype=torch.bool, device=points_src.device)
         iters = torch.zeros(b, dtype=torch.long, device=points_src.device)
         history = []
-        for _ in range(self.max_iterations):
+        for _ in range(max_iterations):
             resid = encoder(se3.transform_points(g, src0)) - feat_ref  # (B, K)
             history.append(resid.norm(dim=-1))
             dxi = -(pinv @ resid[..., None]).squeeze(-1) * active[:, None]  # (B, 6)
@@ -174,11 +182,11 @@ class InverseCompositionalLK(nn.Module):
             active = active & (dxi.norm(dim=-1) >= self.tolerance)
             if not bool(active.any()):
                 break
-        transform = _translation(mean_ref) @ g @ _translation(-mean_src)
+        transform = se3.uncenter(g, mean_src, mean_ref)
         return RegistrationResult(
             transform_ref_src=transform,
             converged=~active,
             num_iters=iters,
             residual_history=torch.stack(history, dim=1),
-            aux={"feature_ref": feat_ref},
+            aux={"feature_ref": feat_ref, "residual": resid},
         )

@@ -1,0 +1,92 @@
+"""Shared base of the descriptor + inverse-compositional LK models: DVDs, PointNetLK and FMR-Net.
+
+All three register with the same two pieces, built once here: a :class:`~lcreg.nn.pointnet.PointNetEncoder`
+``psi`` and the :class:`~lcreg.nn.lk.InverseCompositionalLK` solver. They differ only in how ``psi`` is trained
+(self-supervised DVDs losses, PointNetLK's supervised pose + residual loss, FMR-Net's reconstruction), so each
+subclass adds its losses and nothing else. ``eval_iterations`` lets a model run more LK iterations at
+validation/test than in training (PointNetLK: 10 and 20).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+
+from lcreg.geometry import se3
+from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
+from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
+from lcreg.nn.losses import transform_mse
+from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+__all__ = ["LucasKanadeModule", "lk_pose_loss"]
+
+
+def lk_pose_loss(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
+    """PointNetLK's pose loss ``16 MSE(T_pred T_gt^-1, I_4)``: the squared Frobenius norm, averaged over the batch.
+
+    Args:
+        transform_pred: Estimates ``(B, 4, 4)``.
+        transform_gt: Ground truths ``(B, 4, 4)`` (both map source into reference).
+    """
+    return 16.0 * transform_mse(transform_pred, se3.inverse(transform_gt))
+
+
+class LucasKanadeModule(RegistrationModule):
+    """A PointNet descriptor registered by IC-LK; subclasses add their training losses.
+
+    Args:
+        encoder_channels: PointNet widths; the last is the descriptor size ``K``.
+        batch_norm: BatchNorm in the encoder (IC-LK always runs it with its running statistics).
+        max_iterations: IC-LK iterations in training (and at test unless ``eval_iterations`` is set).
+        eval_iterations: IC-LK iterations at validation/test/predict (``None``: ``max_iterations``).
+        tolerance: Stop an item once ``||dxi|| <`` this.
+        damping: Relative damping of ``J^T J`` (keeps a singular Jacobian from producing NaN).
+        jacobian: ``"analytic"``, ``"autodiff"`` or ``"finite_difference"`` (PointNetLK/FMR-Net originals).
+        fd_step: Twist step of the finite-difference Jacobian (originals: 1e-2).
+        differentiable: Keep the graph through the solve in training (PointNetLK's loss back-propagates through
+            the Jacobian and the iterations; DVDs holds the estimate fixed).
+        optimizer: Optimiser factory.
+        lr_scheduler: Scheduler factory.
+    """
+
+    def __init__(
+        self,
+        encoder_channels: Sequence[int] = (64, 64, 64, 128, 1024),
+        batch_norm: bool = True,
+        max_iterations: int = 10,
+        eval_iterations: int | None = None,
+        tolerance: float = 1e-7,
+        damping: float = 1e-6,
+        jacobian: JacobianMode = "analytic",
+        fd_step: float = 1e-2,
+        differentiable: bool = False,
+        optimizer: OptimizerFactory = torch.optim.Adam,
+        lr_scheduler: SchedulerFactory | None = None,
+    ) -> None:
+        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        if eval_iterations is not None and eval_iterations < 1:
+            raise ValueError(f"`eval_iterations` must be >= 1 or None, got {eval_iterations}")
+        self.encoder = PointNetEncoder(encoder_channels, batch_norm)
+        self.solver = InverseCompositionalLK(
+            max_iterations, tolerance, damping, jacobian, fd_step=fd_step, differentiable=differentiable
+        )
+        self.eval_iterations = eval_iterations
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """IC-LK registration with the current descriptor (``eval_iterations`` outside training)."""
+        iterations = None if self.training else self.eval_iterations
+        return self.solver(self.encoder, points_src, points_ref, max_iterations=iterations)
+
+    def update_norm_statistics(self, batch: RegistrationBatch) -> None:
+        """One train-mode encoder pass over both clouds (no graph) so BatchNorm's running statistics follow the data.
+
+        The PointNetLK/FMR-Net originals do this before switching the encoder to eval mode for the solve.
+        """
+        has_norm = any(isinstance(m, torch.nn.BatchNorm1d) for m in self.encoder.modules())
+        if not (self.training and has_norm):
+            return
+        with torch.no_grad():
+            self.encoder(batch.points_src)
+            self.encoder(batch.points_ref)

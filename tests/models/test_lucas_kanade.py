@@ -1,0 +1,78 @@
+"""The LK base shared by DVDs, PointNetLK and FMR-Net: one encoder class, one solver, one forward."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from lcreg.baselines.fmr import FMRNet
+from lcreg.baselines.pointnetlk import PointNetLK
+from lcreg.geometry import se3
+from lcreg.geometry.random_transforms import random_euler_transform
+from lcreg.models.dvds import DVDs
+from lcreg.models.lucas_kanade import LucasKanadeModule, lk_pose_loss
+from lcreg.nn.lk import InverseCompositionalLK
+from lcreg.nn.pointnet import PointNetEncoder
+
+from _host_contract import tiny_batch  # type: ignore[import-not-found]
+
+SMALL = {"encoder_channels": (16, 32)}
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        DVDs(**SMALL, num_local_points=16, lambda_recon=0, lambda_normal=0),  # type: ignore[arg-type]
+        PointNetLK(**SMALL),  # type: ignore[arg-type]
+        FMRNet(**SMALL, decoder_hidden=(16,), decoder_points=32),  # type: ignore[arg-type]
+    ],
+    ids=["dvds", "pointnetlk", "fmr"],
+)
+def test_lk_models_share_the_encoder_solver_and_forward(model: LucasKanadeModule) -> None:
+    assert isinstance(model, LucasKanadeModule)
+    assert type(model.encoder) is PointNetEncoder and type(model.solver) is InverseCompositionalLK
+    assert type(model).forward is LucasKanadeModule.forward
+    batch = tiny_batch(batch_size=2, num_points=48)
+    model.eval()
+    with torch.no_grad():
+        expected = model.solver(model.encoder, batch.points_src, batch.points_ref, model.eval_iterations)
+        got = model(batch.points_src, batch.points_ref)
+    torch.testing.assert_close(got.transform_ref_src, expected.transform_ref_src)
+
+
+def test_solver_reports_the_last_residual_and_honours_an_iteration_override() -> None:
+    torch.manual_seed(0)
+    encoder = PointNetEncoder((16, 32), batch_norm=False).eval()
+    solver = InverseCompositionalLK(max_iterations=5, tolerance=0.0)
+    batch = tiny_batch(batch_size=2, num_points=48)
+    src, ref = batch.points_src, batch.points_ref
+    one = solver(encoder, src, ref, max_iterations=1)
+    assert one.num_iters.tolist() == [1, 1]
+    expected = encoder(src - src.mean(1, keepdim=True)) - encoder(ref - ref.mean(1, keepdim=True))
+    torch.testing.assert_close(one.aux["residual"], expected)  # before the only update
+    assert solver(encoder, src, ref).num_iters.tolist() == [5, 5]
+    with pytest.raises(ValueError, match="max_iterations"):
+        solver(encoder, src, ref, max_iterations=0)
+
+
+def test_lk_pose_loss_is_the_mean_squared_frobenius_norm() -> None:
+    gen = torch.Generator().manual_seed(0)
+    est, _ = random_euler_transform(4, generator=gen, dtype=torch.float64)
+    gt, _ = random_euler_transform(4, generator=gen, dtype=torch.float64)
+    expected = np.mean([np.sum((e @ np.linalg.inv(g) - np.eye(4)) ** 2) for e, g in zip(est.numpy(), gt.numpy())])
+    np.testing.assert_allclose(float(lk_pose_loss(est, gt)), expected, rtol=1e-10)
+    assert float(lk_pose_loss(gt, gt)) < 1e-20
+    assert float(lk_pose_loss(se3.identity(1, dtype=torch.float64), se3.identity(1, dtype=torch.float64))) == 0.0
+
+
+def test_norm_statistics_are_only_updated_in_training() -> None:
+    model = PointNetLK(**SMALL)  # type: ignore[arg-type]
+    norm = model.encoder.norms[0]
+    assert isinstance(norm, torch.nn.BatchNorm1d) and norm.running_mean is not None
+    batch = tiny_batch(batch_size=2, num_points=48)
+    before = norm.running_mean.clone()
+    model.eval().update_norm_statistics(batch)
+    assert torch.equal(before, norm.running_mean)
+    model.train().update_norm_statistics(batch)
+    assert not torch.equal(before, norm.running_mean)
