@@ -16,6 +16,7 @@ import torch
 
 __all__ = [
     "NonFiniteError",
+    "PointCloudFileError",
     "ShapeError",
     "TooFewPointsError",
     "check_finite",
@@ -52,6 +53,18 @@ class NonFiniteError(ValueError):
 
 class TooFewPointsError(ValueError):
     """A point cloud has fewer points than an operation needs (including empty clouds)."""
+
+
+class PointCloudFileError(ValueError):
+    """A point-cloud file exists but cannot be used: unreadable, corrupt, empty or with non-finite points.
+
+    Attributes:
+        path: The file.
+    """
+
+    def __init__(self, path: object, reason: str) -> None:
+        self.path = str(path)
+        super().__init__(f"point-cloud file {self.path!r}: {reason}")
 
 
 def check_float(x: object, name: str) -> torch.Tensor:
