@@ -1,8 +1,10 @@
-"""Shared fixtures: the two supported float dtypes and a seeded CPU generator."""
+"""Shared fixtures: one torch thread, the two supported float dtypes, a seeded CPU generator, CLI isolation."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import torch
@@ -25,3 +27,11 @@ def dtype(request: pytest.FixtureRequest) -> torch.dtype:
 @pytest.fixture
 def rng() -> torch.Generator:
     return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture
+def isolated_cli(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """For CLI tests: no wandb network/offline files, program name `lcreg`, a scratch working directory."""
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    monkeypatch.setattr(sys, "argv", ["lcreg"])
+    monkeypatch.chdir(tmp_path)

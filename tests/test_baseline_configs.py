@@ -2,32 +2,22 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
-from typing import Any
 
 import pytest
 import torch
-import yaml
 
 from lcreg.cli import build_cli, main
 
+from _cli_runs import CONFIGS, TINY_RUN, fit_then_test_embedded  # type: ignore[import-not-found]
+from _cli_runs import load_yaml as _load
 from _shared_data import shared_data
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 HOSTS = ["dcp", "prnet", "idam", "deepgmr"]
 LC_KEYS = {"local_consistency", "lc_weight"}
 
 
-def _load(path: Path) -> dict[str, Any]:
-    return yaml.safe_load(path.read_text())
-
-
-@pytest.fixture(autouse=True)
-def _isolated(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv("WANDB_MODE", "disabled")
-    monkeypatch.setattr(sys, "argv", ["lcreg"])
-    monkeypatch.chdir(tmp_path)
+pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
 @pytest.mark.parametrize("folder", ["", "embedded"])
@@ -71,20 +61,9 @@ def test_lc_feature_dim_matches_the_host_encoder(host: str) -> None:
     assert lc is not None and features.shape[-1] == lc.feature_dim
 
 
-TINY_RUN = [
-    "--trainer.fast_dev_run=true",
-    "--trainer.enable_progress_bar=false",
-    "--trainer.enable_model_summary=false",
-    "--data.init_args.num_points=96",
-    "--data.init_args.batch_size=2",
-]
-
-
 @pytest.mark.parametrize("host", HOSTS)
-def test_fit_embedded_lc_config_end_to_end(host: str, tmp_path: Path) -> None:
-    extra = ["--data.init_args.num_train=2", "--data.init_args.num_val=2", "--data.init_args.num_test=2"]
-    main(["fit", "--config", str(CONFIGS / "embedded" / f"{host}_lc.yaml"), *TINY_RUN, *extra])
-    main(["test", "--config", str(CONFIGS / "embedded" / f"{host}_lc.yaml"), *TINY_RUN, *extra])
+def test_fit_embedded_lc_config_end_to_end(host: str) -> None:
+    fit_then_test_embedded(f"{host}_lc")
 
 
 @pytest.mark.data

@@ -2,39 +2,18 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-from typing import Any
-
 import pytest
-import yaml
 
 from lcreg.cli import build_cli, main
 
+from _cli_runs import CONFIGS, SYNTHETIC, TINY_RUN, fit_then_test_embedded  # type: ignore[import-not-found]
+from _cli_runs import load_yaml as _load
 from _shared_data import shared_data  # type: ignore[import-not-found]
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LEARNED = ["pointnetlk", "pcrnet", "fmr"]
 CLASSICAL = ["icp", "icp_plane", "ransac", "fgr"]
-TINY_RUN = [
-    "--trainer.fast_dev_run=true",
-    "--trainer.enable_progress_bar=false",
-    "--trainer.enable_model_summary=false",
-    "--data.init_args.num_points=96",
-    "--data.init_args.batch_size=2",
-]
-SYNTHETIC = ["--data.init_args.num_train=2", "--data.init_args.num_val=2", "--data.init_args.num_test=2"]
 
-
-def _load(path: Path) -> dict[str, Any]:
-    return yaml.safe_load(path.read_text())
-
-
-@pytest.fixture(autouse=True)
-def _isolated(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    monkeypatch.setenv("WANDB_MODE", "disabled")
-    monkeypatch.setattr(sys, "argv", ["lcreg"])
-    monkeypatch.chdir(tmp_path)
+pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
 @pytest.mark.parametrize("method", LEARNED)
@@ -52,11 +31,9 @@ def test_learned_configs_use_the_dvds_comparison_protocol(method: str) -> None:
     assert [c["init_args"]["monitor"] for c in checkpoints] == ["val/rre_mean_deg"]  # never the test split
 
 
-@pytest.mark.parametrize("method", ["pointnetlk", "fmr"])
+@pytest.mark.parametrize("method", LEARNED)
 def test_fit_then_test_embedded_config_end_to_end(method: str) -> None:
-    config = str(CONFIGS / "embedded" / f"{method}.yaml")
-    main(["fit", "--config", config, *TINY_RUN, *SYNTHETIC])
-    main(["test", "--config", config, *TINY_RUN, *SYNTHETIC])
+    fit_then_test_embedded(method)
 
 
 @pytest.mark.parametrize("method", CLASSICAL)
