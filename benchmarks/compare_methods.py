@@ -27,11 +27,14 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from lcreg.evaluation import EvaluationReport, evaluate, markdown_table
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 REFINE = CONFIGS / "refine" / "icp.yaml"
@@ -142,7 +145,6 @@ def main() -> None:
     args = parser.parse_args()
 
     from lcreg.data.datamodule import ModelNet40DataModule
-    from lcreg.evaluation import evaluate
 
     ckpts, budgets = _pairs("--ckpt", args.ckpt), _pairs("--train", args.train)
     jsonl = Path(args.out).with_suffix(".jsonl")
@@ -190,22 +192,12 @@ def main() -> None:
         write_table(done, args)
 
 
-COLUMNS = (
-    ("rmse_r_deg", "RMSE(R) °"),
-    ("mae_r_deg", "MAE(R) °"),
-    ("rmse_t", "RMSE(t)"),
-    ("mae_t", "MAE(t)"),
-    ("recall_r2_t0p01", "recall (2°, 0.01)"),
-    ("recall_r5_t0p05", "recall (5°, 0.05)"),
-)
-
-
 def write_table(rows: dict[tuple[str, str], dict[str, Any]], args: argparse.Namespace) -> None:
     """Rewrite the Markdown table from every finished row."""
     lines = [
         "# Every method on the same ModelNet40 test pairs",
         "",
-        f"Command: `python benchmarks/compare_methods.py {' '.join(_argv())}`",
+        f"Command: `python benchmarks/compare_methods.py {' '.join(sys.argv[1:])}`",
         f"Machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads, CPU.",
         f"Data: `{args.root}`, protocol {args.protocol}, test split, seed 1234, 1024 points, two independent "
@@ -214,28 +206,18 @@ def write_table(rows: dict[tuple[str, str], dict[str, Any]], args: argparse.Name
         "",
     ]
     for setting in NOISE:
-        lines += [f"## {setting}", "", "| method | " + " | ".join(c[1] for c in COLUMNS) + " | ms/pair | pairs |"]
-        lines.append("|---" * (len(COLUMNS) + 3) + "|")
-        for method in METHODS:
-            row = rows.get((method.key, setting))
-            if row is None:
-                continue
-            m = row["metrics"]
-            cells = [f"{100 * m[k]:.1f} %" if k.startswith("recall") else f"{m[k]:.4g}" for k, _ in COLUMNS]
-            lines.append(f"| {row['label']} | " + " | ".join(cells) + f" | {row['ms_per_pair']:.1f} | {row['pairs']} |")
-        lines.append("")
+        reports = [
+            EvaluationReport(r["label"], r["metrics"], torch.empty(0), torch.empty(0), r["ms_per_pair"], r["pairs"])
+            for r in (rows.get((method.key, setting)) for method in METHODS)
+            if r is not None
+        ]
+        lines += [f"## {setting}", "", markdown_table(reports), ""]
     lines += ["## Weights", "", "| method | checkpoint | budget trained here (steps, points, batch) |", "|---|---|---|"]
     for method in METHODS:
         row = rows.get((method.key, "clean"))
         if row is not None and method.learned:
             lines.append(f"| {row['label']} | `{row['checkpoint']}` | {row['budget'] or 'given'} |")
     Path(args.out).write_text("\n".join(lines) + "\n")
-
-
-def _argv() -> list[str]:
-    import sys
-
-    return sys.argv[1:]
 
 
 if __name__ == "__main__":
