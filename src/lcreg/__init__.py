@@ -15,6 +15,7 @@ _LAZY = {
     "LocalConsistency": "lcreg.nn.local_consistency",
     "PointNetEncoder": "lcreg.nn.pointnet",
     "InverseCompositionalLK": "lcreg.nn.lk",
+    "VoxelGrid": "lcreg.nn.voxel_lk",
     "RegistrationResult": "lcreg.types",
     "RegistrationBatch": "lcreg.types",
     "RegistrationModule": "lcreg.models.base",
@@ -34,6 +35,10 @@ _LAZY = {
     "ModelNet40DataModule": "lcreg.data.datamodule",
     "SyntheticDataModule": "lcreg.data.datamodule",
     "PairDataModule": "lcreg.data.datamodule",
+    "ScanObjectNNDataModule": "lcreg.data.scanobjectnn",
+    "SevenScenesDataModule": "lcreg.data.threedmatch",
+    "KITTIOdometryDataModule": "lcreg.data.kitti",
+    "read_points": "lcreg.data.io",
 }
 
 __all__ = [*_LAZY, "__version__"]

@@ -1,7 +1,9 @@
 """Command line: ``lcreg fit|validate|test|predict --config configs/<x>.yaml`` (LightningCLI).
 
 Models are any :class:`~lcreg.models.base.RegistrationModule` subclass (``model.class_path``), data any
-:class:`~lcreg.data.datamodule.PairDataModule` subclass (``data.class_path``); both are picked in YAML.
+LightningDataModule that yields :class:`~lcreg.types.RegistrationBatch` (``data.class_path``: the object
+:class:`~lcreg.data.datamodule.PairDataModule` family or the scene :class:`~lcreg.data.scenes.ScenePairDataModule`
+family); both are picked in YAML.
 Defaults: CSV logging under ``runs/``, checkpoints selected on ``val/loss`` (label-free, as in the DVDs paper; a
 config that lists its own ``ModelCheckpoint`` replaces it, as the DVDs configs do) plus ``last.ckpt``, and a TQDM
 bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments (``model.init_args.optimizer``),
@@ -13,6 +15,10 @@ Any model can be followed by ICP refinement at validation/test/predict time: a t
 (:meth:`~lcreg.models.base.RegistrationModule.set_refiner`). ``lcreg fit`` refuses models with nothing to train
 (classical methods) before anything runs.
 
+LK models (DVDs, PointNetLK, FMR-Net) can register large clouds with voxelised IC-LK at validation/test/predict
+time: a top-level ``voxelize:`` block (``class_path: lcreg.nn.voxel_lk.VoxelGrid``; configs/voxelize/lk27.yaml)
+calls :meth:`~lcreg.models.lucas_kanade.LucasKanadeModule.set_voxel_grid`; other models refuse it.
+
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
 """
@@ -23,9 +29,9 @@ import os
 import sys
 from typing import Any
 
+from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 
-from lcreg.data.datamodule import PairDataModule
 from lcreg.models.base import RegistrationModule
 
 __all__ = ["LcregCLI", "build_cli", "main"]
@@ -36,7 +42,7 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 
 
 class LcregCLI(LightningCLI):
-    """LightningCLI with lcreg's base classes in subclass mode, default callbacks and the ``refine`` option.
+    """LightningCLI with lcreg's base classes in subclass mode, default callbacks, ``refine`` and ``voxelize``.
 
     Unless disabled in the trainer config, adds ``ModelCheckpoint(monitor="val/loss", save_last=True)`` and a
     ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well. ``lcreg predict`` writes
@@ -44,14 +50,21 @@ class LcregCLI(LightningCLI):
     """
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        """Add ``refine``: an optional ICP run after the model's estimate (validation, test, predict)."""
+        """Add ``refine`` (ICP after the model's estimate) and ``voxelize`` (voxelised IC-LK), both test-time."""
         from lcreg.baselines.classical import ICP
+        from lcreg.nn.voxel_lk import VoxelGrid
 
         parser.add_argument(
             "--refine",
             type=ICP | None,
             default=None,
             help="ICP refinement after the model's estimate (lcreg.baselines.classical.ICP), none by default",
+        )
+        parser.add_argument(
+            "--voxelize",
+            type=VoxelGrid | None,
+            default=None,
+            help="voxelised IC-LK for LK models outside training (lcreg.nn.voxel_lk.VoxelGrid), none by default",
         )
 
     def instantiate_classes(self) -> None:
@@ -60,6 +73,13 @@ class LcregCLI(LightningCLI):
         config = self.config_init[self.subcommand] if self.subcommand else self.config_init
         if config.get("refine") is not None:
             self.model.set_refiner(config["refine"])
+        if config.get("voxelize") is not None:
+            if not hasattr(self.model, "set_voxel_grid"):
+                raise ValueError(
+                    "`voxelize` applies to IC-LK models (DVDs, PointNetLK, FMR-Net), not to "
+                    f"{type(self.model).__name__}"
+                )
+            self.model.set_voxel_grid(config["voxelize"])
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
             raise RuntimeError(
                 f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
@@ -121,7 +141,7 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
     """
     return LcregCLI(
         RegistrationModule,
-        PairDataModule,
+        LightningDataModule,
         subclass_mode_model=True,
         subclass_mode_data=True,
         auto_configure_optimizers=False,

@@ -76,3 +76,26 @@ def test_norm_statistics_are_only_updated_in_training() -> None:
     assert torch.equal(before, norm.running_mean)
     model.train().update_norm_statistics(batch)
     assert not torch.equal(before, norm.running_mean)
+
+
+def test_voxel_grid_is_used_outside_training_only_and_not_saved() -> None:
+    from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
+
+    model = PointNetLK(**SMALL, eval_iterations=4)  # type: ignore[arg-type]
+    batch = tiny_batch(batch_size=2, num_points=64)
+    keys = set(model.state_dict())
+    grid = VoxelGrid(grid=2, points_per_voxel=16, min_points=4)
+    model.set_voxel_grid(grid)
+    assert model.voxel_grid is grid and set(model.state_dict()) == keys
+    model.eval()
+    with torch.no_grad():
+        got = model(batch.points_src, batch.points_ref)
+        expected = voxel_lk(model.solver, model.encoder, grid, batch.points_src, batch.points_ref, 4)
+    torch.testing.assert_close(got.transform_ref_src, expected.transform_ref_src)
+    assert "num_voxels" in got.aux
+    model.train()
+    assert "num_voxels" not in model(batch.points_src, batch.points_ref).aux  # training: the plain solver
+    model.set_voxel_grid(None)
+    assert model.voxel_grid is None
+    with pytest.raises(TypeError, match="VoxelGrid"):
+        model.set_voxel_grid(3)  # type: ignore[arg-type]

@@ -3,7 +3,13 @@
 * :mod:`lcreg.data.pairs`: the one pair protocol (:class:`PairProtocol`, :func:`make_pair`), shared by every dataset;
 * :mod:`lcreg.data.synthetic`: embedded procedural shapes with analytic normals (no files);
 * :mod:`lcreg.data.modelnet40`: the official ModelNet40 HDF5 layout and its unseen-objects/-categories protocols;
-* :mod:`lcreg.data.datamodule`: :class:`PairDataset`, :func:`collate_pairs` and the Lightning DataModules.
+* :mod:`lcreg.data.datamodule`: :class:`PairDataset`, :func:`collate_pairs` and the object DataModules;
+* :mod:`lcreg.data.scanobjectnn`: the official ScanObjectNN h5 layout and its DataModule (object protocol);
+* :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files;
+* :mod:`lcreg.data.scenes`: scene pairs from files (:class:`ScenePair`, :class:`ScenePairDataset`,
+  :class:`ScenePairDataModule`);
+* :mod:`lcreg.data.threedmatch`: 3DMatch / 7-Scenes fragment pairs and :class:`SevenScenesDataModule`;
+* :mod:`lcreg.data.kitti`: KITTI odometry pairs and :class:`KITTIOdometryDataModule`.
 
 Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning.
 """
@@ -15,32 +21,54 @@ from typing import Any
 
 __all__ = [
     "DatasetLayoutError",
+    "KITTIOdometryDataModule",
     "ModelNet40DataModule",
     "ObjectSet",
     "PairDataModule",
     "PairDataset",
     "PairProtocol",
+    "ScanObjectNNDataModule",
+    "ScenePair",
+    "ScenePairDataModule",
+    "ScenePairDataset",
+    "SevenScenesDataModule",
     "SyntheticDataModule",
     "collate_pairs",
+    "kitti_pairs",
     "load_modelnet40_h5",
+    "load_scanobjectnn_h5",
     "make_pair",
     "modelnet40_objects",
+    "read_points",
+    "scanobjectnn_objects",
     "synthetic_shapes",
+    "threedmatch_pairs",
 ]
 
 _SOURCES = {
     "DatasetLayoutError": "modelnet40",
+    "KITTIOdometryDataModule": "kitti",
     "ModelNet40DataModule": "datamodule",
     "ObjectSet": "pairs",
     "PairDataModule": "datamodule",
     "PairDataset": "datamodule",
     "PairProtocol": "pairs",
+    "ScanObjectNNDataModule": "scanobjectnn",
+    "ScenePair": "scenes",
+    "ScenePairDataModule": "scenes",
+    "ScenePairDataset": "scenes",
+    "SevenScenesDataModule": "threedmatch",
     "SyntheticDataModule": "datamodule",
     "collate_pairs": "datamodule",
+    "kitti_pairs": "kitti",
     "load_modelnet40_h5": "modelnet40",
+    "load_scanobjectnn_h5": "scanobjectnn",
     "make_pair": "pairs",
     "modelnet40_objects": "modelnet40",
+    "read_points": "io",
+    "scanobjectnn_objects": "scanobjectnn",
     "synthetic_shapes": "synthetic",
+    "threedmatch_pairs": "threedmatch",
 }
 
 

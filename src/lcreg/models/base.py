@@ -236,7 +236,7 @@ class RegistrationModule(LightningModule):
         self._summary("test")
         if self.test_pairs.update_count == 0:
             return
-        rot, trans = self.test_pairs.compute()
+        rot, trans = (t.reshape(-1) for t in self.test_pairs.compute())  # torchmetrics squeezes a single pair to 0-d
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
             index = torch.cat(self._test_indices).tolist() if self._test_indices else list(range(len(rot)))

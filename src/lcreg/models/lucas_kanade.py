@@ -4,7 +4,9 @@ All three register with the same two pieces, built once here: a :class:`~lcreg.n
 ``psi`` and the :class:`~lcreg.nn.lk.InverseCompositionalLK` solver. They differ only in how ``psi`` is trained
 (self-supervised DVDs losses, PointNetLK's supervised pose + residual loss, FMR-Net's reconstruction), so each
 subclass adds its losses and nothing else. ``eval_iterations`` lets a model run more LK iterations at
-validation/test than in training (PointNetLK: 10 and 20).
+validation/test than in training (PointNetLK: 10 and 20). :meth:`LucasKanadeModule.set_voxel_grid` switches every
+evaluation (validation, test, predict, ``register``) to voxelised IC-LK for large clouds
+(:mod:`lcreg.nn.voxel_lk`; the CLI's ``voxelize:`` block); training always uses the plain solver.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFac
 from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
 from lcreg.nn.losses import transform_mse
 from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["LucasKanadeModule", "lk_pose_loss"]
@@ -74,10 +77,33 @@ class LucasKanadeModule(RegistrationModule):
         )
         self.eval_iterations = eval_iterations
 
+    _voxel_grid: VoxelGrid | None = None
+
+    @property
+    def voxel_grid(self) -> VoxelGrid | None:
+        """The voxelisation used outside training (``None``: one descriptor per cloud)."""
+        return self._voxel_grid
+
+    def set_voxel_grid(self, grid: VoxelGrid | None) -> None:
+        """Register with voxelised IC-LK outside training (``None`` restores the plain solver).
+
+        Not a submodule and not saved in checkpoints: ``lcreg test ... --config configs/voxelize/lk27.yaml`` adds it
+        to any trained LK checkpoint.
+
+        Raises:
+            TypeError: If ``grid`` is not a :class:`~lcreg.nn.voxel_lk.VoxelGrid`.
+        """
+        if grid is not None and not isinstance(grid, VoxelGrid):
+            raise TypeError(f"`grid` must be an lcreg.nn.voxel_lk.VoxelGrid or None, got {type(grid).__name__}")
+        object.__setattr__(self, "_voxel_grid", grid)  # plain attribute: not a submodule, not in the state dict
+
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
-        """IC-LK registration with the current descriptor (``eval_iterations`` outside training)."""
-        iterations = None if self.training else self.eval_iterations
-        return self.solver(self.encoder, points_src, points_ref, max_iterations=iterations)
+        """IC-LK registration with the current descriptor (``eval_iterations`` and the voxel grid outside training)."""
+        if self.training:
+            return self.solver(self.encoder, points_src, points_ref)
+        if self._voxel_grid is not None:
+            return voxel_lk(self.solver, self.encoder, self._voxel_grid, points_src, points_ref, self.eval_iterations)
+        return self.solver(self.encoder, points_src, points_ref, max_iterations=self.eval_iterations)
 
     def update_norm_statistics(self, batch: RegistrationBatch) -> None:
         """One train-mode encoder pass over both clouds (no graph) so BatchNorm's running statistics follow the data.

@@ -115,14 +115,16 @@ class InverseCompositionalLK(nn.Module):
         self.center = center
         self.differentiable = differentiable
 
-    def _pseudo_inverse(self, jac: torch.Tensor) -> torch.Tensor:
-        """Damped ``(J^T J + lambda I)^{-1} J^T``, ``(B, 6, K)``, solved in float64."""
-        j64 = jac.double()
-        jtj = j64.transpose(1, 2) @ j64  # (B, 6, 6)
+    def damped(self, jtj: torch.Tensor) -> torch.Tensor:
+        """``J^T J + lambda I`` for ``J^T J (B, 6, 6)`` (float64), ``lambda = damping * mean(diag) + tiny``."""
         diag_mean = jtj.diagonal(dim1=1, dim2=2).mean(-1)
         lam = self.damping * diag_mean + torch.finfo(torch.float64).tiny ** 0.5
-        eye = torch.eye(6, dtype=torch.float64, device=jac.device)
-        return torch.linalg.solve(jtj + lam[:, None, None] * eye, j64.transpose(1, 2)).to(jac.dtype)
+        return jtj + lam[:, None, None] * torch.eye(6, dtype=jtj.dtype, device=jtj.device)
+
+    def pseudo_inverse(self, jac: torch.Tensor) -> torch.Tensor:
+        """Damped ``(J^T J + lambda I)^{-1} J^T``, ``(B, 6, K)``, solved in float64."""
+        j64 = jac.double()
+        return torch.linalg.solve(self.damped(j64.transpose(1, 2) @ j64), j64.transpose(1, 2)).to(jac.dtype)
 
     def forward(
         self,
@@ -168,7 +170,7 @@ class InverseCompositionalLK(nn.Module):
         mean_ref = points_ref.mean(1) if self.center else points_ref.new_zeros(b, 3)
         src0, ref0 = points_src - mean_src[:, None], points_ref - mean_ref[:, None]
         feat_ref, jac = twist_jacobian(encoder, ref0, self.jacobian, self.fd_step)
-        pinv = self._pseudo_inverse(jac)
+        pinv = self.pseudo_inverse(jac)
         g = se3.identity(b, device=points_src.device, dtype=points_src.dtype)
         active = torch.ones(b, dtype=torch.bool, device=points_src.device)
         iters = torch.zeros(b, dtype=torch.long, device=points_src.device)
