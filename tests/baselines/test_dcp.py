@@ -23,6 +23,7 @@ from _host_contract import (  # type: ignore[import-not-found]
     check_training_lowers_loss,
     tiny_batch,
 )
+from _numpy_refs import kabsch  # type: ignore[import-not-found]
 
 EMB = 32
 TINY = {"emb_dims": EMB, "k": 8, "heads": 4, "ff_dims": 64, "edge_channels": (8, 8, 16, 16)}
@@ -52,17 +53,6 @@ def _batch64(batch: RegistrationBatch) -> RegistrationBatch:
     gt = batch.transform_ref_src
     assert gt is not None
     return RegistrationBatch(batch.points_src.double(), batch.points_ref.double(), gt.double())
-
-
-def _numpy_kabsch(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Reference Kabsch fit for one pair (uniform weights), ``(4, 4)``."""
-    mu_s, mu_r = src.mean(0), ref.mean(0)
-    u, _, vt = np.linalg.svd((src - mu_s).T @ (ref - mu_r))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = rot, mu_r - rot @ mu_s
-    return out
 
 
 # --- host contract -----------------------------------------------------------------------------------------------
@@ -132,7 +122,7 @@ def test_forward_matches_a_manual_pipeline(batch: RegistrationBatch, pointer: st
     matched = probs @ b.points_ref
     torch.testing.assert_close(result.aux["matched"], matched)
     for i in range(len(b)):
-        expected = _numpy_kabsch(b.points_src[i].numpy(), matched[i].numpy())
+        expected = kabsch(b.points_src[i].numpy(), matched[i].numpy())
         np.testing.assert_allclose(result.transform_ref_src[i].numpy(), expected, atol=1e-9)
 
 

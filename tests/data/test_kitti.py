@@ -23,6 +23,7 @@ from lcreg.data.kitti import (
 )
 from lcreg.data.modelnet40 import DatasetLayoutError
 
+from _numpy_refs import kabsch
 from _shared_data import shared_data
 
 # FCGF's hard-coded velodyne -> camera calibration (chrischoy/FCGF lib/data_loaders.py, KITTIPairDataset.velo2cam),
@@ -44,17 +45,6 @@ def _errors(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     delta = np.linalg.inv(a) @ b
     cos = np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-
-
-def _kabsch(src: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Least-squares rigid transform mapping ``src`` onto ``ref`` (SVD)."""
-    mu_s, mu_r = src.mean(0), ref.mean(0)
-    u, _, vt = np.linalg.svd((src - mu_s).T @ (ref - mu_r))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = rot, mu_r - rot @ mu_s
-    return out
 
 
 def _line(matrix: np.ndarray) -> str:
@@ -141,7 +131,7 @@ def test_relative_lidar_pose_matches_an_independent_construction() -> None:
     homog = np.c_[world, np.ones(len(world))].T
     in_i = (np.linalg.inv(pose_i @ tr) @ homog)[:3].T
     in_j = (np.linalg.inv(pose_j @ tr) @ homog)[:3].T
-    expected = _kabsch(in_i, in_j)
+    expected = kabsch(in_i, in_j)
     np.testing.assert_allclose(relative_lidar_pose(pose_i, pose_j, tr), expected, atol=1e-9)
     np.testing.assert_allclose(relative_lidar_pose(pose_i[:3], pose_j[:3], tr[:3]), expected, atol=1e-9)
     with pytest.raises(ShapeError, match="pose_j"):
