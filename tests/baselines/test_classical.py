@@ -1,5 +1,6 @@
 import inspect
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -241,14 +242,20 @@ def test_training_is_refused_with_a_clear_message(cls: type[ClassicalRegistratio
         model.compute_loss(None, None)  # type: ignore[arg-type]
 
 
-def test_icp_validates_and_tests_through_the_shared_step_without_a_loss() -> None:
+def test_icp_validates_and_tests_through_the_shared_step_without_a_loss(tmp_path: Path) -> None:
     import lightning as L
 
     from lcreg.data.datamodule import SyntheticDataModule
     from lcreg.evaluation import evaluate
 
     dm = SyntheticDataModule(num_points=128, batch_size=2, num_train=4, num_val=2, num_test=2, max_angle_deg=10.0)
-    trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False)
+    trainer = L.Trainer(
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )  # test_per_pair.csv goes to tmp_path, not the working directory
     icp = ICP(voxel_size=0.05, distance_factor=10.0)
     val = trainer.validate(icp, dm, verbose=False)[0]
     test = trainer.test(icp, dm, verbose=False)[0]
