@@ -128,3 +128,13 @@ def test_seven_scenes_redkitchen_pairs_are_aligned_by_their_ground_truth() -> No
         aligned = np.median(tree.query(mapped[i].numpy())[0])
         raw = np.median(tree.query(batch.points_src[i].numpy())[0])
         assert aligned < 0.06 < raw, (aligned, raw)  # ~4 cm between two 2048-point samplings of a fragment
+
+
+@pytest.mark.data
+def test_seven_scenes_module_takes_any_3dmatch_scene() -> None:
+    root = str(shared_data("3dmatch"))
+    every = SevenScenesDataModule(root, test_scenes=None).pairs("test")
+    assert len(every) == 197  # the eight 3DMatch test scenes, overlap > 0.7
+    sun3d = SevenScenesDataModule(root, test_scenes=["sun3d-hotel_umd-maryland_hotel3"])
+    sun3d.setup("test")
+    assert len(sun3d.datasets["test"]) == 4 and sun3d.datasets["test"][0]["points_src"].shape == (2048, 3)

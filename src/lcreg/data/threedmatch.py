@@ -29,6 +29,7 @@ of at most 30 %, so select them with ``min_overlap=0`` (or ``0.1``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -366,7 +367,7 @@ class SevenScenesDataModule(ScenePairDataModule):
 
     Args:
         root: Dataset root with ``fragments/`` and ``benchmarks/`` (checked in :meth:`setup`).
-        test_scenes: Scenes of the test split (``None``: every scene of the benchmark).
+        test_scenes: Scenes of the test split (default: 7-Scenes redkitchen; ``None``: every scene of the benchmark).
         val_scenes: Scenes of the validation split.
         train_scenes: Scenes of the training split.
         min_overlap: Keep pairs with a listed overlap strictly above this.
@@ -377,9 +378,9 @@ class SevenScenesDataModule(ScenePairDataModule):
     def __init__(
         self,
         root: str,
-        test_scenes: list[str] | None = None,
-        val_scenes: list[str] | None = None,
-        train_scenes: list[str] | None = None,
+        test_scenes: Sequence[str] | None = (SEVEN_SCENES_REDKITCHEN,),
+        val_scenes: Sequence[str] = (),
+        train_scenes: Sequence[str] = (),
         min_overlap: float = 0.7,
         benchmark: Benchmark = "3DMatch",
         **kwargs: Any,
@@ -388,17 +389,19 @@ class SevenScenesDataModule(ScenePairDataModule):
         _check_min_overlap(min_overlap)
         _check_benchmark(benchmark)
         self.root = root
+        if isinstance(test_scenes, str) or isinstance(val_scenes, str) or isinstance(train_scenes, str):
+            raise ValueError("`test_scenes`, `val_scenes` and `train_scenes` are lists of scene names, not a string")
         self.scenes: dict[str, list[str] | None] = {
-            "train": list(train_scenes or []),
-            "val": list(val_scenes or []),
-            "test": [SEVEN_SCENES_REDKITCHEN] if test_scenes is None else list(test_scenes),
+            "train": list(train_scenes),
+            "val": list(val_scenes),
+            "test": None if test_scenes is None else list(test_scenes),
         }
         self.min_overlap = min_overlap
         self.benchmark: Benchmark = benchmark
 
     def pairs(self, split: Split) -> list[ScenePair]:
-        """The pairs of the scenes of ``split`` (an empty scene list gives no pair)."""
+        """The pairs of the scenes of ``split`` (``None``: every scene; an empty list: no pair)."""
         scenes = self.scenes[split]
-        if not scenes:
+        if scenes is not None and not scenes:
             return []
         return threedmatch_pairs(self.root, scenes, self.min_overlap, self.benchmark)
