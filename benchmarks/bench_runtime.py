@@ -54,7 +54,7 @@ def build(key: str, ckpt: str | None, device: str) -> Any:
 
     model = build_cli(["--config", str(CONFIGS / METHODS[key][1])], run=False).model
     if ckpt:
-        model = type(model).load_from_checkpoint(ckpt, map_location="cpu")
+        model = model.load_weights(ckpt)
     return model.to(device if METHODS[key][2] else "cpu").eval()
 
 

@@ -125,11 +125,7 @@ def build(method: Method, ckpt: str | None) -> Any:
     if method.refine:
         configs += ["--config", str(REFINE)]
     model = build_cli(configs, run=False).model
-    if ckpt is not None:
-        refiner = model.refiner
-        model = type(model).load_from_checkpoint(ckpt, map_location="cpu")
-        model.set_refiner(refiner)
-    return model.eval()
+    return (model if ckpt is None else model.load_weights(ckpt)).eval()
 
 
 def main() -> None:

@@ -51,13 +51,7 @@ def build(configs: list[str], dataset: str, ckpt: str | None, extra: list[str]) 
     for name in [*configs, f"real/{dataset}.yaml"]:
         args += ["--config", str(CONFIGS / name.format(dataset=dataset))]
     cli = build_cli(args + extra, run=False)
-    model = cli.model
-    if ckpt is not None:
-        refiner, grid = model.refiner, getattr(model, "voxel_grid", None)
-        model = type(model).load_from_checkpoint(ckpt, map_location="cpu")
-        model.set_refiner(refiner)
-        if grid is not None:
-            model.set_voxel_grid(grid)
+    model = cli.model if ckpt is None else cli.model.load_weights(ckpt)
     return model.eval(), cli.datamodule
 
 

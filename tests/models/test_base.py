@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from pathlib import Path
 
 import pytest
 import torch
@@ -110,3 +111,20 @@ def test_refiner_is_neither_a_submodule_nor_saved() -> None:
     assert model.refiner is None
     with pytest.raises(TypeError, match="refiner"):
         model.set_refiner(3)  # type: ignore[arg-type]
+
+
+def test_load_weights_keeps_the_configured_instance_and_its_refiner(tmp_path: Path) -> None:
+    trained = _Translate()
+    with torch.no_grad():
+        trained.shift.copy_(torch.tensor([0.3, -0.2, 0.1]))
+    torch.save({"state_dict": trained.state_dict(), "hyper_parameters": {}}, tmp_path / "x.ckpt")
+    model, refiner = _Translate(), _CountingRefiner()
+    model.set_refiner(refiner)
+    assert model.load_weights(tmp_path / "x.ckpt") is model
+    torch.testing.assert_close(model.shift, trained.shift)
+    assert model.refiner is refiner
+    with pytest.raises(FileNotFoundError, match=r"missing\.ckpt"):
+        model.load_weights(tmp_path / "missing.ckpt")
+    torch.save({"weights": {}}, tmp_path / "bad.ckpt")
+    with pytest.raises(ValueError, match="state_dict"):
+        model.load_weights(tmp_path / "bad.ckpt")

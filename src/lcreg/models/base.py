@@ -120,6 +120,26 @@ class RegistrationModule(LightningModule):
             raise TypeError(f"`refiner` must be callable (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}")
         object.__setattr__(self, "_refiner", refiner)  # bypass nn.Module registration on purpose
 
+    def load_weights(self, checkpoint: str | Path) -> RegistrationModule:
+        """Load the weights of a Lightning checkpoint into this configured model and return it.
+
+        Unlike ``load_from_checkpoint``, which builds a new model from the checkpoint's hyper-parameters, this keeps
+        the instance built from a config, including its test-time settings (refiner, voxel grid). The architecture
+        must match (strict ``load_state_dict``). Checkpoints are unpickled: load only trusted files.
+
+        Raises:
+            FileNotFoundError: If ``checkpoint`` is not a file.
+            ValueError: If the file holds no ``state_dict``.
+        """
+        path = Path(checkpoint)
+        if not path.is_file():
+            raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist")
+        content = torch.load(path, map_location="cpu", weights_only=False)  # Lightning checkpoints hold hparams
+        if not isinstance(content, dict) or "state_dict" not in content:
+            raise ValueError(f"checkpoint {str(path)!r} has no 'state_dict' (not a Lightning checkpoint)")
+        self.load_state_dict(content["state_dict"])
+        return self
+
     def estimate(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """``forward``, then the refiner (if any) from its estimate.
 
