@@ -4,20 +4,19 @@ Models are any :class:`~lcreg.models.base.RegistrationModule` subclass (``model.
 LightningDataModule that yields :class:`~lcreg.types.RegistrationBatch` (``data.class_path``: the object
 :class:`~lcreg.data.datamodule.PairDataModule` family or the scene :class:`~lcreg.data.scenes.ScenePairDataModule`
 family); both are picked in YAML.
-Defaults: CSV logging under ``runs/``, checkpoints selected on ``val/loss`` (label-free, as in the DVDs paper; a
-config that lists its own ``ModelCheckpoint`` replaces it, as the DVDs configs do) plus ``last.ckpt``, and a TQDM
-bar refreshed every 20 steps (readable in CI logs). Optimisers are model arguments (``model.init_args.optimizer``),
-so the top-level ``optimizer:`` key of LightningCLI is not used.
+Shared trainer defaults live here, once: seed 1234, CSV logging under ``runs/<name>/version_<k>/``, checkpoints
+selected on the validation registration error ``val/rre_mean_deg`` (validation pairs carry a known pose; the
+label-free ``val/loss`` of self-supervised models keeps falling while registration degrades) plus ``last.ckpt``, and a
+TQDM bar. A config that lists its own ``ModelCheckpoint`` or progress bar replaces the default. Optimisers are model
+arguments (``model.init_args.optimizer``), so the top-level ``optimizer:`` key of LightningCLI is not used.
 
-Any model can be followed by ICP refinement at validation/test/predict time: a top-level ``refine:`` block
-(``class_path: lcreg.baselines.classical.ICP`` with its ``init_args``), or ``--refine lcreg.baselines.classical.ICP
---refine.voxel_size 0.02`` on the command line; it starts from the model's estimate
-(:meth:`~lcreg.models.base.RegistrationModule.set_refiner`). ``lcreg fit`` refuses models with nothing to train
-(classical methods) before anything runs.
-
-LK models (DVDs, PointNetLK, FMR-Net) can register large clouds with voxelised IC-LK at validation/test/predict
-time: a top-level ``voxelize:`` block (``class_path: lcreg.nn.voxel_lk.VoxelGrid``; configs/voxelize/lk27.yaml)
-calls :meth:`~lcreg.models.lucas_kanade.LucasKanadeModule.set_voxel_grid`; other models refuse it.
+Configs compose: ``--config`` may be given several times (later files override earlier ones; ``loss_terms+:``
+appends to a list), and a file may list the files it builds on under ``compose:`` (paths relative to that file),
+which are read first, recursively. ``configs/dcp_lc.yaml`` is ``compose: [models/dcp.yaml, lc.yaml,
+data/modelnet40_noisy.yaml]``. Test-time components are model arguments too: ``configs/refine/icp.yaml`` sets
+``model.init_args.refiner`` (ICP after any model's estimate), ``configs/voxelize/lk27.yaml`` sets
+``model.init_args.voxel_grid`` (voxelised IC-LK for the LK models). ``lcreg fit`` refuses models with nothing to
+train (classical methods) before anything runs.
 
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
@@ -27,14 +26,16 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 from typing import Any
 
+import yaml
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 
 from lcreg.models.base import RegistrationModule
 
-__all__ = ["LcregCLI", "build_cli", "main"]
+__all__ = ["LcregCLI", "build_cli", "expand_configs", "main"]
 
 TRAINER_DEFAULTS: dict[str, Any] = {
     "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs", "name": "lcreg"}},
@@ -42,44 +43,25 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 
 
 class LcregCLI(LightningCLI):
-    """LightningCLI with lcreg's base classes in subclass mode, default callbacks, ``refine`` and ``voxelize``.
+    """LightningCLI with lcreg's base classes in subclass mode, the shared trainer defaults and ``compose``.
 
-    Unless disabled in the trainer config, adds ``ModelCheckpoint(monitor="val/loss", save_last=True)`` and a
-    ``TQDMProgressBar(refresh_rate=20)``; callbacks listed in a config are kept as well. ``lcreg predict`` writes
-    ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory.
+    Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg", save_last=True)`` and
+    a ``TQDMProgressBar``. ``lcreg predict`` writes ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to
+    the run's log directory.
     """
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        """Add ``refine`` (ICP after the model's estimate) and ``voxelize`` (voxelised IC-LK), both test-time."""
-        from lcreg.baselines.classical import ICP
-        from lcreg.nn.voxel_lk import VoxelGrid
-
+        """Accept the ``compose`` key of composed config files (already expanded by :func:`expand_configs`)."""
         parser.add_argument(
-            "--refine",
-            type=ICP | None,
+            "--compose",
+            type=list[str] | None,
             default=None,
-            help="ICP refinement after the model's estimate (lcreg.baselines.classical.ICP), none by default",
-        )
-        parser.add_argument(
-            "--voxelize",
-            type=VoxelGrid | None,
-            default=None,
-            help="voxelised IC-LK for LK models outside training (lcreg.nn.voxel_lk.VoxelGrid), none by default",
+            help="config files this config builds on (read first, relative to it); expanded before parsing",
         )
 
     def instantiate_classes(self) -> None:
-        """Build model, data and trainer; attach the refiner; refuse ``fit`` for models without a loss."""
+        """Build model, data and trainer; refuse ``fit`` for models without a loss."""
         super().instantiate_classes()
-        config = self.config_init[self.subcommand] if self.subcommand else self.config_init
-        if config.get("refine") is not None:
-            self.model.set_refiner(config["refine"])
-        if config.get("voxelize") is not None:
-            if not hasattr(self.model, "set_voxel_grid"):
-                raise ValueError(
-                    "`voxelize` applies to IC-LK models (DVDs, PointNetLK, FMR-Net), not to "
-                    f"{type(self.model).__name__}"
-                )
-            self.model.set_voxel_grid(config["voxelize"])
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
             raise RuntimeError(
                 f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
@@ -93,10 +75,10 @@ class LcregCLI(LightningCLI):
         if config.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in listed):
             callbacks.append(
                 ModelCheckpoint(
-                    monitor="val/loss",
+                    monitor="val/rre_mean_deg",
                     mode="min",
                     save_last=True,
-                    filename="epoch{epoch:03d}-val_loss{val/loss:.4f}",
+                    filename="epoch{epoch:03d}-rre{val/rre_mean_deg:.3f}",
                     auto_insert_metric_name=False,
                 )
             )
@@ -132,6 +114,68 @@ def _config_mentions_wandb(argv: list[str]) -> list[str]:
     return texts
 
 
+def _config_path(arg: str, following: str | None) -> str | None:
+    """The file named by ``--config=F`` or ``--config F`` (``None`` for other arguments)."""
+    if arg.startswith("--config="):
+        return arg.split("=", 1)[1]
+    return following if arg == "--config" else None
+
+
+def _composed(path: Path, seen: tuple[Path, ...] = ()) -> list[Path]:
+    """``path``'s ``compose:`` files (recursively, in order), then ``path`` itself.
+
+    Raises:
+        FileNotFoundError: If a composed file does not exist (names the file that lists it).
+        ValueError: On a ``compose`` cycle or a ``compose`` value that is not a list of paths.
+    """
+    path = path.resolve()
+    if path in seen:
+        raise ValueError(f"config compose cycle: {' -> '.join(str(p) for p in (*seen, path))}")
+    with path.open(encoding="utf-8") as fh:
+        content = yaml.safe_load(fh)
+    parts = content.get("compose") if isinstance(content, dict) else None
+    if parts is None:
+        return [path]
+    if not isinstance(parts, list) or not all(isinstance(p, str) for p in parts):
+        raise ValueError(f"{path}: `compose` must be a list of config paths, got {parts!r}")
+    files: list[Path] = []
+    for part in parts:
+        child = path.parent / part
+        if not child.is_file():
+            raise FileNotFoundError(f"{path}: composed config {part!r} not found ({child})")
+        files += _composed(child, (*seen, path))
+    return [*files, path]
+
+
+def expand_configs(args: list[str]) -> list[str]:
+    """Replace each ``--config F`` whose YAML has ``compose: [...]`` by ``--config`` of every composed file, then F.
+
+    Args:
+        args: Command-line arguments.
+
+    Returns:
+        The arguments with composed configs spelled out (other arguments unchanged, in order), and
+        ``--compose=null`` at the end when any file composed others, so the saved ``config.yaml`` (already complete)
+        does not compose them again.
+    """
+    out: list[str] = []
+    composed = False
+    i = 0
+    while i < len(args):
+        path = _config_path(args[i], args[i + 1] if i + 1 < len(args) else None)
+        step = 2 if args[i] == "--config" else 1
+        if path is None or not Path(path).is_file():
+            out += args[i : i + step] if path is not None else [args[i]]
+            i += step if path is not None else 1
+            continue
+        files = _composed(Path(path))
+        composed = composed or len(files) > 1
+        for file in files:
+            out += ["--config", str(file)]
+        i += step
+    return [*out, "--compose=null"] if composed else out
+
+
 def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
     """The ``lcreg`` CLI; ``run=False`` only instantiates model, data and trainer (scripts and tests use it).
 
@@ -139,6 +183,10 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         args: Command-line arguments (``None`` reads ``sys.argv``); with ``run=False`` no subcommand is given.
         run: Run the subcommand.
     """
+    if args is None:
+        args = sys.argv[1:]
+    if isinstance(args, (list, tuple)):
+        args = expand_configs([str(a) for a in args])
     return LcregCLI(
         RegistrationModule,
         LightningDataModule,

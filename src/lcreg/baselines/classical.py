@@ -186,7 +186,7 @@ class ClassicalRegistration(RegistrationModule):
 
     Subclasses implement :meth:`register_pair` on Open3D clouds and define :attr:`iteration_budget`.
 
-    Nothing to train: ``has_loss = False`` (validation/test only update metrics); ``compute_loss`` and
+    Nothing to train: ``has_loss = False`` (validation/test only update metrics); ``_compute_loss`` and
     ``configure_optimizers`` raise ``RuntimeError`` pointing to ``lcreg test``.
 
     Args:
@@ -194,6 +194,7 @@ class ClassicalRegistration(RegistrationModule):
         downsample: ``voxel_down_sample(voxel_size)`` both clouds before the method runs.
         normal_factor: Normal search radius in voxels (radius ``normal_factor * v``).
         normal_max_nn: Maximum neighbours of the normal estimate.
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``refiner``: e.g. RANSAC then ICP).
 
     Raises:
         ValueError: On an invalid argument (the message names it).
@@ -201,8 +202,11 @@ class ClassicalRegistration(RegistrationModule):
 
     has_loss = False
 
-    def __init__(self, voxel_size: float, downsample: bool, normal_factor: float, normal_max_nn: int) -> None:
-        super().__init__(min_points=MIN_POINTS)
+    def __init__(
+        self, voxel_size: float, downsample: bool, normal_factor: float, normal_max_nn: int, **kwargs: Any
+    ) -> None:
+        super().__init__(**kwargs)
+        self.min_points = MIN_POINTS
         _check_positive("voxel_size", voxel_size)
         _check_bool("downsample", downsample)
         _check_positive("normal_factor", normal_factor)
@@ -285,7 +289,7 @@ class ClassicalRegistration(RegistrationModule):
         return self._run(points_src, points_ref, None)
 
     # --- no training ------------------------------------------------------------------------------------------
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Classical methods have no training objective."""
         raise RuntimeError(f"{type(self).__name__} is a classical method with nothing to train; use `lcreg test`")
 
@@ -333,8 +337,9 @@ class ICP(ClassicalRegistration):
         relative_rmse: float = 1e-6,
         normal_factor: float = 2.0,
         normal_max_nn: int = 30,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(voxel_size, downsample, normal_factor, normal_max_nn)
+        super().__init__(voxel_size, downsample, normal_factor, normal_max_nn, **kwargs)
         if method not in ("point_to_point", "point_to_plane"):
             raise ValueError(f"`method` must be 'point_to_point' or 'point_to_plane', got {method!r}")
         _check_positive("distance_factor", distance_factor)
@@ -346,7 +351,7 @@ class ICP(ClassicalRegistration):
         self.max_iterations = max_iterations
         self.relative_fitness = float(relative_fitness)
         self.relative_rmse = float(relative_rmse)
-        self.save_hyperparameters()
+        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:
@@ -397,6 +402,10 @@ class ICP(ClassicalRegistration):
         """
         return self._run(points_src, points_ref, init)
 
+    def refine(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
+        """ICP from ``init (B, 4, 4)``: the refiner step of any model (``configs/refine/icp.yaml``)."""
+        return self(points_src, points_ref, init=init)
+
 
 class FeatureRegistration(ClassicalRegistration):
     """Base of the global methods on FPFH features (:class:`RANSAC`, :class:`FGR`).
@@ -424,8 +433,9 @@ class FeatureRegistration(ClassicalRegistration):
         feature_factor: float,
         feature_max_nn: int,
         open3d_seed: int,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(voxel_size, downsample, normal_factor, normal_max_nn)
+        super().__init__(voxel_size, downsample, normal_factor, normal_max_nn, **kwargs)
         _check_positive("feature_factor", feature_factor)
         _check_int("feature_max_nn", feature_max_nn, 1)
         _check_int("open3d_seed", open3d_seed, 0)
@@ -503,9 +513,10 @@ class RANSAC(FeatureRegistration):
         confidence: float = 0.999,
         open3d_seed: int = 0,
         deterministic: bool = True,
+        **kwargs: Any,
     ) -> None:
         super().__init__(
-            voxel_size, downsample, normal_factor, normal_max_nn, feature_factor, feature_max_nn, open3d_seed
+            voxel_size, downsample, normal_factor, normal_max_nn, feature_factor, feature_max_nn, open3d_seed, **kwargs
         )
         _check_positive("distance_factor", distance_factor)
         _check_bool("mutual_filter", mutual_filter)
@@ -523,7 +534,7 @@ class RANSAC(FeatureRegistration):
         self.max_iterations = max_iterations
         self.confidence = float(confidence)
         self.deterministic = deterministic
-        self.save_hyperparameters()
+        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:
@@ -606,9 +617,10 @@ class FGR(FeatureRegistration):
         maximum_tuple_count: int = 1000,
         tuple_test: bool = True,
         open3d_seed: int = 0,
+        **kwargs: Any,
     ) -> None:
         super().__init__(
-            voxel_size, downsample, normal_factor, normal_max_nn, feature_factor, feature_max_nn, open3d_seed
+            voxel_size, downsample, normal_factor, normal_max_nn, feature_factor, feature_max_nn, open3d_seed, **kwargs
         )
         _check_positive("distance_factor", distance_factor)
         _check_positive("division_factor", division_factor)
@@ -629,7 +641,7 @@ class FGR(FeatureRegistration):
         self.tuple_scale = float(tuple_scale)
         self.maximum_tuple_count = maximum_tuple_count
         self.tuple_test = tuple_test
-        self.save_hyperparameters()
+        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:

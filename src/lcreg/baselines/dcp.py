@@ -28,15 +28,13 @@ Deviations from the original code (``WangYueFt/dcp``):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
-from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.correspondence import similarity_scores, soft_correspondence_transform
 from lcreg.nn.dgcnn import DGCNN
-from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.losses import cycle_consistency_mse, rotation_translation_mse
 from lcreg.nn.transformer import PointerTransformer
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -49,7 +47,7 @@ CYCLE_WEIGHT = 0.1
 """Weight of the optional cycle-consistency term (the original's constant)."""
 
 
-class DCP(LocalConsistencyMixin, RegistrationModule):
+class DCP(RegistrationModule):
     """Deep Closest Point (DCP-v2 with ``pointer="transformer"``, DCP-v1 with ``pointer="identity"``).
 
     ``result.aux`` holds ``"matched"`` (soft correspondences ``(B, N, 3)`` in the reference frame), with
@@ -65,14 +63,12 @@ class DCP(LocalConsistencyMixin, RegistrationModule):
         cycle: Add the reverse head pass and the cycle-consistency term (weight :data:`CYCLE_WEIGHT`).
         edge_channels: Widths of the DGCNN edge layers (64, 64, 128, 256); smaller only for tests.
         return_probabilities: Keep the ``(B, N, M)`` matching probabilities in ``result.aux``.
-        local_consistency: Optional injected :class:`~lcreg.nn.local_consistency.LocalConsistency` (its
-            ``feature_dim`` must be ``emb_dims``; it max-pools the per-point DGCNN embedding).
-        lc_weight: Weight of the LC term.
-        optimizer: Optimiser factory (original: Adam, lr 1e-3, weight decay 1e-4).
-        lr_scheduler: Scheduler factory (original: MultiStepLR [75, 150, 200], gamma 0.1).
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (original: Adam, lr
+            1e-3, weight decay 1e-4), ``lr_scheduler`` (original: MultiStepLR [75, 150, 200], gamma 0.1),
+            ``loss_terms`` (e.g. local consistency), ``refiner``.
 
     Raises:
-        ValueError: On an unknown ``pointer`` or a ``local_consistency`` whose ``feature_dim`` is not ``emb_dims``.
+        ValueError: On an unknown ``pointer`` or an injected loss term built for another width than ``emb_dims``.
     """
 
     def __init__(
@@ -85,21 +81,18 @@ class DCP(LocalConsistencyMixin, RegistrationModule):
         cycle: bool = False,
         edge_channels: Sequence[int] = (64, 64, 128, 256),
         return_probabilities: bool = False,
-        local_consistency: LocalConsistency | None = None,
-        lc_weight: float = 1.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(**kwargs)
         if pointer not in ("transformer", "identity"):
             raise ValueError(f"`pointer` must be 'transformer' or 'identity', got {pointer!r}")
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
+        self._save_hparams()
         self.encoder = DGCNN(emb_dims, k, "static", channels=tuple(edge_channels), act="relu")
         self.pointer = PointerTransformer(emb_dims, heads, ff_dims, "relu") if pointer == "transformer" else None
         self.cycle = cycle
         self.return_probabilities = return_probabilities
-        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
-        self.min_points = max(k, self.lc_min_points)
+        self._bind_loss_terms()
+        self.min_points = k
 
     def embed(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Final per-point embeddings ``(B, N, emb_dims)``, ``(B, M, emb_dims)`` (after the pointer)."""
@@ -128,7 +121,7 @@ class DCP(LocalConsistencyMixin, RegistrationModule):
             aux["probabilities"] = probabilities
         return RegistrationResult.fixed_iterations(transform, aux=aux)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``pose`` (rotation/translation MSE), optional ``cycle`` (weight 0.1) and the total ``loss``."""
         pose = rotation_translation_mse(result.transform_ref_src, self.ground_truth(batch))
         losses = {"pose": pose, "loss": pose}

@@ -43,15 +43,15 @@ Decisions and deviations:
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
 from lcreg.geometry import se3
 from lcreg.geometry.procrustes import weighted_kabsch
 from lcreg.geometry.rri import rri_features
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
-from lcreg.models.mixins import LocalConsistencyMixin
-from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.losses import transform_mse
 from lcreg.nn.mlp import PointwiseMLP
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -134,6 +134,11 @@ class DeepGMREncoder(nn.Module):
         """Feature width ``K = d_model``."""
         return self.mlp.out_channels
 
+    @property
+    def feature_dim(self) -> int:
+        """Descriptor width ``K`` (the attribute loss terms such as LC read)."""
+        return self.mlp.out_channels
+
     def input_features(self, points: torch.Tensor) -> torch.Tensor:
         """``(B, N, 3)`` -> RRI ``(B, N, 4k)`` or centred coordinates ``(B, N, 3)``."""
         if self.use_rri:
@@ -145,7 +150,7 @@ class DeepGMREncoder(nn.Module):
         return self.mlp(self.input_features(points))
 
 
-class DeepGMR(LocalConsistencyMixin, RegistrationModule):
+class DeepGMR(RegistrationModule):
     """DeepGMR host (module docstring); the LC encoder is :class:`DeepGMREncoder` (``K = d_model``).
 
     Args:
@@ -153,10 +158,8 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         num_clusters: Mixture components ``J`` (original: 16).
         k: RRI neighbours (original: 20).
         use_rri: RRI input features (needed for the paper's results; exact rotation equivariance).
-        local_consistency: Optional LC module (``feature_dim = d_model``); ``None`` disables LC.
-        lc_weight: Weight of the LC term.
-        optimizer: Optimiser factory (original: Adam, lr 1e-3).
-        lr_scheduler: Scheduler factory.
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (original: Adam, lr
+            1e-3), ``lr_scheduler`` (none), ``loss_terms`` (e.g. local consistency), ``refiner``.
     """
 
     def __init__(
@@ -165,19 +168,16 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         num_clusters: int = 16,
         k: int = 20,
         use_rri: bool = True,
-        local_consistency: LocalConsistency | None = None,
-        lc_weight: float = 1.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(**kwargs)
         if num_clusters < 1:
             raise ValueError(f"`num_clusters` must be >= 1, got {num_clusters}")
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
+        self._save_hparams()
         self.encoder = DeepGMREncoder(d_model, k, use_rri)
         self.cluster_head = PointwiseMLP((2 * d_model, 512, 256, 128, num_clusters), bias=False, last_plain=True)
-        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=d_model)
-        self.min_points = max(k + 1 if use_rri else 3, self.lc_min_points)
+        self._bind_loss_terms()
+        self.min_points = k + 1 if use_rri else 3
 
     def posteriors(self, points: torch.Tensor) -> torch.Tensor:
         """Point-to-component posteriors ``gamma (B, N, J)`` (softmax over the clusters)."""
@@ -209,7 +209,7 @@ class DeepGMR(LocalConsistencyMixin, RegistrationModule):
         }
         return RegistrationResult.fixed_iterations(transform_12, aux=aux)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``MSE(T12 T_gt^-1, I4) + MSE(T21 T_gt, I4)`` (logged as ``mse_12``/``mse_21``), plus LC when attached."""
         transform_gt = self.ground_truth(batch)
         mse_12 = transform_mse(result.transform_ref_src, se3.inverse(transform_gt))

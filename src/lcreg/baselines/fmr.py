@@ -28,12 +28,12 @@ them).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
 from lcreg.geometry import se3
 from lcreg.geometry.chamfer import chamfer_distance
-from lcreg.models.base import OptimizerFactory, SchedulerFactory
 from lcreg.models.lucas_kanade import LucasKanadeModule, lk_pose_loss
 from lcreg.nn.decoders import MLPDecoder
 from lcreg.nn.lk import JacobianMode
@@ -56,8 +56,8 @@ class FMRNet(LucasKanadeModule):
         decoder_hidden: Decoder widths (original: 1024, 512, 256).
         decoder_points: Points the decoder outputs (original: 2048, its input size).
         pose_weight: Weight of the semi-supervised pose term (0: unsupervised, the original's default).
-        optimizer: Optimiser factory.
-        lr_scheduler: Scheduler factory.
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (default Adam),
+            ``lr_scheduler`` (none), ``loss_terms`` (e.g. local consistency), ``refiner``.
     """
 
     def __init__(
@@ -72,8 +72,7 @@ class FMRNet(LucasKanadeModule):
         decoder_hidden: Sequence[int] = (1024, 512, 256),
         decoder_points: int = 1024,
         pose_weight: float = 0.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
         super().__init__(
             encoder_channels,
@@ -85,12 +84,11 @@ class FMRNet(LucasKanadeModule):
             jacobian,
             fd_step,
             differentiable=pose_weight > 0,
-            optimizer=optimizer,
-            lr_scheduler=lr_scheduler,
+            **kwargs,
         )
         if pose_weight < 0:
             raise ValueError(f"`pose_weight` must be >= 0, got {pose_weight}")
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
+        self._save_hparams()
         self.decoder = MLPDecoder(self.encoder.feature_dim, decoder_hidden, decoder_points, batch_norm)
         self.pose_weight = pose_weight
 
@@ -102,7 +100,7 @@ class FMRNet(LucasKanadeModule):
         self.update_norm_statistics(batch)
         return self(batch.points_src, batch.points_ref)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Reconstruction Chamfer of both clouds (squared distances), plus the optional pose term."""
         recon = sum(
             (

@@ -51,6 +51,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -60,9 +61,7 @@ from lcreg.checks import TooFewPointsError
 from lcreg.geometry import se3
 from lcreg.geometry.neighbors import gather_points, knn, knn_indices, safe_norm
 from lcreg.geometry.procrustes import weighted_kabsch
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
-from lcreg.models.mixins import LocalConsistencyMixin
-from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.mlp import PointwiseMLP
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -120,6 +119,7 @@ class GNNEncoder(nn.Module):
             raise ValueError(f"`k` and `emb_dims` must be >= 1, got {k}, {emb_dims}")
         widths = [3, *channels, emb_dims]
         self.k, self.emb_dims = k, emb_dims
+        self.feature_dim = emb_dims  # descriptor width K (read by loss terms such as LC)
         self.layers = nn.ModuleList(_Propagate(c_in, c_out) for c_in, c_out in pairwise(widths))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
@@ -277,7 +277,7 @@ def negative_entropy(similarity: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 # --- the model -----------------------------------------------------------------------------------------------------
-class IDAM(LocalConsistencyMixin, RegistrationModule):
+class IDAM(RegistrationModule):
     """IDAM with GNN features (see the module docstring for the pipeline, losses and deviations).
 
     ``result.aux`` holds, for the kept subsets (``n`` source, ``m`` reference points): ``"index_src" (B, n)``,
@@ -293,11 +293,9 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         num_iters: Similarity-convolution iterations (3), separate weights each.
         num_kept: Points kept per cloud by hard elimination; ``None``: ``N // 6`` (original). Clipped to ``N, M``.
         positive_threshold: Ground-truth neighbour distance of a positive source point (0.05).
-        local_consistency: Optional injected :class:`~lcreg.nn.local_consistency.LocalConsistency` (its
-            ``feature_dim`` must be ``emb_dims``; LC max-pools the per-point GNN features of :attr:`encoder`).
-        lc_weight: Weight of the LC term.
-        optimizer: Optimiser factory (original: Adam, lr 1e-4, weight decay 1e-3).
-        lr_scheduler: Scheduler factory (original: MultiStepLR [30], gamma 0.1).
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (original: Adam, lr
+            1e-4, weight decay 1e-3), ``lr_scheduler`` (original: MultiStepLR [30], gamma 0.1), ``loss_terms``
+            (e.g. local consistency), ``refiner``.
     """
 
     def __init__(
@@ -309,27 +307,24 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         num_iters: int = 3,
         num_kept: int | None = None,
         positive_threshold: float = 0.05,
-        local_consistency: LocalConsistency | None = None,
-        lc_weight: float = 1.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(**kwargs)
         if num_iters < 1:
             raise ValueError(f"`num_iters` must be >= 1, got {num_iters}")
         if num_kept is not None and num_kept < 1:
             raise ValueError(f"`num_kept` must be >= 1 or None, got {num_kept}")
         if positive_threshold <= 0:
             raise ValueError(f"`positive_threshold` must be > 0, got {positive_threshold}")
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
+        self._save_hparams()
         self.encoder = GNNEncoder(emb_dims, k, gnn_channels)
         self.score_head = PointwiseMLP([emb_dims, 64, 32, 1], last_plain=True)
         self.blocks = nn.ModuleList(SimilarityBlock(emb_dims, hidden) for _ in range(num_iters))
         self.num_iters = num_iters
         self.num_kept = num_kept
         self.positive_threshold = positive_threshold
-        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
-        self.min_points = max(k, self.lc_min_points)
+        self._bind_loss_terms()
+        self.min_points = k
 
     def kept(self, num_src: int, num_ref: int) -> int:
         """Points kept per cloud for clouds of ``num_src`` and ``num_ref`` points."""
@@ -419,7 +414,7 @@ class IDAM(LocalConsistencyMixin, RegistrationModule):
         dist, nearest = knn(se3.transform_points(self.ground_truth(batch), src), ref, 1)
         return nearest[..., 0], dist[..., 0] < self.positive_threshold
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``score`` (iteration 0), ``match`` and ``weight`` (summed over iterations) and the sum ``loss``."""
         aux = result.aux
         similarity, weight_logits = aux["similarity"], aux["weight_logits"]  # (B, T, n, m), (B, T, n)

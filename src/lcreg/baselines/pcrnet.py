@@ -48,13 +48,14 @@ Deviations from the reference:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import nn
 
 from lcreg.geometry import se3, so3
 from lcreg.geometry.chamfer import chamfer_distance
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.mlp import PointwiseMLP
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -82,8 +83,8 @@ class PCRNet(RegistrationModule):
         num_iterations: Refinement iterations (reference 8).
         identity_init: Start every delta pose at the identity (zero output weights, identity bias); not in the
             reference.
-        optimizer: Optimiser factory (reference: Adam, lr 1e-3).
-        lr_scheduler: Optional scheduler factory (reference: none).
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (reference: Adam, lr
+            1e-3), ``lr_scheduler`` (reference: none), ``loss_terms`` (e.g. local consistency), ``refiner``.
 
     Raises:
         ValueError: On empty ``regressor_hidden``, ``dropout`` outside ``[0, 1)`` or ``num_iterations < 1``.
@@ -96,18 +97,18 @@ class PCRNet(RegistrationModule):
         dropout: float = 0.0,
         num_iterations: int = 8,
         identity_init: bool = False,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(**kwargs)
         if len(regressor_hidden) < 1:
             raise ValueError("`regressor_hidden` needs at least one width")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"`dropout` must be in [0, 1), got {dropout}")
         if num_iterations < 1:
             raise ValueError(f"`num_iterations` must be >= 1, got {num_iterations}")
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
+        self._save_hparams()
         self.encoder = PointNetEncoder(tuple(encoder_channels), batch_norm=False)
+        self._bind_loss_terms()
         k = self.encoder.feature_dim
         self.regressor = PointwiseMLP((2 * k, *regressor_hidden), batch_norm=False)
         self.dropout = nn.Dropout(dropout)
@@ -141,7 +142,7 @@ class PCRNet(RegistrationModule):
         result.residual_history = torch.stack(history, dim=1)
         return result
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``chamfer`` (reference-scaled, mean over the batch) between the moved source and the reference = ``loss``.
 
         Uses ``result.aux["transformed_src"]`` when present, else applies ``result.transform_ref_src`` to the

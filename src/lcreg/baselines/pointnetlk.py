@@ -25,10 +25,10 @@ idea, about 6x cheaper); the original's classifier pre-training (``--transfer-fr
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
-from lcreg.models.base import OptimizerFactory, SchedulerFactory
 from lcreg.models.lucas_kanade import LucasKanadeModule, lk_pose_loss
 from lcreg.nn.lk import JacobianMode
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -50,8 +50,8 @@ class PointNetLK(LucasKanadeModule):
         fd_step: Finite-difference twist step (original: 1e-2).
         residual_weight: Weight of ``||r||^2`` (original: 1).
         pose_weight: Weight of ``16 MSE(T T_gt^-1, I)`` (original: 1).
-        optimizer: Optimiser factory.
-        lr_scheduler: Scheduler factory.
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (default Adam),
+            ``lr_scheduler`` (none), ``loss_terms`` (e.g. local consistency), ``refiner``.
     """
 
     def __init__(
@@ -66,8 +66,7 @@ class PointNetLK(LucasKanadeModule):
         fd_step: float = 1e-2,
         residual_weight: float = 1.0,
         pose_weight: float = 1.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
         super().__init__(
             encoder_channels,
@@ -79,14 +78,13 @@ class PointNetLK(LucasKanadeModule):
             jacobian,
             fd_step,
             differentiable=True,
-            optimizer=optimizer,
-            lr_scheduler=lr_scheduler,
+            **kwargs,
         )
         if residual_weight < 0 or pose_weight < 0:
             raise ValueError(
                 f"loss weights must be >= 0, got residual_weight={residual_weight}, pose_weight={pose_weight}"
             )
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
+        self._save_hparams()
         self.residual_weight = residual_weight
         self.pose_weight = pose_weight
 
@@ -95,7 +93,7 @@ class PointNetLK(LucasKanadeModule):
         self.update_norm_statistics(batch)
         return self(batch.points_src, batch.points_ref)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``residual_weight ||r||^2 + pose_weight 16 MSE(T T_gt^-1, I)`` (needs the ground-truth pose)."""
         residual = result.aux["residual"].pow(2).sum(-1).mean()
         pose = lk_pose_loss(result.transform_ref_src, self.ground_truth(batch))

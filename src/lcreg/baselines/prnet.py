@@ -42,7 +42,7 @@ Deviations from upstream (all deliberate):
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -50,11 +50,9 @@ from torch import nn
 
 from lcreg.geometry import se3
 from lcreg.geometry.neighbors import gather_points
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
-from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.correspondence import similarity_scores, soft_correspondence_transform
 from lcreg.nn.dgcnn import DGCNN
-from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.losses import cycle_consistency_mse, rotation_translation_mse
 from lcreg.nn.mlp import PointwiseMLP
 from lcreg.nn.transformer import PointerTransformer
@@ -151,7 +149,7 @@ class TemperatureNet(nn.Module):
         return temperature.clamp(1.0 / self.temp_factor, self.temp_factor), disparity
 
 
-class PRNet(LocalConsistencyMixin, RegistrationModule):
+class PRNet(RegistrationModule):
     """PRNet (see the module docstring); defaults are upstream's.
 
     Args:
@@ -167,10 +165,9 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         feature_alignment_weight: Weight of the feature-disparity term (0.1).
         cycle_weight: Weight of the cycle-consistency term (0.1).
         temp_factor: Temperature range ``[1/temp_factor, temp_factor]`` (100).
-        local_consistency: Optional LC module; LC uses the DGCNN encoder (``K = emb_dims`` per point).
-        lc_weight: Weight of the LC term.
-        optimizer: Optimiser factory (upstream: Adam lr 1e-3, weight decay 1e-4).
-        lr_scheduler: Scheduler factory (upstream: MultiStepLR at 30/60/80 % of the epochs, gamma 0.1).
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (upstream: Adam lr
+            1e-3, weight decay 1e-4), ``lr_scheduler`` (upstream: MultiStepLR at 30/60/80 % of the epochs, gamma
+            0.1), ``loss_terms`` (e.g. local consistency), ``refiner``.
     """
 
     def __init__(
@@ -187,13 +184,10 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         feature_alignment_weight: float = 0.1,
         cycle_weight: float = 0.1,
         temp_factor: float = 100.0,
-        local_consistency: LocalConsistency | None = None,
-        lc_weight: float = 1.0,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler", "local_consistency"])
+        super().__init__(**kwargs)
+        self._save_hparams()
         if sampler not in ("gumbel_softmax", "softmax"):
             raise ValueError(f"`sampler` must be 'gumbel_softmax' or 'softmax', got {sampler!r}")
         if num_keypoints < 3:
@@ -210,8 +204,8 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         self.discount = discount
         self.feature_alignment_weight = feature_alignment_weight
         self.cycle_weight = cycle_weight
-        self.attach_local_consistency(local_consistency, lc_weight, feature_dim=emb_dims)
-        self.min_points = max(k, 3, self.lc_min_points)
+        self._bind_loss_terms()
+        self.min_points = max(k, 3)
 
     def head(
         self,
@@ -273,7 +267,7 @@ class PRNet(LocalConsistencyMixin, RegistrationModule):
         aux = {key: torch.stack(values, dim=1) for key, values in history.items()}
         return RegistrationResult.fixed_iterations(cumulative, self.num_iterations, aux)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Discounted sum over iterations of the pose, feature-alignment and cycle-consistency terms (+ LC)."""
         gt = self.ground_truth(batch)
         aux = result.aux

@@ -3,7 +3,13 @@
 Subclasses implement only:
 
 * ``forward(points_src (B, N, 3), points_ref (B, M, 3)) -> RegistrationResult``;
-* ``compute_loss(result, batch) -> dict[str, Tensor]`` with a ``"loss"`` entry (training objective).
+* ``_compute_loss(result, batch) -> dict[str, Tensor]`` with a ``"loss"`` entry (the model's own objective).
+
+Everything else is injected through the constructor (LightningCLI YAML), so a configured model is complete:
+``optimizer``/``lr_scheduler`` factories, extra ``loss_terms`` (:mod:`lcreg.models.loss_terms`, e.g. local
+consistency), and a ``refiner`` run after ``forward`` outside training. Hosts pass these through ``**kwargs``.
+The one public way to get a model's training losses is :meth:`RegistrationModule.training_losses` (own terms plus
+every injected term, each weighted and logged as ``{stage}/{name}``).
 
 The base validates batches, runs ``forward``, logs every loss term as ``{stage}/{name}``, updates the registration
 metrics (:func:`lcreg.metrics.registration.registration_metrics`) on val/test batches that carry a ground truth,
@@ -14,9 +20,10 @@ logger's directory. Optimisers are injected (``optimizer``/``lr_scheduler`` call
 from __future__ import annotations
 
 import csv
-from collections.abc import Callable, Iterable
+import inspect
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import torch
 from lightning.pytorch import LightningModule
@@ -24,9 +31,10 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.checks import check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
+from lcreg.models.loss_terms import LossTerm
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["Refiner", "RegistrationModule"]
+__all__ = ["COMPONENT_ARGS", "RegistrationModule"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
@@ -36,12 +44,8 @@ SchedulerFactory = Callable[
 ]
 
 
-class Refiner(Protocol):
-    """A local method that improves a coarse estimate, e.g. :class:`lcreg.baselines.classical.ICP`."""
-
-    def __call__(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
-        """Refine ``init (B, 4, 4)`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``."""
-        ...
+COMPONENT_ARGS = ("optimizer", "lr_scheduler", "loss_terms", "refiner", "voxel_grid")
+"""Constructor arguments that are components, not hyper-parameters: never saved in a checkpoint's ``hparams``."""
 
 
 class RegistrationModule(LightningModule):
@@ -50,26 +54,45 @@ class RegistrationModule(LightningModule):
     Class attribute ``has_loss``: ``False`` for methods with nothing to train (classical baselines); their
     validation then only updates metrics.
 
+    Class attribute ``min_points``: smallest cloud the model itself accepts (hosts set it in their constructor); the
+    effective :attr:`min_points` also covers the injected loss terms (LC needs ``num_local_points``).
+
     Args:
         optimizer: Callable building the optimiser from the trainable parameters (default Adam, lr 1e-3).
         lr_scheduler: Optional callable building a scheduler from the optimiser (stepped per epoch;
             ``ReduceLROnPlateau`` steps on ``val/loss``).
-        min_points: Smallest cloud size accepted by :meth:`validate_inputs`.
+        loss_terms: Extra training-loss terms (:class:`~lcreg.models.loss_terms.LossTerm`), each added as
+            ``weight * value`` and logged as ``{stage}/{name}``; e.g. ``[LocalConsistencyLoss()]``.
+        refiner: A registration method run after ``forward`` at validation/test/predict/``register``, starting
+            from the model's estimate (e.g. :class:`lcreg.baselines.classical.ICP`); never used in training, not a
+            submodule, not saved in checkpoints (``configs/refine/icp.yaml``).
+
+    Raises:
+        TypeError: If a loss term is not a ``LossTerm`` or the refiner is not a ``RegistrationModule``.
+        ValueError: If two loss terms share a name.
     """
 
     has_loss: bool = True
-    _refiner: Refiner | None = None
+    _min_points: int = 3
+    _refiner: RegistrationModule | None = None
+    loss_terms: torch.nn.ModuleList
 
     def __init__(
         self,
         optimizer: OptimizerFactory = torch.optim.Adam,
         lr_scheduler: SchedulerFactory | None = None,
-        min_points: int = 3,
+        loss_terms: Sequence[LossTerm] = (),
+        refiner: RegistrationModule | None = None,
     ) -> None:
         super().__init__()
         self.optimizer_factory = optimizer
         self.scheduler_factory = lr_scheduler
-        self.min_points = min_points
+        self.loss_terms = torch.nn.ModuleList(_checked_terms(loss_terms))
+        if refiner is not None and not isinstance(refiner, RegistrationModule):
+            raise TypeError(
+                f"`refiner` must be a RegistrationModule (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}"
+            )
+        object.__setattr__(self, "_refiner", refiner)  # plain attribute: not trained, not saved
         self.val_metrics = registration_metrics("val/")
         self.test_metrics = registration_metrics("test/")
         self.test_pairs = PerPairErrors()
@@ -80,17 +103,81 @@ class RegistrationModule(LightningModule):
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``."""
         raise NotImplementedError
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """Training objective terms; must contain ``"loss"``."""
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """The model's own objective terms; must contain ``"loss"``. Call :meth:`training_losses`, not this."""
         raise NotImplementedError
 
     def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """All loss terms the shared step logs and optimises: ``compute_loss`` plus whatever mixins add.
+        """Every loss term the shared step logs and optimises: the model's own plus each injected term.
 
-        Hosts implement ``compute_loss`` only; composable terms (:class:`~lcreg.models.mixins.LocalConsistencyMixin`)
-        override this method, so a host's code never has to call them.
+        This is the one public way to get a model's training losses (benchmarks and scripts use it too): the
+        result is ``_compute_loss`` with ``weight * term`` added to ``"loss"`` for every ``loss_terms`` entry, each
+        also reported under its name.
+
+        Args:
+            result: The estimate of :meth:`training_forward` (training) or ``forward`` (validation).
+            batch: The batch the estimate was made on.
+
+        Raises:
+            ValueError: If the model's own terms lack ``"loss"`` or reuse an injected term's name.
         """
-        return self.compute_loss(result, batch)
+        losses = dict(self._compute_loss(result, batch))
+        if "loss" not in losses:
+            raise ValueError(f"{type(self).__name__}._compute_loss must return a 'loss' entry, got {sorted(losses)}")
+        for term in self.injected_terms:
+            if term.name in losses:
+                raise ValueError(f"loss term {term.name!r} clashes with a term of {type(self).__name__}")
+            value = term(self, result, batch)
+            losses[term.name] = value
+            losses["loss"] = losses["loss"] + term.weight * value
+        self._log_loss_diagnostics(losses)
+        return losses
+
+    @property
+    def injected_terms(self) -> list[LossTerm]:
+        """The injected :class:`~lcreg.models.loss_terms.LossTerm` s, in order."""
+        return [term for term in self.loss_terms if isinstance(term, LossTerm)]
+
+    def _log_loss_diagnostics(self, losses: dict[str, torch.Tensor]) -> None:
+        """Hook run on every ``training_losses`` result (DVDs logs gradient norms); default does nothing."""
+
+    @property
+    def min_points(self) -> int:
+        """Smallest cloud accepted: the model's own minimum and every loss term's."""
+        return max([self._min_points, *(term.min_points for term in self.injected_terms)])
+
+    @min_points.setter
+    def min_points(self, value: int) -> None:
+        self._min_points = value
+
+    @property
+    def descriptor_dim(self) -> int:
+        """Width ``K`` of :meth:`descriptor_encoder`'s features (``self.encoder.feature_dim`` by default)."""
+        dim = getattr(getattr(self, "encoder", None), "feature_dim", None)
+        if not isinstance(dim, int):
+            raise TypeError(f"{type(self).__name__} does not expose a descriptor width (`encoder.feature_dim`)")
+        return dim
+
+    def descriptor_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The model's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)`` (``self.encoder`` by default).
+
+        Raises:
+            TypeError: If the model has no ``encoder`` (loss terms such as LC need one).
+        """
+        encoder = getattr(self, "encoder", None)
+        if not callable(encoder):
+            raise TypeError(f"{type(self).__name__} has no `encoder` for descriptor-based loss terms")
+        return encoder
+
+    def _bind_loss_terms(self) -> None:
+        """Let every injected term check itself against the built model (hosts call this at the end of __init__)."""
+        for term in self.injected_terms:
+            term.bind(self)
+
+    def _save_hparams(self) -> None:
+        """``save_hyperparameters`` of the calling constructor, without the injected components."""
+        frame = inspect.currentframe()
+        self.save_hyperparameters(ignore=list(COMPONENT_ARGS), frame=frame.f_back if frame else None)
 
     def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
         """The forward pass whose result ``compute_loss`` receives during training.
@@ -102,43 +189,9 @@ class RegistrationModule(LightningModule):
 
     # --- shared machinery ------------------------------------------------------------------------------------
     @property
-    def refiner(self) -> Refiner | None:
+    def refiner(self) -> RegistrationModule | None:
         """The refinement step run after ``forward`` outside training (``None``: none)."""
         return self._refiner
-
-    def set_refiner(self, refiner: Refiner | None) -> None:
-        """Follow every validation/test/predict/``register`` estimate by ``refiner`` (``None`` removes it).
-
-        The refiner starts from this model's estimate (``init``); training never uses it. It is kept outside the
-        module tree, so it is neither trained nor saved in checkpoints: ``lcreg test --config x.yaml --refine ...``
-        adds it to any trained checkpoint (see :mod:`lcreg.cli`).
-
-        Raises:
-            TypeError: If ``refiner`` is not callable.
-        """
-        if refiner is not None and not callable(refiner):
-            raise TypeError(f"`refiner` must be callable (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}")
-        object.__setattr__(self, "_refiner", refiner)  # bypass nn.Module registration on purpose
-
-    def load_weights(self, checkpoint: str | Path) -> RegistrationModule:
-        """Load the weights of a Lightning checkpoint into this configured model and return it.
-
-        Unlike ``load_from_checkpoint``, which builds a new model from the checkpoint's hyper-parameters, this keeps
-        the instance built from a config, including its test-time settings (refiner, voxel grid). The architecture
-        must match (strict ``load_state_dict``). Checkpoints are unpickled: load only trusted files.
-
-        Raises:
-            FileNotFoundError: If ``checkpoint`` is not a file.
-            ValueError: If the file holds no ``state_dict``.
-        """
-        path = Path(checkpoint)
-        if not path.is_file():
-            raise FileNotFoundError(f"checkpoint {str(path)!r} does not exist")
-        content = torch.load(path, map_location="cpu", weights_only=False)  # Lightning checkpoints hold hparams
-        if not isinstance(content, dict) or "state_dict" not in content:
-            raise ValueError(f"checkpoint {str(path)!r} has no 'state_dict' (not a Lightning checkpoint)")
-        self.load_state_dict(content["state_dict"])
-        return self
 
     def estimate(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """``forward``, then the refiner (if any) from its estimate.
@@ -150,7 +203,7 @@ class RegistrationModule(LightningModule):
         if self._refiner is None:
             return result
         coarse = result.transform_ref_src.detach()
-        refined = self._refiner(points_src, points_ref, init=coarse)
+        refined = self._refiner.refine(points_src, points_ref, coarse)
         refined.aux = {**result.aux, **refined.aux, "coarse_transform_ref_src": coarse}
         refined.num_iters = refined.num_iters.to(result.num_iters.device) + result.num_iters
         return refined
@@ -179,6 +232,14 @@ class RegistrationModule(LightningModule):
             return self.estimate(points_src, points_ref)
         finally:
             self.train(was_training)
+
+    def refine(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
+        """Improve the estimates ``init (B, 4, 4)``; only local methods (ICP) implement it.
+
+        Raises:
+            TypeError: For a model that cannot start from an initial estimate.
+        """
+        raise TypeError(f"{type(self).__name__} cannot refine an initial estimate; use a local method such as ICP")
 
     def _common_step(self, batch: RegistrationBatch, stage: Stage) -> torch.Tensor | None:
         self.validate_inputs(batch.points_src, batch.points_ref)
@@ -213,7 +274,7 @@ class RegistrationModule(LightningModule):
         """One optimisation step on a batch."""
         loss = self._common_step(batch, "train")
         if loss is None:  # pragma: no cover - train always computes a loss
-            raise RuntimeError("compute_loss returned no loss")
+            raise RuntimeError("training_losses returned no loss")
         return loss
 
     def validation_step(self, batch: RegistrationBatch, batch_idx: int) -> None:
@@ -270,6 +331,7 @@ class RegistrationModule(LightningModule):
 
     def configure_optimizers(self) -> Any:
         """Build the injected optimiser (trainable parameters only) and optional scheduler."""
+        self._bind_loss_terms()  # idempotent; every term's parameters exist before the optimiser sees them
         params = [p for p in self.parameters() if p.requires_grad]
         optimizer = self.optimizer_factory(params)
         if self.scheduler_factory is None:
@@ -279,3 +341,17 @@ class RegistrationModule(LightningModule):
             # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
         return {"optimizer": optimizer, "lr_scheduler": scheduler}
+
+
+def _checked_terms(terms: Sequence[LossTerm] | None) -> list[LossTerm]:
+    """The injected loss terms, type- and name-checked."""
+    terms = list(terms or [])
+    for term in terms:
+        if not isinstance(term, LossTerm):
+            raise TypeError(
+                f"`loss_terms` must hold lcreg.models.loss_terms.LossTerm modules, got {type(term).__name__}"
+            )
+    names = [term.name for term in terms]
+    if len(set(names)) != len(names):
+        raise ValueError(f"loss terms need distinct names, got {names}")
+    return terms

@@ -7,16 +7,17 @@ pose; per batch:
 1. ``psi`` frozen (eval mode, no graph): IC-LK estimates ``W`` for each pair.
 2. ``psi`` trainable, ``W`` held fixed (one train-mode encoder pass over ``[X, Y, W(X)]``):
    ``L_p = ||psi(W(X)) - psi(Y)||_2 + LC`` (batch mean of the L2 norm, not squared; LC = symmetric KL of
-   :class:`lcreg.nn.local_consistency.LocalConsistency`),
+   :class:`lcreg.nn.local_consistency.LocalConsistency`, injected like on every host:
+   ``loss_terms=[LocalConsistencyLoss(...)]``, ``configs/lc.yaml``),
    ``L_CD = CD(xi(psi(X)), X) + CD(xi(psi(Y)), Y)`` (FoldingNet decoder ``xi``, Chamfer not squared),
    ``L_n = sum_P (1 - mean_i cos(l([p_i, psi(P)]), n_i))`` (normal head ``l``),
-   ``L = L_p + lambda1 L_CD + lambda2 L_n`` (defaults 0.5, 0.1; ``lc_weight`` scales the LC term, 1 in the paper).
+   ``L = L_p + lambda1 L_CD + lambda2 L_n`` (defaults 0.5, 0.1; the LC term's ``weight`` is 1 in the paper).
 
 Normals come from the batch (ModelNet40 provides them). Without normals they are estimated by PCA
 (:func:`lcreg.geometry.normals.estimate_normals`) and compared with ``|cos|`` since their sign is arbitrary.
-The paper's ablation models: A ``lc_weight=0, lambda_recon=0, lambda_normal=0``; B adds LC; C adds reconstruction;
-D is the full model (``configs/ablation/``). Decoder and normal head are unused at test time (not even built when
-their weight is 0).
+The paper's ablation models: A ``loss_terms=[], lambda_recon=0, lambda_normal=0``; B adds LC; C adds
+reconstruction; D is the full model (``configs/ablation/``). Decoder and normal head are unused at test time (not
+even built when their weight is 0).
 
 Diagnostics (paper-ambiguity note 1): every ``diagnostics_every_n_steps`` training steps the gradient norms of the
 LC and global terms w.r.t. ``psi`` are logged (``train/lc_grad_norm``, ``train/global_grad_norm``), so a collapse of
@@ -26,26 +27,23 @@ the LC term is visible.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
 from lcreg.geometry import se3
 from lcreg.geometry.chamfer import chamfer_distance
 from lcreg.geometry.normals import estimate_normals
-from lcreg.models.base import OptimizerFactory, SchedulerFactory
 from lcreg.models.lucas_kanade import LucasKanadeModule
-from lcreg.models.mixins import LocalConsistencyMixin
 from lcreg.nn.folding import FoldingDecoder
 from lcreg.nn.heads import NormalHead
 from lcreg.nn.lk import JacobianMode
-from lcreg.nn.local_consistency import Pairing
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["DVDs"]
 
 
-class DVDs(LocalConsistencyMixin, LucasKanadeModule):
+class DVDs(LucasKanadeModule):
     """DVDs model (encoder, solver and ``forward`` from :class:`~lcreg.models.lucas_kanade.LucasKanadeModule`).
 
     Args:
@@ -55,14 +53,6 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
         tolerance: IC-LK stopping threshold on ``||dw||``.
         damping: Relative damping of ``J^T J``.
         jacobian: ``"analytic"`` (exact, default), ``"autodiff"`` or ``"finite_difference"``.
-        lc_weight: Weight of the local-consistency term (paper: 1; 0 disables it).
-        num_local_points: ``|X1| = |X2|`` (paper: 64).
-        lc_pairing: ``"target"`` or ``"estimate"`` (see :mod:`lcreg.nn.local_consistency`).
-        lc_outlier_threshold: Outlier distance ``c`` for the farthest point (``None``: off).
-        lc_outlier_quantile: Quantile-based alternative to ``c``.
-        lc_temperature: Softmax temperature of ``tau``.
-        lc_trainable_metric: Train the FC metric of LC (default frozen).
-        lc_standardize: Standardise descriptors before the LC metric (scale-free LC; see LocalConsistency).
         lambda_recon: ``lambda1`` (self-reconstruction; 0 disables it).
         lambda_normal: ``lambda2`` (normal estimation; 0 disables it).
         decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
@@ -72,8 +62,9 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
             RMS norm of the two descriptors; IC-LK is invariant to the descriptor scale, so this removes the trivial
             minimiser "shrink the features" without changing what registration uses).
         diagnostics_every_n_steps: Period of the gradient-norm diagnostics (0: never).
-        optimizer: Optimiser factory.
-        lr_scheduler: Scheduler factory.
+        **kwargs: :class:`~lcreg.models.lucas_kanade.LucasKanadeModule` arguments (``eval_iterations``,
+            ``voxel_grid``) and components (``optimizer``, ``lr_scheduler``, ``loss_terms`` such as
+            ``[LocalConsistencyLoss()]``, ``refiner``).
     """
 
     def __init__(
@@ -84,14 +75,6 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
         tolerance: float = 1e-7,
         damping: float = 1e-6,
         jacobian: JacobianMode = "analytic",
-        lc_weight: float = 1.0,
-        num_local_points: int = 64,
-        lc_pairing: Pairing = "target",
-        lc_outlier_threshold: float | None = None,
-        lc_outlier_quantile: float | None = None,
-        lc_temperature: float = 1.0,
-        lc_trainable_metric: bool = False,
-        lc_standardize: bool = True,
         lambda_recon: float = 0.5,
         lambda_normal: float = 0.1,
         decoder_grid_size: int = 32,
@@ -99,8 +82,7 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
         normal_hidden: Sequence[int] = (128, 64),
         global_loss: Literal["l2", "normalized_l2"] = "l2",
         diagnostics_every_n_steps: int = 50,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        **kwargs: Any,
     ) -> None:
         super().__init__(
             encoder_channels,
@@ -109,26 +91,14 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
             tolerance=tolerance,
             damping=damping,
             jacobian=jacobian,
-            optimizer=optimizer,
-            lr_scheduler=lr_scheduler,
+            **kwargs,
         )
         if lambda_recon < 0 or lambda_normal < 0:
             raise ValueError(
                 f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}"
             )
-        self.save_hyperparameters(ignore=["optimizer", "lr_scheduler"])
+        self._save_hparams()
         k = self.encoder.feature_dim
-        self.init_local_consistency(
-            k,
-            lc_weight,
-            num_local_points=num_local_points,
-            pairing=lc_pairing,
-            outlier_threshold=lc_outlier_threshold,
-            outlier_quantile=lc_outlier_quantile,
-            temperature=lc_temperature,
-            trainable_metric=lc_trainable_metric,
-            standardize=lc_standardize,
-        )
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal
         self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden) if lambda_recon > 0 else None
@@ -137,7 +107,6 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
             raise ValueError(f"`global_loss` must be 'l2' or 'normalized_l2', got {global_loss!r}")
         self.global_loss = global_loss
         self.diagnostics_every_n_steps = diagnostics_every_n_steps
-        self.min_points = max(3, num_local_points if lc_weight > 0 else 3)
 
     def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
         """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""
@@ -148,7 +117,7 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
         cos = torch.nn.functional.cosine_similarity(self.normal_head(points, code), target, dim=-1, eps=1e-8)
         return (1 - (cos if oriented else cos.abs()).mean(dim=1)).mean()
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``L = L_p + lambda1 L_CD + lambda2 L_n``; no ground-truth transform is used."""
         x, y = batch.points_src, batch.points_ref
         b = x.shape[0]
@@ -174,13 +143,7 @@ class DVDs(LocalConsistencyMixin, LucasKanadeModule):
             losses["loss"] = losses["loss"] + self.lambda_normal * normal
         return losses
 
-    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """``compute_loss`` plus LC (the mixin), then the gradient-norm diagnostics."""
-        losses = super().training_losses(result, batch)
-        self._diagnostics(losses)
-        return losses
-
-    def _diagnostics(self, losses: dict[str, torch.Tensor]) -> None:
+    def _log_loss_diagnostics(self, losses: dict[str, torch.Tensor]) -> None:
         """Log gradient norms of the global and LC terms w.r.t. the encoder (collapse check)."""
         every = self.diagnostics_every_n_steps
         if not (self.training and every > 0 and self.global_step % every == 0 and torch.is_grad_enabled()):

@@ -4,19 +4,20 @@ All three register with the same two pieces, built once here: a :class:`~lcreg.n
 ``psi`` and the :class:`~lcreg.nn.lk.InverseCompositionalLK` solver. They differ only in how ``psi`` is trained
 (self-supervised DVDs losses, PointNetLK's supervised pose + residual loss, FMR-Net's reconstruction), so each
 subclass adds its losses and nothing else. ``eval_iterations`` lets a model run more LK iterations at
-validation/test than in training (PointNetLK: 10 and 20). :meth:`LucasKanadeModule.set_voxel_grid` switches every
-evaluation (validation, test, predict, ``register``) to voxelised IC-LK for large clouds
-(:mod:`lcreg.nn.voxel_lk`; the CLI's ``voxelize:`` block); training always uses the plain solver.
+validation/test than in training (PointNetLK: 10 and 20). A ``voxel_grid`` (constructor argument,
+``configs/voxelize/lk27.yaml``) switches every evaluation (validation, test, predict, ``register``) to voxelised
+IC-LK for large clouds (:mod:`lcreg.nn.voxel_lk`); training always uses the plain solver.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
 from lcreg.geometry import se3
-from lcreg.models.base import OptimizerFactory, RegistrationModule, SchedulerFactory
+from lcreg.models.base import RegistrationModule
 from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
 from lcreg.nn.losses import transform_mse
 from lcreg.nn.pointnet import PointNetEncoder
@@ -50,8 +51,14 @@ class LucasKanadeModule(RegistrationModule):
         fd_step: Twist step of the finite-difference Jacobian (originals: 1e-2).
         differentiable: Keep the graph through the solve in training (PointNetLK's loss back-propagates through
             the Jacobian and the iterations; DVDs holds the estimate fixed).
-        optimizer: Optimiser factory.
-        lr_scheduler: Scheduler factory.
+        voxel_grid: Voxelised IC-LK outside training (:class:`~lcreg.nn.voxel_lk.VoxelGrid`; ``None``: one
+            descriptor per cloud). Not a submodule and not saved: any trained checkpoint can be evaluated with it.
+        **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``optimizer``, ``lr_scheduler``,
+            ``loss_terms``, ``refiner``).
+
+    Raises:
+        ValueError: If ``eval_iterations < 1``.
+        TypeError: If ``voxel_grid`` is not a ``VoxelGrid``.
     """
 
     def __init__(
@@ -65,13 +72,17 @@ class LucasKanadeModule(RegistrationModule):
         jacobian: JacobianMode = "analytic",
         fd_step: float = 1e-2,
         differentiable: bool = False,
-        optimizer: OptimizerFactory = torch.optim.Adam,
-        lr_scheduler: SchedulerFactory | None = None,
+        voxel_grid: VoxelGrid | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(optimizer=optimizer, lr_scheduler=lr_scheduler)
+        super().__init__(**kwargs)
+        if voxel_grid is not None and not isinstance(voxel_grid, VoxelGrid):
+            raise TypeError(f"`voxel_grid` must be an lcreg.nn.voxel_lk.VoxelGrid or None, got {type(voxel_grid)}")
+        object.__setattr__(self, "_voxel_grid", voxel_grid)  # plain attribute: not a submodule, not saved
         if eval_iterations is not None and eval_iterations < 1:
             raise ValueError(f"`eval_iterations` must be >= 1 or None, got {eval_iterations}")
         self.encoder = PointNetEncoder(encoder_channels, batch_norm)
+        self._bind_loss_terms()
         self.solver = InverseCompositionalLK(
             max_iterations, tolerance, damping, jacobian, fd_step=fd_step, differentiable=differentiable
         )
@@ -83,19 +94,6 @@ class LucasKanadeModule(RegistrationModule):
     def voxel_grid(self) -> VoxelGrid | None:
         """The voxelisation used outside training (``None``: one descriptor per cloud)."""
         return self._voxel_grid
-
-    def set_voxel_grid(self, grid: VoxelGrid | None) -> None:
-        """Register with voxelised IC-LK outside training (``None`` restores the plain solver).
-
-        Not a submodule and not saved in checkpoints: ``lcreg test ... --config configs/voxelize/lk27.yaml`` adds it
-        to any trained LK checkpoint.
-
-        Raises:
-            TypeError: If ``grid`` is not a :class:`~lcreg.nn.voxel_lk.VoxelGrid`.
-        """
-        if grid is not None and not isinstance(grid, VoxelGrid):
-            raise TypeError(f"`grid` must be an lcreg.nn.voxel_lk.VoxelGrid or None, got {type(grid).__name__}")
-        object.__setattr__(self, "_voxel_grid", grid)  # plain attribute: not a submodule, not in the state dict
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """IC-LK registration with the current descriptor (``eval_iterations`` and the voxel grid outside training)."""

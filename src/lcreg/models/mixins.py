@@ -1,88 +1,128 @@
-"""Composable additions to any :class:`~lcreg.models.base.RegistrationModule`."""
+"""Local consistency for a user's own LightningModule (lcreg models take it as an injected loss term instead).
+
+:class:`~lcreg.models.base.RegistrationModule` subclasses get LC through their constructor
+(``loss_terms=[LocalConsistencyLoss(...)]``, ``configs/lc.yaml``). A LightningModule written outside lcreg gets it
+from :class:`LocalConsistencyMixin`: the mixin wraps the class's ``training_step`` when the class is created, so the
+term is added whatever the order of the base classes and whatever the user's ``training_step`` is called.
+"""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
 import torch
 
 from lcreg.nn.local_consistency import LocalConsistency
-from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["LocalConsistencyMixin"]
 
+_WRAPPED = "_adds_local_consistency"
+
 
 class LocalConsistencyMixin:
-    """Adds ``lc_weight * LocalConsistency(encoder, src, ref, estimate)`` to a host's training losses.
+    """Adds ``lc_weight * LocalConsistency(encoder, src, ref)`` to the loss a LightningModule's ``training_step`` returns.
 
-    The host only declares its encoder by overriding :meth:`lc_encoder` (default: ``self.encoder``) and, in its
-    constructor, either builds the module (:meth:`init_local_consistency`, DVDs' flat arguments) or receives one
-    (:meth:`attach_local_consistency`: the baselines take ``local_consistency: LocalConsistency | None`` and
-    ``lc_weight``, so a YAML config switches LC on with one block). Place the mixin first:
-    ``class X(LocalConsistencyMixin, RegistrationModule)``. The host's ``compute_loss`` never mentions LC: the shared
-    step calls :meth:`training_losses`, which this mixin extends with the weighted term (logged as ``{stage}/lc``).
+    Any base-class order works (``class Net(LocalConsistencyMixin, LightningModule)`` or the reverse): at class
+    creation the mixin wraps the class's ``training_step`` (its own or inherited), which must return the loss tensor
+    or a dict with ``"loss"``. The wrapped step adds the weighted term, logs ``train/lc`` and adds it once even when a
+    subclass's step calls ``super().training_step``. The class provides, in ``__init__``,
+    ``self.attach_local_consistency(LocalConsistency(...), lc_weight)``, and may override :meth:`lc_encoder`
+    (default ``self.encoder``), :meth:`lc_clouds` (default ``batch.points_src``/``points_ref``, a dict's
+    ``"points_src"``/``"points_ref"`` or a sequence's first two items) and :meth:`lc_estimate` (for
+    ``pairing="estimate"``). ``examples/third_party_lightning_lc.py`` is a complete example.
+
+    Raises:
+        TypeError: At class creation, for a :class:`~lcreg.models.base.RegistrationModule` (use
+            ``loss_terms=[LocalConsistencyLoss(...)]``) or a class without a ``training_step``.
     """
 
+    # No class-level defaults: nn.Module keeps submodules in _modules, and a class attribute would shadow them.
     local_consistency: LocalConsistency | None
     lc_weight: float
 
-    def init_local_consistency(self, feature_dim: int, lc_weight: float = 1.0, **lc_kwargs: Any) -> None:
-        """Create the LC module (``None`` when ``lc_weight == 0``).
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        from lcreg.models.base import RegistrationModule  # models.base imports nothing from here
 
-        Args:
-            feature_dim: Descriptor size ``K`` of the host's encoder.
-            lc_weight: Weight of the LC term in the loss.
-            **lc_kwargs: Forwarded to :class:`~lcreg.nn.local_consistency.LocalConsistency`.
-        """
-        module = LocalConsistency(feature_dim, **lc_kwargs) if lc_weight > 0 else None
-        self.attach_local_consistency(module, lc_weight)
+        if issubclass(cls, RegistrationModule):
+            raise TypeError(
+                f"{cls.__name__}: lcreg models take local consistency as an injected loss term "
+                "(loss_terms=[lcreg.models.loss_terms.LocalConsistencyLoss(...)], configs/lc.yaml), not through "
+                "LocalConsistencyMixin, which is for LightningModules written outside lcreg"
+            )
+        step = getattr(cls, "training_step", None)
+        if step is None:
+            raise TypeError(f"{cls.__name__} uses LocalConsistencyMixin but has no training_step")
+        if not getattr(step, _WRAPPED, False):
+            cls.training_step = _adding_local_consistency(step)  # type: ignore[attr-defined]
 
-    def attach_local_consistency(
-        self, module: LocalConsistency | None, lc_weight: float = 1.0, feature_dim: int | None = None
-    ) -> None:
+    def attach_local_consistency(self, module: LocalConsistency | None, lc_weight: float = 1.0) -> None:
         """Use ``module`` (``None``: LC off) with weight ``lc_weight`` (``0`` also switches it off).
 
-        Args:
-            module: The injected LC module.
-            lc_weight: Weight of the LC term.
-            feature_dim: The host encoder's width ``K``, checked against ``module.feature_dim`` at construction.
-
         Raises:
-            ValueError: If ``lc_weight < 0`` or the module's ``feature_dim`` is not the encoder's width.
+            ValueError: If ``lc_weight < 0``.
             TypeError: If ``module`` is not a :class:`LocalConsistency`.
         """
         if lc_weight < 0:
             raise ValueError(f"`lc_weight` must be >= 0, got {lc_weight}")
         if module is not None and not isinstance(module, LocalConsistency):
             raise TypeError(f"`local_consistency` must be a LocalConsistency module, got {type(module).__name__}")
-        if module is not None and feature_dim is not None and module.feature_dim != feature_dim:
-            raise ValueError(
-                f"`local_consistency.feature_dim` ({module.feature_dim}) must equal the encoder's width ({feature_dim})"
-            )
         self.lc_weight = lc_weight
         self.local_consistency = module if lc_weight > 0 else None
 
-    @property
-    def lc_min_points(self) -> int:
-        """Smallest cloud LC accepts (``N_l``), 0 when LC is off; hosts fold it into ``min_points``."""
-        return 0 if self.local_consistency is None else self.local_consistency.num_local_points
-
     def lc_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        """The host's encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""
-        return self.encoder  # type: ignore[attr-defined]
+        """The encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)`` (default ``self.encoder``)."""
+        encoder = getattr(self, "encoder", None)
+        if not callable(encoder):
+            raise TypeError(f"{type(self).__name__} has no `encoder`: override lc_encoder() to name it")
+        return encoder
 
-    def add_local_consistency(
-        self, losses: dict[str, torch.Tensor], result: RegistrationResult, batch: RegistrationBatch
-    ) -> dict[str, torch.Tensor]:
-        """Add ``losses["lc"]`` and its weighted value to ``losses["loss"]`` (no-op when LC is off)."""
-        if self.local_consistency is not None:
-            lc = self.local_consistency(self.lc_encoder(), batch.points_src, batch.points_ref, result.transform_ref_src)
-            losses["lc"] = lc
-            losses["loss"] = losses["loss"] + self.lc_weight * lc
-        return losses
+    def lc_clouds(self, batch: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """Source and reference clouds ``(B, N, 3)``, ``(B, M, 3)`` of a training batch."""
+        if hasattr(batch, "points_src"):
+            return batch.points_src, batch.points_ref
+        if isinstance(batch, dict):
+            return batch["points_src"], batch["points_ref"]
+        if isinstance(batch, (list, tuple)) and len(batch) >= 2:
+            return batch[0], batch[1]
+        raise TypeError(f"{type(self).__name__}: override lc_clouds() to get the two clouds from a {type(batch)}")
 
-    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
-        """The host's losses (its ``compute_loss``, untouched) plus the weighted LC term."""
-        losses: dict[str, Any] = super().training_losses(result, batch)  # type: ignore[misc]
-        return self.add_local_consistency(losses, result, batch)
+    def lc_estimate(self, batch: Any) -> torch.Tensor | None:
+        """The current estimate ``(B, 4, 4)`` for ``pairing="estimate"`` (default ``None``)."""
+        return None
+
+    def local_consistency_loss(self, batch: Any) -> torch.Tensor | None:
+        """The unweighted LC value on ``batch`` (``None`` when LC is off)."""
+        module = getattr(self, "local_consistency", None)
+        if module is None:
+            return None
+        src, ref = self.lc_clouds(batch)
+        return module(self.lc_encoder(), src, ref, self.lc_estimate(batch))
+
+
+def _adding_local_consistency(step: Callable[..., Any]) -> Callable[..., Any]:
+    """Wrap ``training_step`` so the outermost call adds the weighted LC term to the loss it returns."""
+
+    @functools.wraps(step)
+    def training_step(self: Any, batch: Any, *args: Any, **kwargs: Any) -> Any:
+        if getattr(self, "_lc_step_active", False):  # a subclass's step calling super(): add LC once
+            return step(self, batch, *args, **kwargs)
+        self._lc_step_active = True
+        try:
+            out = step(self, batch, *args, **kwargs)
+        finally:
+            self._lc_step_active = False
+        lc = self.local_consistency_loss(batch)
+        if lc is None:
+            return out
+        self.log("train/lc", lc.detach(), prog_bar=False, on_step=True, on_epoch=True)
+        if isinstance(out, dict) and "loss" in out:
+            return {**out, "loss": out["loss"] + self.lc_weight * lc}
+        if isinstance(out, torch.Tensor):
+            return out + self.lc_weight * lc
+        raise TypeError(f"{type(self).__name__}.training_step must return the loss (a tensor or a dict with 'loss')")
+
+    setattr(training_step, _WRAPPED, True)
+    return training_step

@@ -96,6 +96,7 @@ class DGCNN(nn.Module):
         if k < 1:
             raise ValueError(f"`k` must be >= 1, got {k}")
         self.k, self.graph, self.emb_dims = k, graph, emb_dims
+        self.feature_dim = emb_dims  # descriptor width K (the attribute loss terms such as LC read)
         layers = []
         c_in = 3
         for i, c_out in enumerate(channels):

@@ -88,7 +88,8 @@ class LocalConsistency(nn.Module):
     """Symmetric-KL local-consistency loss between the far and close barycenter subsets.
 
     Args:
-        feature_dim: Descriptor size ``K`` of the encoder it will be used with.
+        feature_dim: Descriptor size ``K`` of the encoder it will be used with; ``None``: set later by
+            :meth:`bind` (hosts bind it to their encoder's width when built).
         num_local_points: ``N_l = |X1| = |X2|`` (paper default 64).
         pairing: ``"target"`` or ``"estimate"`` (module docstring).
         outlier_threshold: Absolute outlier distance ``c`` for ``x_f``; ``None`` disables it.
@@ -113,7 +114,7 @@ class LocalConsistency(nn.Module):
 
     def __init__(
         self,
-        feature_dim: int = 1024,
+        feature_dim: int | None = None,
         num_local_points: int = 64,
         pairing: Pairing = "target",
         outlier_threshold: float | None = None,
@@ -124,7 +125,7 @@ class LocalConsistency(nn.Module):
         metric_seed: int = 0,
     ) -> None:
         super().__init__()
-        if feature_dim < 1 or num_local_points < 1:
+        if (feature_dim is not None and feature_dim < 1) or num_local_points < 1:
             raise ValueError(
                 f"`feature_dim` and `num_local_points` must be >= 1, got {feature_dim}, {num_local_points}"
             )
@@ -134,24 +135,58 @@ class LocalConsistency(nn.Module):
             raise ValueError(f"`outlier_quantile` must be in (0, 1], got {outlier_quantile}")
         if temperature <= 0:
             raise ValueError(f"`temperature` must be > 0, got {temperature}")
-        self.feature_dim = feature_dim
+        self.feature_dim: int | None = None
         self.num_local_points = num_local_points
         self.pairing = pairing
         self.outlier_threshold = outlier_threshold
         self.outlier_quantile = outlier_quantile
         self.temperature = temperature
         self.standardize = standardize
-        with torch.random.fork_rng(devices=[]):  # Linear's own init must not advance the global RNG
-            self.metric = nn.Linear(2 * feature_dim, feature_dim)
-        self._init_metric(metric_seed)
-        self.metric.requires_grad_(trainable_metric)
+        self.trainable_metric = trainable_metric
+        self.metric_seed = metric_seed
+        self.metric: nn.Linear | None = None
+        if feature_dim is not None:
+            self.bind(feature_dim)
 
+    def bind(self, feature_dim: int) -> None:
+        """Build the FC metric for descriptors of width ``feature_dim`` (a no-op when already built for it).
+
+        Raises:
+            ValueError: If the module was built for another width, or ``feature_dim < 1``.
+        """
+        if self.feature_dim is not None:
+            if feature_dim != self.feature_dim:
+                raise ValueError(
+                    f"LocalConsistency was built for {self.feature_dim} features, the encoder has {feature_dim} "
+                    "(leave `feature_dim` unset to take the host's width)"
+                )
+            return
+        if feature_dim < 1:
+            raise ValueError(f"`feature_dim` must be >= 1, got {feature_dim}")
+        with torch.random.fork_rng(devices=[]):  # Linear's own init must not advance the global RNG
+            metric = nn.Linear(2 * feature_dim, feature_dim)
+        self._init_metric(metric, self.metric_seed)
+        metric.requires_grad_(self.trainable_metric)
+        self.feature_dim, self.metric = feature_dim, metric
+
+    def _metric_for(self, feats: torch.Tensor) -> nn.Linear:
+        """The FC metric for descriptors ``feats (.., K)``, built on first use when ``feature_dim`` was left unset."""
+        if self.metric is None:
+            if self.trainable_metric:
+                raise ValueError("a trainable LC metric needs `feature_dim` (or bind()) before the optimiser is built")
+            self.bind(feats.shape[-1])
+            self.to(feats.device)
+        if self.metric is None or feats.shape[-1] != self.feature_dim:
+            raise ValueError(f"encoder returns {feats.shape[-1]} features, LocalConsistency expects {self.feature_dim}")
+        return self.metric
+
+    @staticmethod
     @torch.no_grad()
-    def _init_metric(self, seed: int) -> None:
+    def _init_metric(metric: nn.Linear, seed: int) -> None:
         """PyTorch's default ``Linear`` initialisation (uniform in ``+-1/sqrt(fan_in)``), from a private generator."""
         gen = torch.Generator().manual_seed(seed)
-        bound = 1.0 / (2 * self.feature_dim) ** 0.5
-        for param in (self.metric.weight, self.metric.bias):
+        bound = 1.0 / metric.in_features**0.5
+        for param in (metric.weight, metric.bias):
             param.copy_(torch.rand(param.shape, generator=gen) * 2 * bound - bound)
 
     def subsets(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -203,13 +238,12 @@ class LocalConsistency(nn.Module):
         check_points(points_src, "points_src", min_points=self.num_local_points)
         x1, x2, w1, w2 = self._paired_subsets(points_src, points_ref, transform_ref_src)
         feats = _descriptor(encoder, torch.cat([x1, x2, w1, w2]))  # (4B, K), one encoder pass
-        if feats.shape[1] != self.feature_dim:
-            raise ValueError(f"encoder returns {feats.shape[1]} features, LocalConsistency expects {self.feature_dim}")
+        metric = self._metric_for(feats)
         if self.standardize:
             feats = (feats - feats.mean(-1, keepdim=True)) / feats.std(-1, keepdim=True).clamp_min(1e-6)
         f1, f2, g1, g2 = feats.chunk(4)
-        tau1 = self.metric(torch.cat([f1, g1], dim=-1)) / self.temperature
-        tau2 = self.metric(torch.cat([f2, g2], dim=-1)) / self.temperature
+        tau1 = metric(torch.cat([f1, g1], dim=-1)) / self.temperature
+        tau2 = metric(torch.cat([f2, g2], dim=-1)) / self.temperature
         logp, logq = torch.log_softmax(tau1, dim=-1), torch.log_softmax(tau2, dim=-1)
         sym_kl = 0.5 * ((logp.exp() - logq.exp()) * (logp - logq)).sum(-1)  # (B,)
         return sym_kl.mean()
