@@ -39,6 +39,7 @@ __all__ = ["LcregCLI", "build_cli", "expand_configs", "main"]
 
 TRAINER_DEFAULTS: dict[str, Any] = {
     "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs", "name": "lcreg"}},
+    "log_every_n_steps": 10,
 }
 
 

@@ -29,7 +29,7 @@ class _Translate(RegistrationModule):
         self.training_passes += 1
         return super().training_forward(batch)
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         gt = self.ground_truth(batch)
         return {"loss": (result.translation - gt[:, :3, 3]).pow(2).mean()}
 
@@ -53,7 +53,7 @@ def test_training_step_uses_training_forward_and_other_stages_do_not() -> None:
 def test_ground_truth_missing_is_a_clear_error() -> None:
     model = _Translate()
     with pytest.raises(ValueError, match="_Translate is trained with a ground-truth pose"):
-        model.compute_loss(model(_batch().points_src, _batch().points_ref), _batch(with_gt=False))
+        model.training_losses(model(_batch().points_src, _batch().points_ref), _batch(with_gt=False))
     assert dataclasses.replace(_batch(), transform_ref_src=None).transform_ref_src is None
 
 
@@ -68,24 +68,27 @@ def test_plateau_scheduler_is_monitored_on_the_validation_loss() -> None:
     assert isinstance(_Translate().configure_optimizers(), torch.optim.Adam)
 
 
-class _CountingRefiner:
+class _CountingRefiner(RegistrationModule):
     """Moves the estimate by a fixed translation and counts its calls (stands in for ICP)."""
 
+    has_loss = False
+
     def __init__(self) -> None:
+        super().__init__()
         self.calls = 0
         self.offset = se3.make_transform(torch.eye(3)[None], torch.tensor([[0.0, 0.0, 0.5]]))
 
-    def __call__(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
+    def refine(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
         self.calls += 1
         transform = self.offset.expand_as(init) @ init
         return RegistrationResult.fixed_iterations(transform, num_iters=3, aux={"refined": True})
 
 
 def test_refiner_runs_after_forward_outside_training_only() -> None:
-    model, refiner = _Translate(), _CountingRefiner()
+    refiner = _CountingRefiner()
+    model = _Translate(refiner=refiner)
     with torch.no_grad():
         model.shift.copy_(torch.tensor([0.1, 0.0, 0.0]))
-    model.set_refiner(refiner)
     batch = _batch()
     result = model.register(batch.points_src, batch.points_ref)
     expected_coarse = model(batch.points_src, batch.points_ref).transform_ref_src
@@ -99,32 +102,21 @@ def test_refiner_runs_after_forward_outside_training_only() -> None:
     assert refiner.calls == 3
 
 
-def test_refiner_is_neither_a_submodule_nor_saved() -> None:
+def test_refiner_is_a_constructor_argument_neither_a_submodule_nor_saved(tmp_path: Path) -> None:
     from lcreg.baselines.classical import ICP
 
-    model = _Translate()
-    keys = set(model.state_dict())
-    model.set_refiner(ICP())
+    keys = set(_Translate().state_dict())
+    model = _Translate(refiner=ICP())
     assert set(model.state_dict()) == keys and isinstance(model.refiner, ICP)
     assert all(not isinstance(m, ICP) for m in model.modules())
-    model.set_refiner(None)
-    assert model.refiner is None
     with pytest.raises(TypeError, match="refiner"):
-        model.set_refiner(3)  # type: ignore[arg-type]
-
-
-def test_load_weights_keeps_the_configured_instance_and_its_refiner(tmp_path: Path) -> None:
+        _Translate(refiner=3)
+    with pytest.raises(TypeError, match="cannot refine"):
+        _Translate(refiner=_Translate()).register(_batch().points_src, _batch().points_ref)
+    # Weights of a plain checkpoint load into the configured instance; the refiner stays.
     trained = _Translate()
     with torch.no_grad():
         trained.shift.copy_(torch.tensor([0.3, -0.2, 0.1]))
-    torch.save({"state_dict": trained.state_dict(), "hyper_parameters": {}}, tmp_path / "x.ckpt")
-    model, refiner = _Translate(), _CountingRefiner()
-    model.set_refiner(refiner)
-    assert model.load_weights(tmp_path / "x.ckpt") is model
+    model.load_state_dict(trained.state_dict())
     torch.testing.assert_close(model.shift, trained.shift)
-    assert model.refiner is refiner
-    with pytest.raises(FileNotFoundError, match=r"missing\.ckpt"):
-        model.load_weights(tmp_path / "missing.ckpt")
-    torch.save({"weights": {}}, tmp_path / "bad.ckpt")
-    with pytest.raises(ValueError, match="state_dict"):
-        model.load_weights(tmp_path / "bad.ckpt")
+    assert isinstance(model.refiner, ICP)

@@ -16,13 +16,13 @@ from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.models.base import RegistrationModule
 from lcreg.models.dvds import DVDs
-from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.models.loss_terms import LocalConsistencyLoss
+from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 TINY = {
     "encoder_channels": (16, 32),
-    "num_local_points": 16,
     "decoder_grid_size": 8,
     "decoder_hidden": (32,),
     "normal_hidden": (16,),
@@ -30,9 +30,14 @@ TINY = {
 }
 
 
-def _model(seed: int = 0, **overrides: object) -> DVDs:
+def _lc(weight: float = 1.0, num_local_points: int = 16) -> list[LocalConsistencyLoss]:
+    """Paper model D's LC term (as configs/lc.yaml injects it); weight 0 means no LC term at all."""
+    return [LocalConsistencyLoss(LocalConsistency(num_local_points=num_local_points), weight)] if weight else []
+
+
+def _model(seed: int = 0, lc_weight: float = 1.0, **overrides: object) -> DVDs:
     torch.manual_seed(seed)
-    return DVDs(**{**TINY, **overrides})  # type: ignore[arg-type]
+    return DVDs(**{**TINY, "loss_terms": _lc(lc_weight), **overrides})  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
@@ -94,8 +99,8 @@ def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
     optimizer = model.configure_optimizers()
     assert isinstance(optimizer, torch.optim.Adam)
     trained = {id(p) for group in optimizer.param_groups for p in group["params"]}
-    assert model.local_consistency is not None
-    assert all(id(p) not in trained for p in model.local_consistency.parameters())  # the FC metric stays frozen
+    assert len(model.loss_terms) == 1
+    assert all(id(p) not in trained for p in model.loss_terms.parameters())  # the FC metric stays frozen
     history, recon = [], []
     for _ in range(8):
         losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
@@ -111,13 +116,13 @@ def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
 
 def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> None:
     cases = [
-        ({"lc_weight": 0.0}, "lc", "local_consistency"),
+        ({"lc_weight": 0.0}, "lc", None),
         ({"lambda_recon": 0.0}, "recon", "decoder"),
         ({"lambda_normal": 0.0}, "normal", "normal_head"),
     ]
     for overrides, term, module in cases:
-        model = _model(**overrides).train()
-        assert getattr(model, module) is None, module
+        model = _model(**overrides).train()  # type: ignore[arg-type]
+        assert module is None or getattr(model, module) is None, module
         losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
         assert term not in losses and "loss" in losses and torch.isfinite(losses["loss"])
     model_a = _model(lc_weight=0.0, lambda_recon=0.0, lambda_normal=0.0).train()
@@ -127,7 +132,7 @@ def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> No
     assert model_a.min_points == 3  # no LC: small clouds are fine
     with pytest.raises(ValueError, match="lambda"):
         _model(lambda_recon=-1.0)
-    with pytest.raises(ValueError, match="lc_weight"):
+    with pytest.raises(ValueError, match="weight"):
         _model(lc_weight=-1.0)
 
 
@@ -192,7 +197,7 @@ def test_register_runs_in_eval_mode_and_restores_the_mode(batch: RegistrationBat
 
 def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
     L.seed_everything(0)
-    model = DVDs(**{**TINY, "diagnostics_every_n_steps": 1})  # type: ignore[arg-type]
+    model = DVDs(**{**TINY, "diagnostics_every_n_steps": 1, "loss_terms": _lc()})  # type: ignore[arg-type]
     data = SyntheticDataModule(num_points=128, batch_size=2, num_train=4, num_val=2, num_test=2, points_per_shape=256)
     trainer = L.Trainer(
         fast_dev_run=True,
@@ -217,9 +222,10 @@ def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
 class MinimalHost(RegistrationModule):
     """A third-party host: an encoder, identity registration and its own loss."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__(**kwargs)  # type: ignore[arg-type]
         self.encoder = PointNetEncoder((16, 32))
+        self._bind_loss_terms()
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         b = points_src.shape[0]
@@ -229,29 +235,25 @@ class MinimalHost(RegistrationModule):
             num_iters=torch.ones(b, dtype=torch.int64),
         )
 
-    def compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         feats = self.encoder(torch.cat([batch.points_src, batch.points_ref]))
         f_src, f_ref = feats.chunk(2)
         return {"host": (f_src - f_ref).norm(dim=-1).mean(), "loss": (f_src - f_ref).norm(dim=-1).mean()}
 
 
-class Host(LocalConsistencyMixin, MinimalHost):
-    def __init__(self, lc_weight: float = 0.5) -> None:
-        super().__init__()
-        self.init_local_consistency(feature_dim=32, lc_weight=lc_weight, num_local_points=16)
-
-
-def test_local_consistency_mixin_on_a_minimal_host(batch: RegistrationBatch) -> None:
+def test_injected_local_consistency_on_a_minimal_host(batch: RegistrationBatch) -> None:
     torch.manual_seed(0)
-    host = Host().train()
+    host = MinimalHost(loss_terms=_lc(0.5)).train()
+    assert host.loss_terms[0].local_consistency.feature_dim == 32  # bound to the host's width at construction
+    assert host.min_points == 16
     losses = host.training_losses(host(batch.points_src, batch.points_ref), batch)
     assert set(losses) == {"host", "lc", "loss"}
     assert losses["lc"] > 0
-    assert "lc" not in host.compute_loss(host(batch.points_src, batch.points_ref), batch)  # the host stays LC-free
     torch.testing.assert_close(losses["loss"], losses["host"] + 0.5 * losses["lc"])
     params = list(host.encoder.parameters())
     grads = torch.autograd.grad(losses["lc"], params, allow_unused=True)
     assert sum(float(g.abs().sum()) for g in grads if g is not None) > 0
-    off = Host(lc_weight=0.0)
-    assert off.local_consistency is None
+    off = MinimalHost()
     assert set(off.training_losses(off(batch.points_src, batch.points_ref), batch)) == {"host", "loss"}
+    with pytest.raises(ValueError, match="built for 64 features"):
+        MinimalHost(loss_terms=[LocalConsistencyLoss(LocalConsistency(feature_dim=64, num_local_points=16))])

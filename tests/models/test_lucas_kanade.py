@@ -23,7 +23,7 @@ SMALL = {"encoder_channels": (16, 32)}
 @pytest.mark.parametrize(
     "model",
     [
-        DVDs(**SMALL, num_local_points=16, lambda_recon=0, lambda_normal=0),  # type: ignore[arg-type]
+        DVDs(**SMALL, lambda_recon=0, lambda_normal=0),  # type: ignore[arg-type]
         PointNetLK(**SMALL),  # type: ignore[arg-type]
         FMRNet(**SMALL, decoder_hidden=(16,), decoder_points=32),  # type: ignore[arg-type]
     ],
@@ -81,12 +81,11 @@ def test_norm_statistics_are_only_updated_in_training() -> None:
 def test_voxel_grid_is_used_outside_training_only_and_not_saved() -> None:
     from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
 
-    model = PointNetLK(**SMALL, eval_iterations=4)  # type: ignore[arg-type]
     batch = tiny_batch(batch_size=2, num_points=64)
-    keys = set(model.state_dict())
+    keys = set(PointNetLK(**SMALL, eval_iterations=4).state_dict())  # type: ignore[arg-type]
     grid = VoxelGrid(grid=2, points_per_voxel=16, min_points=4)
-    model.set_voxel_grid(grid)
-    assert model.voxel_grid is grid and set(model.state_dict()) == keys
+    model = PointNetLK(**SMALL, eval_iterations=4, voxel_grid=grid)  # type: ignore[arg-type]
+    assert model.voxel_grid is grid and set(model.state_dict()) == keys and "voxel_grid" not in model.hparams
     model.eval()
     with torch.no_grad():
         got = model(batch.points_src, batch.points_ref)
@@ -95,7 +94,6 @@ def test_voxel_grid_is_used_outside_training_only_and_not_saved() -> None:
     assert "num_voxels" in got.aux
     model.train()
     assert "num_voxels" not in model(batch.points_src, batch.points_ref).aux  # training: the plain solver
-    model.set_voxel_grid(None)
-    assert model.voxel_grid is None
+    assert PointNetLK(**SMALL).voxel_grid is None  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="VoxelGrid"):
-        model.set_voxel_grid(3)  # type: ignore[arg-type]
+        PointNetLK(**SMALL, voxel_grid=3)  # type: ignore[arg-type]

@@ -1,0 +1,124 @@
+"""The one loss protocol: injected LossTerms on every model, LC among them, and the mixin for outside modules."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from lightning.pytorch import LightningModule
+
+from lcreg.baselines.classical import ICP
+from lcreg.baselines.dcp import DCP
+from lcreg.data.datamodule import PairDataset, collate_pairs
+from lcreg.data.pairs import PairProtocol
+from lcreg.data.synthetic import synthetic_shapes
+from lcreg.models.base import RegistrationModule
+from lcreg.models.loss_terms import LocalConsistencyLoss, LossTerm
+from lcreg.models.mixins import LocalConsistencyMixin
+from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+
+@pytest.fixture(scope="module")
+def batch() -> RegistrationBatch:
+    points, normals, _ = synthetic_shapes(2, 256, seed=0)
+    dataset = PairDataset(points, normals, PairProtocol(num_points=96), deterministic=True, seed=0)
+    return collate_pairs([dataset[i] for i in range(2)])
+
+
+def _tiny_dcp(**kwargs: object) -> DCP:
+    torch.manual_seed(0)
+    return DCP(emb_dims=32, k=8, heads=2, ff_dims=32, edge_channels=(16, 16, 16, 16), **kwargs)  # type: ignore[arg-type]
+
+
+class _ScaleTerm(LossTerm):
+    """A user-defined term: the mean squared translation of the estimate."""
+
+    def forward(self, model: RegistrationModule, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
+        return result.translation.pow(2).sum(-1).mean()
+
+
+def test_injected_terms_are_weighted_logged_by_name_and_composable(batch: RegistrationBatch) -> None:
+    lc = LocalConsistencyLoss(LocalConsistency(num_local_points=16), weight=0.5)
+    model = _tiny_dcp(loss_terms=[lc, _ScaleTerm(weight=2.0, name="scale")]).train()
+    assert lc.local_consistency.feature_dim == 32 and model.min_points == 16
+    losses = model.training_losses(model.training_forward(batch), batch)
+    assert set(losses) == {"pose", "lc", "scale", "loss"}
+    torch.testing.assert_close(losses["loss"], losses["pose"] + 0.5 * losses["lc"] + 2.0 * losses["scale"])
+    logged: dict[str, torch.Tensor] = {}
+    model.log = lambda name, value, **_: logged.__setitem__(name, value)  # type: ignore[method-assign]
+    model.training_step(batch, 0)
+    assert {"train/pose", "train/lc", "train/scale", "train/loss"} <= set(logged)
+
+
+def test_compute_loss_is_gone_so_no_caller_can_leave_a_term_out(batch: RegistrationBatch) -> None:
+    # Regression: benchmarks called `compute_loss`, which silently left the LC term out of the pilot's training.
+    model = _tiny_dcp(loss_terms=[LocalConsistencyLoss(LocalConsistency(num_local_points=16))])
+    assert not hasattr(model, "compute_loss")
+    assert "lc" in model.training_losses(model.training_forward(batch), batch)
+
+
+def test_bad_terms_fail_at_construction() -> None:
+    with pytest.raises(TypeError, match="LossTerm"):
+        _tiny_dcp(loss_terms=[torch.nn.Linear(2, 2)])
+    with pytest.raises(ValueError, match="distinct names"):
+        _tiny_dcp(loss_terms=[_ScaleTerm(name="a"), _ScaleTerm(name="a")])
+    with pytest.raises(ValueError, match="built for 64 features, the encoder has 32"):
+        _tiny_dcp(loss_terms=[LocalConsistencyLoss(LocalConsistency(feature_dim=64))])
+    with pytest.raises(ValueError, match="weight"):
+        _ScaleTerm(weight=-1.0)
+    with pytest.raises(ValueError, match="name"):
+        _ScaleTerm(name="loss")
+
+
+def test_components_are_not_hyperparameters() -> None:
+    model = _tiny_dcp(loss_terms=[LocalConsistencyLoss()], refiner=ICP(), lr_scheduler=None)
+    assert {"emb_dims", "k"} <= set(model.hparams)
+    assert not {"loss_terms", "refiner", "optimizer", "lr_scheduler"} & set(model.hparams)
+
+
+# --- the mixin, for LightningModules written outside lcreg -------------------------------------------------------
+class _UserNet(LightningModule):
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = PointNetEncoder((16, 32))
+
+    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor:
+        return self.encoder(batch.points_src).pow(2).mean()
+
+
+def _with_lc(cls: type) -> LightningModule:
+    torch.manual_seed(0)
+    net = cls()
+    net.attach_local_consistency(LocalConsistency(num_local_points=16), 0.5)
+    net.log = lambda *args, **kwargs: None  # no trainer attached
+    return net
+
+
+class _MixinFirst(LocalConsistencyMixin, _UserNet):
+    pass
+
+
+class _MixinSecond(_UserNet, LocalConsistencyMixin):
+    pass
+
+
+class _SubclassCallingSuper(_MixinSecond):
+    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor:
+        return super().training_step(batch, batch_idx)
+
+
+@pytest.mark.parametrize("cls", [_MixinFirst, _MixinSecond, _SubclassCallingSuper])
+def test_mixin_adds_lc_once_in_any_base_order(cls: type, batch: RegistrationBatch) -> None:
+    # Regression: with the mixin second, LC was attached and never added to the loss.
+    net = _with_lc(cls)
+    plain = net.encoder(batch.points_src).pow(2).mean()
+    lc = net.local_consistency_loss(batch)
+    torch.testing.assert_close(net.training_step(batch, 0), plain + 0.5 * lc)
+
+
+def test_mixin_refuses_lcreg_models_at_class_creation() -> None:
+    with pytest.raises(TypeError, match="injected loss term"):
+
+        class _Wrong(RegistrationModule, LocalConsistencyMixin):  # the order that silently dropped LC
+            pass
