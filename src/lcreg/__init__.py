@@ -20,6 +20,8 @@ _LAZY = {
     "RegistrationBatch": "lcreg.types",
     "RegistrationModule": "lcreg.models.base",
     "LocalConsistencyMixin": "lcreg.models.mixins",
+    "LossTerm": "lcreg.models.loss_terms",
+    "LocalConsistencyLoss": "lcreg.models.loss_terms",
     "LucasKanadeModule": "lcreg.models.lucas_kanade",
     "DVDs": "lcreg.models.dvds",
     "DCP": "lcreg.baselines.dcp",
