@@ -1,4 +1,4 @@
-"""Shared pieces of the tests that drive the ``lcreg`` CLI: config paths, YAML loading and a tiny-run budget.
+"""Shared pieces of the tests that drive the ``lcreg`` CLI: config paths, compositions, YAML loading, a tiny budget.
 
 Tests that call the CLI also request the ``isolated_cli`` fixture (``tests/conftest.py``).
 """
@@ -22,14 +22,34 @@ TINY_RUN = [
 ]
 SYNTHETIC = ["--data.init_args.num_train=2", "--data.init_args.num_val=2", "--data.init_args.num_test=2"]
 
+# The hosts of the LC + X table train under the DCP-family protocol (data/dcp_protocol.yaml after the data file).
+DCP_FAMILY = ("dcp", "prnet", "idam", "deepgmr")
+
+
+def config_args(*names: str) -> list[str]:
+    """``--config configs/<name>`` for each name, in order (later files override earlier ones)."""
+    return [arg for name in names for arg in ("--config", str(CONFIGS / name))]
+
+
+def host_composition(host: str, lc: bool = False, data: str = "embedded") -> list[str]:
+    """The documented composition of a model: ``models/<host>.yaml`` [+ ``lc.yaml``] + ``data/<data>.yaml``.
+
+    The DCP-family hosts get ``data/dcp_protocol.yaml`` after the data file (what the old ``configs/<host>.yaml`` and
+    ``configs/embedded/<host>.yaml`` held).
+    """
+    names = [f"models/{host}.yaml", *(["lc.yaml"] if lc else []), f"data/{data}.yaml"]
+    if host in DCP_FAMILY:
+        names.append("data/dcp_protocol.yaml")
+    return config_args(*names)
+
 
 def load_yaml(path: Path) -> dict[str, Any]:
     """A config file as a dict."""
     return yaml.safe_load(path.read_text())
 
 
-def fit_then_test_embedded(name: str) -> None:
-    """``lcreg fit`` then ``lcreg test`` on ``configs/embedded/<name>.yaml`` with the tiny budget."""
-    config = str(CONFIGS / "embedded" / f"{name}.yaml")
-    main(["fit", "--config", config, *TINY_RUN, *SYNTHETIC])
-    main(["test", "--config", config, *TINY_RUN, *SYNTHETIC])
+def fit_then_test_embedded(host: str, lc: bool = False) -> None:
+    """``lcreg fit`` then ``lcreg test`` on the host's composition with the embedded data and the tiny budget."""
+    config = host_composition(host, lc=lc, data="embedded")
+    main(["fit", *config, *TINY_RUN, *SYNTHETIC])
+    main(["test", *config, *TINY_RUN, *SYNTHETIC])

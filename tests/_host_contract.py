@@ -17,6 +17,7 @@ from lcreg.data.pairs import PairProtocol
 from lcreg.data.synthetic import synthetic_shapes
 from lcreg.geometry import se3
 from lcreg.models.base import RegistrationModule
+from lcreg.models.loss_terms import LocalConsistencyLoss, LossTerm
 from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -77,27 +78,66 @@ def check_training_lowers_loss(
     return history[0], history[-1]
 
 
+def lc_terms(num_local_points: int = 16, weight: float = 1.0, feature_dim: int | None = None) -> list[LossTerm]:
+    """The injected LC term as ``configs/lc.yaml`` gives it (width bound to the host's encoder unless given)."""
+    return [LocalConsistencyLoss(LocalConsistency(feature_dim, num_local_points=num_local_points), weight=weight)]
+
+
 def check_local_consistency_gradient(
-    factory: Callable[[LocalConsistency | None], RegistrationModule],
+    factory: Callable[[list[LossTerm]], RegistrationModule],
     batch: RegistrationBatch,
-    feature_dim: int,
     num_local_points: int = 16,
+    weight: float = 0.5,
+    seed: int = 0,
 ) -> None:
-    """With LC attached the loss gains a finite ``lc`` term whose gradient reaches the host's encoder."""
-    torch.manual_seed(0)
-    host = factory(None).train()
-    assert "lc" not in host.training_losses(host.training_forward(batch), batch)
-    torch.manual_seed(0)
-    model = factory(LocalConsistency(feature_dim, num_local_points=num_local_points)).train()
-    losses = model.training_losses(model.training_forward(batch), batch)
-    assert "lc" in losses and torch.isfinite(losses["lc"]) and losses["lc"] > 0
-    encoder = model.lc_encoder()  # type: ignore[attr-defined]
+    """Injected LC: bound to the host's width, added exactly once, with a finite non-zero encoder gradient.
+
+    ``factory(loss_terms)`` builds the host with those injected loss terms (``[]``: none). Checks that
+
+    * the host without terms has no ``lc`` entry, and LC does not change the host's initial weights;
+    * the LC width is bound to ``descriptor_dim`` at construction (a wrong explicit width raises ``ValueError``),
+      and ``min_points`` covers ``num_local_points``;
+    * ``loss = own loss + weight * lc`` (own loss from the LC-free host on the same estimate), ``lc`` finite > 0;
+    * ``lc`` back-propagates a finite, non-zero gradient into ``descriptor_encoder()``.
+    """
+    torch.manual_seed(seed)
+    host = factory([]).train()
+    torch.manual_seed(seed)
+    model = factory(lc_terms(num_local_points, weight)).train()
+    assert len(host.loss_terms) == 0
+    (term,) = model.loss_terms
+    assert isinstance(term, LocalConsistencyLoss) and term.weight == weight
+    assert term.local_consistency.feature_dim == model.descriptor_dim  # bound at construction
+    assert not hasattr(model, "local_consistency") and not hasattr(model, "lc_encoder")  # one way in: loss_terms
+    assert model.min_points >= num_local_points and model.min_points == max(host.min_points, num_local_points)
+    plain_state = host.state_dict()
+    for key, value in model.state_dict().items():
+        if not key.startswith("loss_terms."):
+            torch.testing.assert_close(value, plain_state[key], rtol=0, atol=0, msg=key)  # same host weights
+
+    torch.manual_seed(seed)
+    result = model.training_forward(batch)
+    torch.manual_seed(seed)
+    losses = model.training_losses(result, batch)
+    assert "lc" in losses and losses["lc"].ndim == 0 and torch.isfinite(losses["lc"]) and losses["lc"] > 0
+    torch.manual_seed(seed)
+    own = host.training_losses(result, batch)  # the same estimate, the host's own terms only
+    assert set(losses) == {*own, "lc"}
+    for name in own:
+        if name != "loss":
+            torch.testing.assert_close(losses[name], own[name], msg=name)
+    torch.testing.assert_close(losses["loss"], own["loss"] + weight * losses["lc"])  # LC added exactly once
+
+    encoder = model.descriptor_encoder()
     assert isinstance(encoder, torch.nn.Module)
     params = [p for p in encoder.parameters() if p.requires_grad]
     grads = torch.autograd.grad(losses["lc"], params, allow_unused=True)
     norms = [g.norm() for g in grads if g is not None]
     assert norms and all(torch.isfinite(n) for n in norms)
     assert sum(norms) > 0, "LC adds no gradient to the encoder"
+
+    with pytest.raises(ValueError, match=f"built for {model.descriptor_dim + 1} features"):
+        factory(lc_terms(num_local_points, weight, feature_dim=model.descriptor_dim + 1))
 
 
 def check_bad_inputs(factory: ModelFactory, num_points: int = 64) -> None:

@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from lcreg.cli import main
+from lcreg.cli import build_cli, expand_configs, main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = REPO_ROOT / "configs"
@@ -17,7 +17,6 @@ ALL_CONFIGS = sorted(CONFIGS.rglob("*.yaml"))
 
 TINY = [
     "--model.init_args.encoder_channels=[16,32]",
-    "--model.init_args.num_local_points=16",
     "--model.init_args.decoder_grid_size=8",
     "--model.init_args.decoder_hidden=[32]",
     "--model.init_args.normal_hidden=[16]",
@@ -60,8 +59,12 @@ def test_fit_then_test_from_the_saved_config(tmp_path: Path) -> None:
     config = yaml.safe_load(saved.read_text())
     assert config["model"]["class_path"] == "lcreg.models.dvds.DVDs"
     assert config["model"]["init_args"]["encoder_channels"] == [16, 32]
+    (term,) = config["model"]["init_args"]["loss_terms"]  # the main job is DVDs + LC (configs/lc.yaml)
+    assert term["class_path"] == "lcreg.models.loss_terms.LocalConsistencyLoss"
+    assert config["compose"] is None  # already expanded: the saved config is complete
     metrics = list(csv.DictReader((run_dir / "metrics.csv").open()))
     assert any(row.get("val/loss") for row in metrics)
+    assert any(row.get("train/lc_epoch") for row in metrics) and any(row.get("val/lc") for row in metrics)
 
     main(["test", "--config", str(saved), "--ckpt_path", str(last)])
     per_pair = list(csv.reader((tmp_path / "runs" / "lcreg" / "version_1" / "test_per_pair.csv").open()))
@@ -110,8 +113,12 @@ def test_unknown_key_or_bad_value_exits_non_zero(bad: str) -> None:
 
 @pytest.mark.parametrize("config", ALL_CONFIGS, ids=[str(p.relative_to(CONFIGS)) for p in ALL_CONFIGS])
 def test_every_config_parses(config: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each file parses on top of a complete base (DVDs on the embedded data): fragments as the add-ons they are,
+    model, data and recipe files replacing the base's blocks. The compositions themselves are built with their
+    expected classes and loss terms in tests/test_method_configs.py."""
+    base = ["--config", str(CONFIGS / "models" / "dvds.yaml"), "--config", str(CONFIGS / "data" / "embedded.yaml")]
     with pytest.raises(SystemExit) as exc:
-        main(["fit", "--config", str(config), "--print_config"])
+        main(["fit", *base, "--config", str(config), "--print_config"])
     assert exc.value.code in (0, None)
     assert yaml.safe_load(capsys.readouterr().out)["trainer"] is not None
 
@@ -134,52 +141,101 @@ def test_modelnet40_config_parses_without_data(capsys: pytest.CaptureFixture[str
     assert printed["data"]["init_args"]["root"] == missing
 
 
-# (lc_weight, lambda_recon, lambda_normal, num_local_points) of the paper's ablation rows.
-ABLATION = {
-    "model_A": (0.0, 0.0, 0.0, 64),
-    "model_B": (1.0, 0.0, 0.0, 64),
-    "model_C": (1.0, 0.5, 0.0, 64),
-    "model_D": (1.0, 0.5, 0.1, 64),
-    "local_32": (1.0, 0.5, 0.1, 32),
-    "local_64": (1.0, 0.5, 0.1, 64),
-    "local_96": (1.0, 0.5, 0.1, 96),
-    "lambda_0.5_0.5": (1.0, 0.5, 0.5, 64),
-    "lambda_1_0.1": (1.0, 1.0, 0.1, 64),
-    "lambda_0.5_0.1": (1.0, 0.5, 0.1, 64),
-}
-
-
-def test_ablation_configs_match_the_paper_rows() -> None:
-    assert {p.stem for p in (CONFIGS / "ablation").glob("*.yaml")} == set(ABLATION)
-    reference = yaml.safe_load((CONFIGS / "dvds_modelnet40.yaml").read_text())
-    names = set()
-    for stem, (lc, recon, normal, local) in ABLATION.items():
-        config = yaml.safe_load((CONFIGS / "ablation" / f"{stem}.yaml").read_text())
-        args = config["model"]["init_args"]
-        assert (args["lc_weight"], args["lambda_recon"], args["lambda_normal"], args["num_local_points"]) == (
-            lc,
-            recon,
-            normal,
-            local,
-        ), stem
-        names.add(config["trainer"]["logger"]["init_args"]["name"])
-        # Everything else is the ModelNet40 reference config.
-        for key in ("lc_weight", "lambda_recon", "lambda_normal", "num_local_points"):
-            args.pop(key)
-        expected = yaml.safe_load(yaml.safe_dump(reference))
-        for key in ("lc_weight", "lambda_recon", "lambda_normal", "num_local_points"):
-            expected["model"]["init_args"].pop(key)
-        expected["trainer"]["logger"]["init_args"].pop("name")
-        config["trainer"]["logger"]["init_args"].pop("name")
-        assert config == expected, stem
-    assert len(names) == len(ABLATION)  # every run logs under its own name
-    readme = (CONFIGS / "ablation" / "README.md").read_text()
-    assert all(f"`{stem}.yaml`" in readme for stem in ABLATION)
-
-
-def test_default_checkpoint_is_label_free_when_the_config_lists_none(tmp_path: Path) -> None:
-    main(["fit", "--config", str(DVDS), "--trainer.callbacks=[]", *TINY, *_outputs(tmp_path)])
+def test_a_listed_checkpoint_replaces_the_default(tmp_path: Path) -> None:
+    listed = (
+        "--trainer.callbacks=[{class_path: lightning.pytorch.callbacks.ModelCheckpoint, "
+        "init_args: {monitor: val/loss, save_last: true, filename: 'epoch{epoch:03d}-val_loss{val/loss:.4f}', "
+        "auto_insert_metric_name: false}}]"
+    )
+    main(["fit", "--config", str(DVDS), listed, *TINY, *_outputs(tmp_path)])
     checkpoints = tmp_path / "runs" / "lcreg" / "version_0" / "checkpoints"
     assert len(list(checkpoints.glob("epoch000-val_loss*.ckpt"))) == 1 and (checkpoints / "last.ckpt").is_file()
+    assert not list(checkpoints.glob("*rre*.ckpt"))  # the default val/rre_mean_deg checkpoint was not added
     checkpoint = torch.load(checkpoints / "last.ckpt", map_location="cpu", weights_only=False)
-    assert any("'monitor': 'val/loss'" in key for key in checkpoint["callbacks"])
+    monitors = [key for key in checkpoint["callbacks"] if "ModelCheckpoint" in key]
+    assert len(monitors) == 1 and "'monitor': 'val/loss'" in monitors[0]
+
+
+def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
+    """Seed, CSV logger under runs/, log interval, val/rre_mean_deg + last.ckpt checkpoints, progress bar."""
+    from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
+    from lightning.pytorch.loggers import CSVLogger
+
+    model_only = CONFIGS / "models" / "pcrnet.yaml"
+    cli = build_cli(["--config", str(model_only), "--config", str(CONFIGS / "data" / "embedded.yaml")], run=False)
+    assert cli.config["seed_everything"] == 1234
+    assert isinstance(cli.trainer.logger, CSVLogger) and Path(cli.trainer.logger.save_dir).name == "runs"
+    assert cli.trainer.log_every_n_steps == 10
+    (checkpoint,) = [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
+    assert (checkpoint.monitor, checkpoint.mode, checkpoint.save_last) == ("val/rre_mean_deg", "min", True)
+    assert any(isinstance(c, TQDMProgressBar) for c in cli.trainer.callbacks)
+    raw = yaml.safe_load(model_only.read_text())
+    assert "seed_everything" not in raw and set(raw["trainer"]) == {"max_epochs"}  # no file repeats the defaults
+
+
+# --- compose -----------------------------------------------------------------------------------------------------
+def _write(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def test_expand_configs_reads_composed_files_first_recursively_relative_to_the_composing_file(
+    tmp_path: Path,
+) -> None:
+    leaf = _write(tmp_path / "leaf.yaml", "trainer: {max_epochs: 1}\n")
+    inner = _write(tmp_path / "sub" / "inner.yaml", "compose: [../leaf.yaml]\ntrainer: {max_epochs: 2}\n")
+    sibling = _write(tmp_path / "sibling.yaml", "trainer: {max_epochs: 3}\n")
+    top = _write(tmp_path / "top.yaml", "compose: [sub/inner.yaml, sibling.yaml]\ntrainer: {max_epochs: 4}\n")
+    plain = _write(tmp_path / "plain.yaml", "trainer: {max_epochs: 5}\n")
+    args = ["fit", "--config", str(top), "--trainer.max_epochs=9", f"--config={plain}"]
+    expected = [str(p.resolve()) for p in (leaf, inner, sibling, top)]
+    assert expand_configs(args) == [
+        "fit",
+        *[arg for path in expected for arg in ("--config", path)],
+        "--trainer.max_epochs=9",
+        "--config",
+        str(plain.resolve()),
+        "--compose=null",  # the saved config.yaml is complete: it must not compose again
+    ]
+
+
+def test_expand_configs_leaves_arguments_alone_when_nothing_composes(tmp_path: Path) -> None:
+    plain = _write(tmp_path / "plain.yaml", "trainer: {max_epochs: 5}\n")
+    empty = _write(tmp_path / "empty.yaml", "compose: []\n")
+    missing = str(tmp_path / "missing.yaml")  # left for the parser to report
+    args = ["fit", "--config", str(plain), "--config", missing, "--model.init_args.k=3"]
+    out = expand_configs(args)
+    assert out == ["fit", "--config", str(plain.resolve()), "--config", missing, "--model.init_args.k=3"]
+    assert "--compose=null" not in expand_configs(["--config", str(empty)])
+
+
+def test_expand_configs_refuses_cycles_and_names_the_file_of_a_missing_part(tmp_path: Path) -> None:
+    _write(tmp_path / "a.yaml", "compose: [b.yaml]\n")
+    _write(tmp_path / "b.yaml", "compose: [c.yaml]\n")
+    _write(tmp_path / "c.yaml", "compose: [a.yaml]\n")
+    with pytest.raises(ValueError, match="cycle"):
+        expand_configs(["--config", str(tmp_path / "a.yaml")])
+    broken = _write(tmp_path / "broken.yaml", "compose: [absent.yaml]\n")
+    with pytest.raises(FileNotFoundError, match=r"'absent\.yaml' not found") as exc:
+        expand_configs(["--config", str(broken)])
+    assert str(broken.resolve()) in str(exc.value)
+    bad = _write(tmp_path / "bad.yaml", "compose: leaf.yaml\n")
+    with pytest.raises(ValueError, match="list of config paths"):
+        expand_configs(["--config", str(bad)])
+
+
+def test_shipped_recipes_expand_in_the_documented_order() -> None:
+    expanded = expand_configs(["--config", str(CONFIGS / "ablation" / "model_A.yaml")])
+    names = [Path(a).relative_to(CONFIGS).as_posix() for a in expanded if a.endswith(".yaml")]
+    assert names == [
+        "models/dvds.yaml",
+        "lc.yaml",
+        "data/modelnet40.yaml",
+        "dvds_modelnet40.yaml",
+        "ablation/model_A.yaml",
+    ]
+    assert expanded[-1] == "--compose=null"
+    expanded = expand_configs(["--config", str(CONFIGS / "dcp_lc.yaml")])
+    names = [Path(a).relative_to(CONFIGS).as_posix() for a in expanded if a.endswith(".yaml")]
+    assert names == ["models/dcp.yaml", "lc.yaml", "data/modelnet40.yaml", "data/dcp_protocol.yaml", "dcp_lc.yaml"]

@@ -104,3 +104,22 @@ def test_lc_alone_gives_the_users_encoder_a_gradient(example: ModuleType) -> Non
         assert param.grad is not None and torch.isfinite(param.grad).all(), name
         assert param.grad.abs().sum() > 0, name
     assert all(p.grad is None for p in lc.parameters())  # LC's metric layer is frozen by default
+
+
+LIGHTNING_EXAMPLE = EXAMPLE.parent / "third_party_lightning_lc.py"
+
+
+@pytest.mark.parametrize("lc_weight", [0.5, 0.0])
+def test_lightning_example_adds_lc_through_the_mixin(lc_weight: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(LIGHTNING_EXAMPLE.parent))  # it imports the plain example's pieces
+    spec = importlib.util.spec_from_file_location("third_party_lightning_lc", LIGHTNING_EXAMPLE)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    metrics = module.main(["--steps", "3", "--num-points", "64", "--lc-weight", str(lc_weight)])
+    assert 0.0 <= metrics["rotation_error_deg"] <= 180.0
+    lc = metrics.get("train/lc_epoch", metrics.get("train/lc"))
+    if lc_weight:
+        assert lc is not None and math.isfinite(lc) and lc > 0  # the mixin logged (and added) the LC term
+    else:
+        assert lc is None

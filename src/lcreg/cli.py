@@ -13,7 +13,7 @@ arguments (``model.init_args.optimizer``), so the top-level ``optimizer:`` key o
 Configs compose: ``--config`` may be given several times (later files override earlier ones; ``loss_terms+:``
 appends to a list), and a file may list the files it builds on under ``compose:`` (paths relative to that file),
 which are read first, recursively. ``configs/dcp_lc.yaml`` is ``compose: [models/dcp.yaml, lc.yaml,
-data/modelnet40_noisy.yaml]``. Test-time components are model arguments too: ``configs/refine/icp.yaml`` sets
+data/modelnet40.yaml, data/dcp_protocol.yaml]``. Test-time components are model arguments too: ``configs/refine/icp.yaml`` sets
 ``model.init_args.refiner`` (ICP after any model's estimate), ``configs/voxelize/lk27.yaml`` sets
 ``model.init_args.voxel_grid`` (voxelised IC-LK for the LK models). ``lcreg fit`` refuses models with nothing to
 train (classical methods) before anything runs.

@@ -107,8 +107,10 @@ def large_pairs(modelnet_objects: np.ndarray) -> list[dict[str, torch.Tensor]]:
 # --- parameters --------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("cls", CLASSES, ids=lambda c: c.__name__)
 def test_default_parameters_are_pinned(cls: type[ClassicalRegistration]) -> None:
-    signature = {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items() if k != "self"}
+    parameters = inspect.signature(cls.__init__).parameters.values()
+    signature = {p.name: p.default for p in parameters if p.name != "self" and p.kind is not p.VAR_KEYWORD}
     assert signature == DEFAULTS[cls]
+    assert [p.name for p in parameters if p.kind is p.VAR_KEYWORD] == ["kwargs"]  # components (refiner), not hparams
     model = cls()
     assert dict(model.hparams) == DEFAULTS[cls]
     assert all(getattr(model, k) == v for k, v in DEFAULTS[cls].items())
@@ -239,7 +241,7 @@ def test_training_is_refused_with_a_clear_message(cls: type[ClassicalRegistratio
     with pytest.raises(RuntimeError, match="lcreg test"):
         model.configure_optimizers()
     with pytest.raises(RuntimeError, match="lcreg test"):
-        model.compute_loss(None, None)  # type: ignore[arg-type]
+        model.training_losses(None, None)  # type: ignore[arg-type]
 
 
 def test_icp_validates_and_tests_through_the_shared_step_without_a_loss(tmp_path: Path) -> None:

@@ -11,7 +11,6 @@ import yaml
 from lcreg.baselines.dcp import CYCLE_WEIGHT, DCP
 from lcreg.checks import TooFewPointsError
 from lcreg.geometry import se3, so3
-from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.losses import cycle_consistency_mse
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -21,6 +20,7 @@ from _host_contract import (  # type: ignore[import-not-found]
     check_local_consistency_gradient,
     check_rotation_equivariance,
     check_training_lowers_loss,
+    lc_terms,
     tiny_batch,
 )
 from _numpy_refs import kabsch  # type: ignore[import-not-found]
@@ -73,9 +73,9 @@ def test_training_lowers_loss(batch: RegistrationBatch) -> None:
 
 
 def test_local_consistency_reaches_the_dgcnn_encoder(batch: RegistrationBatch) -> None:
-    check_local_consistency_gradient(lambda lc: _model(local_consistency=lc), batch, feature_dim=EMB)
-    model = _model(local_consistency=LocalConsistency(EMB, num_local_points=16), lc_weight=0.5)
-    assert model.lc_encoder() is model.encoder and model.min_points == 16
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
+    model = _model(loss_terms=lc_terms(num_local_points=16, weight=0.5))
+    assert model.descriptor_encoder() is model.encoder and model.descriptor_dim == EMB and model.min_points == 16
     losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
     assert set(losses) == {"pose", "lc", "loss"}
     torch.testing.assert_close(losses["loss"], losses["pose"] + 0.5 * losses["lc"])  # LC added exactly once
@@ -88,9 +88,10 @@ def test_bad_inputs() -> None:
 def test_bad_arguments_and_minimum_size() -> None:
     with pytest.raises(ValueError, match="pointer"):
         _model(pointer="mlp")
-    with pytest.raises(ValueError, match="feature_dim"):
-        _model(local_consistency=LocalConsistency(EMB + 1, num_local_points=16))
-    model = _model(local_consistency=LocalConsistency(EMB, num_local_points=64))
+    with pytest.raises(ValueError, match=f"built for {EMB + 1} features, the encoder has {EMB}"):
+        _model(loss_terms=lc_terms(num_local_points=16, feature_dim=EMB + 1))
+    assert _model().min_points == 8  # the k-NN graph
+    model = _model(loss_terms=lc_terms(num_local_points=64))
     assert model.min_points == 64
     with pytest.raises(TooFewPointsError, match="points_ref"):
         model.register(torch.randn(1, 64, 3), torch.randn(1, 40, 3))
@@ -100,7 +101,7 @@ def test_loss_needs_a_ground_truth(batch: RegistrationBatch) -> None:
     model = _model()
     result = model(batch.points_src, batch.points_ref)
     with pytest.raises(ValueError, match="ground-truth"):
-        model.compute_loss(result, RegistrationBatch(batch.points_src, batch.points_ref))
+        model.training_losses(result, RegistrationBatch(batch.points_src, batch.points_ref))
 
 
 # --- numerics ----------------------------------------------------------------------------------------------------
@@ -205,9 +206,9 @@ def test_pose_loss_matches_hand_computation_and_vanishes_at_the_ground_truth(bat
     gt = b.transform_ref_src
     assert gt is not None
     model = _model()
-    assert float(model.compute_loss(_result(gt.clone()), b)["loss"]) == pytest.approx(0.0, abs=1e-12)  # float32 GT
+    assert float(model.training_losses(_result(gt.clone()), b)["loss"]) == pytest.approx(0.0, abs=1e-12)  # float32 GT
     pred = _random_transforms(3, seed=1)
-    losses = model.compute_loss(_result(pred), b)
+    losses = model.training_losses(_result(pred), b)
     p, g = pred.numpy(), gt.numpy()
     rot = np.mean([(p[i, :3, :3].T @ g[i, :3, :3] - np.eye(3)) ** 2 for i in range(3)])
     trans = np.mean([(p[i, :3, 3] - g[i, :3, 3]) ** 2 for i in range(3)])
@@ -232,17 +233,17 @@ def test_cycle_term_uses_the_exact_inverse_identity(batch: RegistrationBatch) ->
 
     b = _batch64(batch)
     assert b.transform_ref_src is not None
-    losses = _model(cycle=True).compute_loss(_result(t_ab, other), b)
+    losses = _model(cycle=True).training_losses(_result(t_ab, other), b)
     assert set(losses) == {"pose", "cycle", "loss"}
     torch.testing.assert_close(losses["loss"], losses["pose"] + CYCLE_WEIGHT * losses["cycle"])
     assert float(losses["cycle"]) == pytest.approx(rot + trans, rel=1e-12)
 
 
 # --- configs -----------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("folder", [CONFIGS, CONFIGS / "embedded"])
-def test_configs_follow_the_original(folder: Path) -> None:
-    # That X and LC + X differ by the LC block only is checked for every host in tests/test_baseline_configs.py.
-    plain = yaml.safe_load((folder / "dcp.yaml").read_text())
+def test_config_follows_the_original() -> None:
+    # Every composition (with/without configs/lc.yaml, each data file) is built in tests/test_method_configs.py.
+    plain = yaml.safe_load((CONFIGS / "models" / "dcp.yaml").read_text())
+    assert plain["trainer"]["max_epochs"] == 250
     args = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.dcp.DCP"
     assert (args["emb_dims"], args["k"], args["pointer"], args["heads"], args["ff_dims"]) == (

@@ -7,7 +7,7 @@ import torch
 from lcreg.baselines.deepgmr import DeepGMR, DeepGMREncoder, gmm_params, gmm_register
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_rotation
-from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.models.loss_terms import LossTerm
 from lcreg.types import RegistrationBatch
 
 from _host_contract import (
@@ -16,15 +16,16 @@ from _host_contract import (
     check_local_consistency_gradient,
     check_rotation_equivariance,
     check_training_lowers_loss,
+    lc_terms,
     tiny_batch,
 )
 
 TINY = {"d_model": 32, "num_clusters": 4, "k": 8}
 
 
-def _model(local_consistency: LocalConsistency | None = None, seed: int = 0, **overrides: object) -> DeepGMR:
+def _model(loss_terms: list[LossTerm] | None = None, seed: int = 0, **overrides: object) -> DeepGMR:
     torch.manual_seed(seed)
-    return DeepGMR(**{**TINY, **overrides}, local_consistency=local_consistency)  # type: ignore[arg-type]
+    return DeepGMR(**{**TINY, **overrides}, loss_terms=loss_terms or [])  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def test_training_lowers_loss(batch: RegistrationBatch) -> None:
 
 
 def test_local_consistency_gradient(batch: RegistrationBatch) -> None:
-    check_local_consistency_gradient(_model, batch, feature_dim=TINY["d_model"])
+    check_local_consistency_gradient(_model, batch)
 
 
 def test_bad_inputs() -> None:
@@ -64,13 +65,13 @@ def test_bad_inputs() -> None:
 def test_min_points() -> None:
     assert _model().min_points == 9
     assert _model(use_rri=False).min_points == 3
-    assert _model(LocalConsistency(32, num_local_points=64)).min_points == 64
+    assert _model(lc_terms(num_local_points=64)).min_points == 64
 
 
 def test_loss_matches_the_original_formula(batch: RegistrationBatch) -> None:
     model = _model().eval()
     result = model(batch.points_src, batch.points_ref)
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     gt = batch.transform_ref_src
     assert gt is not None
     eye = torch.eye(4).expand(3, 4, 4)

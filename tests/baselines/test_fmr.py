@@ -15,6 +15,7 @@ from lcreg.types import RegistrationBatch
 from _host_contract import (  # type: ignore[import-not-found]
     check_bad_inputs,
     check_forward_backward,
+    check_local_consistency_gradient,
     check_training_lowers_loss,
     tiny_batch,
 )
@@ -45,7 +46,7 @@ def _squared_chamfer(a: np.ndarray, b: np.ndarray) -> float:
 
 def test_reconstruction_loss_matches_a_scipy_reference(batch: RegistrationBatch) -> None:
     model = _model().train()
-    losses = model.compute_loss(model.training_forward(batch), batch)
+    losses = model.training_losses(model.training_forward(batch), batch)
     with torch.no_grad():  # train-mode BatchNorm (batch statistics), as in the loss
         expected = 0.0
         for clouds in (batch.points_src, batch.points_ref):
@@ -71,13 +72,17 @@ def test_semi_supervised_variant_adds_the_pose_term_through_the_solve(batch: Reg
     model = _model(pose_weight=2.0).train()
     result = model.training_forward(batch)
     assert result.transform_ref_src.requires_grad and (result.num_iters > 0).all()
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     torch.testing.assert_close(losses["loss"], losses["recon"] + 2.0 * losses["pose"])
 
 
 def test_test_time_registration_uses_ten_iterations(batch: RegistrationBatch) -> None:
     model = _model(tolerance=0.0)
     assert model.register(batch.points_src, batch.points_ref).num_iters.tolist() == [10, 10, 10]
+
+
+def test_injected_local_consistency_reaches_the_pointnet_encoder(batch: RegistrationBatch) -> None:
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
 
 
 def test_bad_inputs_and_arguments() -> None:
@@ -87,7 +92,7 @@ def test_bad_inputs_and_arguments() -> None:
 
 
 def test_config_pins_the_original_hyper_parameters() -> None:
-    config = yaml.safe_load((CONFIGS / "fmr.yaml").read_text())
+    config = yaml.safe_load((CONFIGS / "models" / "fmr.yaml").read_text())
     args = config["model"]["init_args"]
     assert args["encoder_channels"] == [64, 64, 64, 128, 1024] and args["batch_norm"] is True
     assert (args["max_iterations"], args["tolerance"], args["jacobian"], args["fd_step"]) == (
@@ -98,4 +103,5 @@ def test_config_pins_the_original_hyper_parameters() -> None:
     )
     assert args["decoder_hidden"] == [1024, 512, 256] and args["pose_weight"] == 0.0
     assert args["optimizer"] == {"class_path": "torch.optim.Adam", "init_args": {"lr": 0.001}}
-    assert config["data"]["init_args"]["batch_size"] == 8 and config["trainer"]["max_epochs"] == 200
+    assert config["model"]["class_path"] == "lcreg.baselines.fmr.FMRNet"
+    assert config["trainer"]["max_epochs"] == 200  # batch 8: tests/test_method_configs.py::test_original_batch_sizes

@@ -20,7 +20,6 @@ from lcreg.baselines.idam import (
 )
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_euler_transform
-from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 from _host_contract import (  # type: ignore[import-not-found]
@@ -29,6 +28,7 @@ from _host_contract import (  # type: ignore[import-not-found]
     check_local_consistency_gradient,
     check_rotation_equivariance,
     check_training_lowers_loss,
+    lc_terms,
     tiny_batch,
 )
 
@@ -62,13 +62,13 @@ def test_training_lowers_loss(batch: RegistrationBatch) -> None:
 
 
 def test_local_consistency_reaches_the_gnn_encoder(batch: RegistrationBatch) -> None:
-    check_local_consistency_gradient(lambda lc: _model(local_consistency=lc), batch, feature_dim=EMB)
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
 
 
 def test_bad_inputs_raise_typed_errors() -> None:
     check_bad_inputs(_model)
-    with pytest.raises(ValueError, match="feature_dim"):
-        IDAM(**TINY, local_consistency=LocalConsistency(EMB + 1, num_local_points=16))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=f"built for {EMB + 1} features, the encoder has {EMB}"):
+        IDAM(**TINY, loss_terms=lc_terms(feature_dim=EMB + 1))  # type: ignore[arg-type]
     for bad in ({"num_iters": 0}, {"num_kept": 0}, {"positive_threshold": 0.0}):
         with pytest.raises(ValueError):
             _model(**bad)
@@ -302,7 +302,7 @@ def _crafted_result(seed: int = 0) -> RegistrationResult:
 def test_losses_match_explicit_per_item_loops() -> None:
     result = _crafted_result()
     aux = result.aux
-    losses = _model().compute_loss(result, RegistrationBatch(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3)))
+    losses = _model().training_losses(result, RegistrationBatch(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3)))
     sim, logits, positive = aux["similarity"].detach(), aux["weight_logits"].detach(), aux["positive"]
     score = torch.tensor(0.0, dtype=torch.float64)
     for scores, dim in ((aux["scores_src"], -1), (aux["scores_ref"], -2)):
@@ -330,7 +330,7 @@ def test_losses_match_explicit_per_item_loops() -> None:
 
 def test_entropy_target_is_detached() -> None:
     result = _crafted_result()
-    losses = _model().compute_loss(result, RegistrationBatch(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3)))
+    losses = _model().training_losses(result, RegistrationBatch(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3)))
     inputs = [result.aux["similarity"], result.aux["scores_src"]]
     grad_sim, grad_scores = torch.autograd.grad(losses["score"], inputs, allow_unused=True)
     assert grad_sim is None and grad_scores is not None and grad_scores.abs().max() > 0
@@ -339,7 +339,7 @@ def test_entropy_target_is_detached() -> None:
 def test_validation_labels_come_from_the_ground_truth(batch: RegistrationBatch) -> None:
     model = _model().eval()
     result = model(batch.points_src, batch.points_ref)
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     assert all(torch.isfinite(v) for v in losses.values())
     # Same clouds as the reference: the loss labels are the nearest kept reference points under the GT.
     labels, positive = model._match_labels(result, batch)
@@ -352,10 +352,9 @@ def test_validation_labels_come_from_the_ground_truth(batch: RegistrationBatch) 
 
 
 # --- configs -----------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("folder", [CONFIGS, CONFIGS / "embedded"])
-def test_configs_follow_the_original(folder: Path) -> None:
-    # That X and LC + X differ by the LC block only is checked for every host in tests/test_baseline_configs.py.
-    plain = yaml.safe_load((folder / "idam.yaml").read_text())
+def test_config_follows_the_original() -> None:
+    # Every composition (with/without configs/lc.yaml, each data file) is built in tests/test_method_configs.py.
+    plain = yaml.safe_load((CONFIGS / "models" / "idam.yaml").read_text())
     args = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.idam.IDAM"
     assert (args["emb_dims"], args["k"], args["num_iters"], args["num_kept"], args["positive_threshold"]) == (
@@ -367,4 +366,4 @@ def test_configs_follow_the_original(folder: Path) -> None:
     )
     assert args["optimizer"]["init_args"] == {"lr": 0.0001, "weight_decay": 0.001}
     assert args["lr_scheduler"]["init_args"] == {"milestones": [30], "gamma": 0.1}
-    assert plain["data"]["init_args"]["batch_size"] == 16
+    assert plain["trainer"]["max_epochs"] == 40  # batch 16: tests/test_method_configs.py::test_original_batch_sizes

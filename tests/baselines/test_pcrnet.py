@@ -17,6 +17,7 @@ from lcreg.types import RegistrationBatch, RegistrationResult
 from _host_contract import (  # type: ignore[import-not-found]
     check_bad_inputs,
     check_forward_backward,
+    check_local_consistency_gradient,
     check_training_lowers_loss,
     tiny_batch,
 )
@@ -69,6 +70,10 @@ def test_trains_without_a_ground_truth(batch: RegistrationBatch) -> None:
     assert first == pytest.approx(float(labelled.detach()), rel=1e-6)  # same value with or without the ground truth
     loss = model.training_step(unlabelled, 0)  # the Lightning step (input validation; logging outside a trainer)
     assert torch.isfinite(loss)
+
+
+def test_injected_local_consistency_reaches_the_pointnet_encoder(batch: RegistrationBatch) -> None:
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
 
 
 def test_bad_inputs() -> None:
@@ -164,7 +169,7 @@ def test_gradients_flow_through_every_iteration(batch: RegistrationBatch) -> Non
     """Nothing is detached between iterations: the gradient differs from a loop that stops it at the moved source."""
     model = _model(num_iterations=3).double()
     b = _batch64(batch)
-    loss = model.compute_loss(model(b.points_src, b.points_ref), b)["loss"]
+    loss = model.training_losses(model(b.points_src, b.points_ref), b)["loss"]
     full = torch.autograd.grad(loss, list(model.parameters()))
 
     mean_src, mean_ref = b.points_src.mean(1), b.points_ref.mean(1)
@@ -184,13 +189,13 @@ def test_loss_is_the_originals_chamfer(batch: RegistrationBatch) -> None:
     model = _model().double()
     b = _batch64(batch)
     result = model(b.points_src, b.points_ref)
-    losses = model.compute_loss(result, b)
+    losses = model.training_losses(result, b)
     assert set(losses) == {"chamfer", "loss"}
     moved, ref = result.aux["transformed_src"].detach().numpy(), b.points_ref.numpy()
     expected = np.mean([_numpy_chamfer(moved[i], ref[i]) for i in range(len(b))])
     assert float(losses["loss"]) == pytest.approx(expected, rel=1e-10)
     without_aux = RegistrationResult.fixed_iterations(result.transform_ref_src, 8)  # falls back to T applied to src
-    assert float(model.compute_loss(without_aux, b)["loss"]) == pytest.approx(expected, rel=1e-10)
+    assert float(model.training_losses(without_aux, b)["loss"]) == pytest.approx(expected, rel=1e-10)
 
 
 def test_loss_gradient_is_finite_at_coinciding_points() -> None:
@@ -200,7 +205,7 @@ def test_loss_gradient_is_finite_at_coinciding_points() -> None:
     model = _model(identity_init=True).double()
     result = model(points, points[:, torch.randperm(8)])
     assert torch.equal(result.aux["transformed_src"].sort(1).values, points.sort(1).values)
-    loss = model.compute_loss(result, RegistrationBatch(points, points))["loss"]
+    loss = model.training_losses(result, RegistrationBatch(points, points))["loss"]
     assert float(loss) == 0.0
     loss.backward()
     grads = [p.grad for p in model.parameters() if p.grad is not None]
@@ -213,8 +218,8 @@ def test_loss_gradient_is_finite_at_coinciding_points() -> None:
 
 
 # --- configs and CLI ---------------------------------------------------------------------------------------------
-def test_modelnet_config_pins_the_originals_hyperparameters() -> None:
-    config = yaml.safe_load((CONFIGS / "pcrnet.yaml").read_text())
+def test_model_config_pins_the_originals_hyperparameters() -> None:
+    config = yaml.safe_load((CONFIGS / "models" / "pcrnet.yaml").read_text())
     model = config["model"]
     assert model["class_path"] == "lcreg.baselines.pcrnet.PCRNet"
     args = model["init_args"]
@@ -222,21 +227,18 @@ def test_modelnet_config_pins_the_originals_hyperparameters() -> None:
     assert args["regressor_hidden"] == [1024, 1024, 512, 512, 256]
     assert (args["num_iterations"], args["dropout"], args["identity_init"]) == (8, 0.0, False)
     assert args["optimizer"] == {"class_path": "torch.optim.Adam", "init_args": {"lr": 0.001}}
-    assert "lr_scheduler" not in args
-    assert config["trainer"]["max_epochs"] == 200 and config["seed_everything"] == 1234
-    assert config["trainer"]["logger"]["init_args"]["name"] == "pcrnet"
-    checkpoints = [c for c in config["trainer"]["callbacks"] if c["class_path"].endswith("ModelCheckpoint")]
-    assert [c["init_args"]["monitor"] for c in checkpoints] == ["val/rre_mean_deg"]  # never the test split
-    assert checkpoints[0]["init_args"]["filename"] == "epoch{epoch:03d}-rre{val/rre_mean_deg:.3f}"
-    assert config["data"]["init_args"]["batch_size"] == 20  # protocol and embedded twin: test_method_configs.py
+    assert "lr_scheduler" not in args and "loss_terms" not in args
+    assert config["trainer"] == {"max_epochs": 200}  # seed, logger, val/rre_mean_deg checkpoints: lcreg.cli defaults
+    # The original batch size (20): tests/test_method_configs.py::test_original_batch_sizes.
 
 
-@pytest.mark.parametrize("path", ["pcrnet.yaml", "embedded/pcrnet.yaml"])
-def test_configs_build(path: str, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("data", ["modelnet40", "embedded"])
+def test_configs_build(data: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The YAML instantiates the original-size model and a clean, independently sampled pair protocol."""
     monkeypatch.setattr(sys, "argv", ["lcreg"])
-    cli = build_cli(["--config", str(CONFIGS / path)], run=False)
-    assert isinstance(cli.model, PCRNet) and cli.model.num_iterations == 8
+    args = ["--config", str(CONFIGS / "models" / "pcrnet.yaml"), "--config", str(CONFIGS / "data" / f"{data}.yaml")]
+    cli = build_cli(args, run=False)
+    assert isinstance(cli.model, PCRNet) and cli.model.num_iterations == 8 and len(cli.model.loss_terms) == 0
     assert cli.model.encoder.feature_dim == 1024 and cli.model.pose.in_features == 256
     protocol = cli.datamodule.pair_protocol
     assert (protocol.independent_sampling, protocol.noise_sigma, protocol.partial) == (True, 0.0, "none")

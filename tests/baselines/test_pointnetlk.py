@@ -14,6 +14,7 @@ from lcreg.types import RegistrationBatch
 from _host_contract import (  # type: ignore[import-not-found]
     check_bad_inputs,
     check_forward_backward,
+    check_local_consistency_gradient,
     check_training_lowers_loss,
     tiny_batch,
 )
@@ -42,7 +43,7 @@ def test_the_pose_loss_back_propagates_through_the_solve(batch: RegistrationBatc
     model = _model(jacobian=jacobian).train()
     result = model.training_forward(batch)
     assert result.transform_ref_src.requires_grad  # the original differentiates through J and the iterations
-    pose = model.compute_loss(result, batch)["pose"]
+    pose = model.training_losses(result, batch)["pose"]
     grads = torch.autograd.grad(pose, list(model.encoder.parameters()), allow_unused=True)
     assert any(g is not None and g.abs().sum() > 0 for g in grads)
     with torch.no_grad():
@@ -52,7 +53,7 @@ def test_the_pose_loss_back_propagates_through_the_solve(batch: RegistrationBatc
 def test_loss_matches_a_numpy_reference(batch: RegistrationBatch) -> None:
     model = _model(residual_weight=0.5, pose_weight=2.0).train()
     result = model.training_forward(batch)
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     assert batch.transform_ref_src is not None
     est, gt = result.transform_ref_src.detach().double().numpy(), batch.transform_ref_src.double().numpy()
     pose = np.mean([np.sum((e @ np.linalg.inv(g) - np.eye(4)) ** 2) for e, g in zip(est, gt)])
@@ -85,6 +86,10 @@ def test_training_needs_the_ground_truth(batch: RegistrationBatch) -> None:
         model.training_losses(model.training_forward(no_gt), no_gt)
 
 
+def test_injected_local_consistency_reaches_the_pointnet_encoder(batch: RegistrationBatch) -> None:
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
+
+
 def test_bad_inputs_and_arguments() -> None:
     check_bad_inputs(_model)
     with pytest.raises(ValueError, match="loss weights"):
@@ -94,7 +99,7 @@ def test_bad_inputs_and_arguments() -> None:
 
 
 def test_config_pins_the_original_hyper_parameters() -> None:
-    config = yaml.safe_load((CONFIGS / "pointnetlk.yaml").read_text())
+    config = yaml.safe_load((CONFIGS / "models" / "pointnetlk.yaml").read_text())
     args = config["model"]["init_args"]
     assert args["encoder_channels"] == [64, 64, 64, 128, 1024] and args["batch_norm"] is True
     assert (args["max_iterations"], args["eval_iterations"], args["tolerance"]) == (10, 20, 1e-7)
@@ -105,4 +110,5 @@ def test_config_pins_the_original_hyper_parameters() -> None:
         1.0,
     )
     assert args["optimizer"] == {"class_path": "torch.optim.Adam", "init_args": {"lr": 0.001}}
-    assert config["data"]["init_args"]["batch_size"] == 32 and config["trainer"]["max_epochs"] == 200
+    assert config["model"]["class_path"] == "lcreg.baselines.pointnetlk.PointNetLK"
+    assert config["trainer"]["max_epochs"] == 200  # batch 32: tests/test_method_configs.py::test_original_batch_sizes

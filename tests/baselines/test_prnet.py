@@ -14,7 +14,7 @@ from lcreg.baselines.prnet import (
 )
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_rotation
-from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.models.loss_terms import LossTerm
 from lcreg.nn.losses import cycle_consistency_mse
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -24,6 +24,7 @@ from _host_contract import (  # type: ignore[import-not-found]
     check_local_consistency_gradient,
     check_rotation_equivariance,
     check_training_lowers_loss,
+    lc_terms,
     tiny_batch,
 )
 
@@ -31,10 +32,10 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 EMB = 32
 
 
-def _tiny(local_consistency: LocalConsistency | None = None, **kwargs: object) -> PRNet:
+def _tiny(loss_terms: list[LossTerm] | None = None, **kwargs: object) -> PRNet:
     args: dict[str, object] = {"emb_dims": EMB, "k": 8, "num_heads": 4, "ff_dims": 64, "num_keypoints": 32}
     args.update(kwargs)
-    return PRNet(local_consistency=local_consistency, **args)  # type: ignore[arg-type]
+    return PRNet(loss_terms=loss_terms or [], **args)  # type: ignore[arg-type]
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +62,7 @@ def test_training_lowers_loss(batch: RegistrationBatch) -> None:
 
 
 def test_local_consistency_gradient_reaches_the_dgcnn(batch: RegistrationBatch) -> None:
-    check_local_consistency_gradient(lambda lc: _tiny(lc), batch, feature_dim=EMB)
+    check_local_consistency_gradient(_tiny, batch)
 
 
 def test_bad_inputs_raise_typed_errors() -> None:
@@ -70,7 +71,7 @@ def test_bad_inputs_raise_typed_errors() -> None:
 
 def test_min_points_covers_the_knn_graph_and_local_consistency() -> None:
     assert _tiny().min_points == 8
-    assert _tiny(LocalConsistency(EMB, num_local_points=16)).min_points == 16
+    assert _tiny(lc_terms(num_local_points=16)).min_points == 16
 
 
 @pytest.mark.parametrize(
@@ -173,7 +174,7 @@ def test_discounted_loss_equals_the_hand_assembled_sum(
     trained_forward: tuple[PRNet, RegistrationResult], batch: RegistrationBatch
 ) -> None:
     model, result = trained_forward
-    losses = model.compute_loss(result, batch)
+    losses = model.training_losses(result, batch)
     gt = batch.transform_ref_src
     assert gt is not None
     aux = result.aux
@@ -248,9 +249,10 @@ def test_configs_carry_the_original_hyperparameters() -> None:
     def load(name: str) -> dict:
         return yaml.safe_load((CONFIGS / name).read_text())
 
-    plain = load("prnet.yaml")  # X vs LC + X: tests/test_baseline_configs.py
+    plain = load("models/prnet.yaml")  # every composition is built in tests/test_method_configs.py
     model = plain["model"]["init_args"]
     assert plain["model"]["class_path"] == "lcreg.baselines.prnet.PRNet"
     assert model["optimizer"]["init_args"] == {"lr": 1e-3, "weight_decay": 1e-4}
     assert model["lr_scheduler"]["init_args"]["milestones"] == [30, 60, 80]
-    assert plain["trainer"]["max_epochs"] == 100 and plain["data"]["init_args"]["batch_size"] == 36
+    assert (model["num_keypoints"], model["num_iterations"], model["sampler"]) == (512, 3, "gumbel_softmax")
+    assert plain["trainer"]["max_epochs"] == 100  # batch 36: tests/test_method_configs.py::test_original_batch_sizes

@@ -21,6 +21,8 @@ from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.types import RegistrationBatch, RegistrationResult
 
+from _host_contract import check_local_consistency_gradient  # type: ignore[import-not-found]
+
 TINY = {
     "encoder_channels": (16, 32),
     "decoder_grid_size": 8,
@@ -73,6 +75,10 @@ def test_compute_loss_terms_are_finite_and_weighted(batch: RegistrationBatch) ->
     expected = losses["global"] + 0.5 * losses["recon"] + 0.1 * losses["normal"] + 1.0 * losses["lc"]
     torch.testing.assert_close(losses["loss"], expected)
     assert losses["loss"].requires_grad
+
+
+def test_injected_local_consistency_follows_the_host_contract(batch: RegistrationBatch) -> None:
+    check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
 
 
 def test_loss_does_not_depend_on_the_ground_truth(batch: RegistrationBatch) -> None:

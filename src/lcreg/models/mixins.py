@@ -22,7 +22,7 @@ _WRAPPED = "_adds_local_consistency"
 
 
 class LocalConsistencyMixin:
-    """Adds ``lc_weight * LocalConsistency(encoder, src, ref)`` to the loss a LightningModule's ``training_step`` returns.
+    """Adds ``lc_weight * LocalConsistency(encoder, src, ref)`` to the loss a LightningModule's training step returns.
 
     Any base-class order works (``class Net(LocalConsistencyMixin, LightningModule)`` or the reverse): at class
     creation the mixin wraps the class's ``training_step`` (its own or inherited), which must return the loss tensor
