@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
+from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError, TooFewPointsError
 from lcreg.data.kitti import (
     EXCLUDED_PAIRS,
     KITTI_SPLITS,
@@ -21,7 +21,6 @@ from lcreg.data.kitti import (
     scan_path,
     standard_chain_pairs,
 )
-from lcreg.data.modelnet40 import DatasetLayoutError
 
 from _numpy_refs import kabsch
 from _shared_data import shared_data

@@ -11,7 +11,8 @@
 * :mod:`lcreg.data.threedmatch`: 3DMatch / 7-Scenes fragment pairs and :class:`SevenScenesDataModule`;
 * :mod:`lcreg.data.kitti`: KITTI odometry pairs and :class:`KITTIOdometryDataModule`.
 
-Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning.
+Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning. :class:`DatasetLayoutError` is
+:class:`lcreg.checks.DatasetLayoutError` (re-exported here as part of the data API).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ __all__ = [
 ]
 
 _SOURCES = {
-    "DatasetLayoutError": "modelnet40",
+    "DatasetLayoutError": "lcreg.checks",
     "KITTIOdometryDataModule": "kitti",
     "ModelNet40DataModule": "datamodule",
     "ObjectSet": "pairs",
@@ -75,7 +76,8 @@ _SOURCES = {
 def __getattr__(name: str) -> Any:
     """Import the submodule that defines ``name`` on first access."""
     if name in _SOURCES:
-        return getattr(importlib.import_module(f"{__name__}.{_SOURCES[name]}"), name)
+        source = _SOURCES[name]
+        return getattr(importlib.import_module(source if "." in source else f"{__name__}.{source}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -43,9 +43,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
+from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError, TooFewPointsError
 from lcreg.data.io import read_points
-from lcreg.data.modelnet40 import DatasetLayoutError
 from lcreg.data.scenes import ScenePair, ScenePairDataModule
 from lcreg.data.scenes import Split as SceneSplit
 
