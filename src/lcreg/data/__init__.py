@@ -3,7 +3,8 @@
 * :mod:`lcreg.data.pairs`: the one pair protocol (:class:`PairProtocol`, :func:`make_pair`), shared by every dataset;
 * :mod:`lcreg.data.synthetic`: embedded procedural shapes with analytic normals (no files);
 * :mod:`lcreg.data.modelnet40`: the official ModelNet40 HDF5 layout and its unseen-objects/-categories protocols;
-* :mod:`lcreg.data.datamodule`: :class:`PairDataset`, :func:`collate_pairs` and the object DataModules;
+* :mod:`lcreg.data.datamodule`: :class:`PairDataset` and the object DataModules;
+* :mod:`lcreg.data.collate`: :func:`collate_pairs`, pair dicts into a :class:`~lcreg.types.RegistrationBatch`;
 * :mod:`lcreg.data.scanobjectnn`: the official ScanObjectNN h5 layout and its DataModule (object protocol);
 * :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files;
 * :mod:`lcreg.data.scenes`: scene pairs from files (:class:`ScenePair`, :class:`ScenePairDataset`,
@@ -60,7 +61,7 @@ _SOURCES = {
     "ScenePairDataset": "scenes",
     "SevenScenesDataModule": "threedmatch",
     "SyntheticDataModule": "datamodule",
-    "collate_pairs": "datamodule",
+    "collate_pairs": "collate",
     "kitti_pairs": "kitti",
     "load_modelnet40_h5": "modelnet40",
     "load_scanobjectnn_h5": "scanobjectnn",

@@ -29,7 +29,7 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
-from lcreg.data.datamodule import collate_pairs
+from lcreg.data.collate import collate_pairs
 from lcreg.data.io import read_points
 from lcreg.data.pairs import PairProtocol
 from lcreg.geometry import se3
