@@ -6,7 +6,8 @@
 * :mod:`lcreg.data.datamodule`: :class:`PairDataset` and the object DataModules;
 * :mod:`lcreg.data.collate`: :func:`collate_pairs`, pair dicts into a :class:`~lcreg.types.RegistrationBatch`;
 * :mod:`lcreg.data.scanobjectnn`: the official ScanObjectNN h5 layout and its DataModule (object protocol);
-* :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files;
+* :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files and
+  :func:`~lcreg.data.io.voxel_downsample` (Open3D's voxel grid, the one downsampler of point arrays);
 * :mod:`lcreg.data.scenes`: scene pairs from files (:class:`ScenePair`, :class:`ScenePairDataset`,
   :class:`ScenePairDataModule`);
 * :mod:`lcreg.data.threedmatch`: 3DMatch / 7-Scenes fragment pairs and :class:`SevenScenesDataModule`;

@@ -44,7 +44,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError, TooFewPointsError
-from lcreg.data.io import read_points
+from lcreg.data.io import read_points, voxel_downsample
 from lcreg.data.scenes import ScenePair, ScenePairDataModule
 from lcreg.data.scenes import Split as SceneSplit
 
@@ -301,14 +301,6 @@ def _check_cloud(points: np.ndarray, name: str) -> np.ndarray:
     return array
 
 
-def _downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Open3D ``voxel_down_sample`` (centroid per occupied voxel) of ``(N, 3)`` float64 points."""
-    import open3d as o3d
-
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    return np.asarray(cloud.voxel_down_sample(voxel_size).points)
-
-
 def _icp(src: np.ndarray, ref: np.ndarray, init: np.ndarray, max_distance: float, max_iteration: int) -> np.ndarray:
     """Point-to-point ICP of prepared float64 clouds; raises when no point lies within ``max_distance``."""
     import open3d as o3d
@@ -379,7 +371,7 @@ def refine_with_icp(
     start = _as_4x4(init, "init")
     _check_icp_args(voxel_size, max_distance, max_iteration)
     if voxel_size is not None:
-        src, ref = _downsample(src, voxel_size), _downsample(ref, voxel_size)
+        src, ref = voxel_downsample(src, voxel_size), voxel_downsample(ref, voxel_size)
     return _icp(src, ref, start, max_distance, max_iteration)
 
 
@@ -393,7 +385,7 @@ class _ScanCache:
     def get(self, path: Path) -> np.ndarray:
         if path not in self.clouds:
             points = read_points(path).astype(np.float64)
-            self.clouds[path] = points if self.voxel_size is None else _downsample(points, self.voxel_size)
+            self.clouds[path] = points if self.voxel_size is None else voxel_downsample(points, self.voxel_size)
         return self.clouds[path]
 
 
