@@ -15,7 +15,10 @@ For each: median milliseconds of the kNN index search (``top-k``) and of Chamfer
 ratio ``expanded / search`` (> 1: faster than the previous code), and the accuracy of the kNN search against a
 float64 reference on the same float32 points: the largest relative error of the searched k-th distance and the
 fraction of rows whose index set differs. The last table times the library's ``knn`` and ``chamfer_distance``
-(forward + backward) end to end. Numbers depend on the machine and its load; the thread count is printed.
+(forward + backward) end to end against the previous implementation (expanded search, same distance recomputation),
+with the number of kNN distances that are not bit-identical (a near-tie resolved differently: the float64 check of the
+first table says which search is right) and the largest relative Chamfer difference. Numbers depend on the machine
+and its load (``--threads 1`` is steadier on a busy machine); the thread count is printed.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import torch
 
 from lcreg.geometry import neighbors
 from lcreg.geometry.chamfer import chamfer_distance
-from lcreg.geometry.neighbors import knn
+from lcreg.geometry.neighbors import gather_points, knn, safe_norm
 
 Search = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -124,24 +127,56 @@ def search_table(batch: int, sizes: list[int], dims: list[int], k: int, repeats:
                     )
 
 
-def knn_backward(a: torch.Tensor, b: torch.Tensor, k: int) -> None:
-    knn(a, b, k)[0].sum().backward()
+def previous_knn(query: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The previous ``knn``: expanded search, then the same exact, differentiable distances as the library."""
+    with torch.no_grad():
+        idx = knn_search(expanded, query.detach(), points.detach(), k)
+    dists, order = safe_norm(query[:, :, None, :] - gather_points(points, idx), dim=-1).sort(dim=-1)
+    return dists, idx.gather(-1, order)
 
 
-def chamfer_backward(a: torch.Tensor, b: torch.Tensor) -> None:
-    chamfer_distance(a, b).sum().backward()
+def previous_chamfer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The previous ``chamfer_distance``: expanded two-way search, then the same distances as the library."""
+    with torch.no_grad():
+        idx_ab, idx_ba = both_ways_search(expanded, a.detach(), b.detach())
+    return safe_norm(a - gather_points(b, idx_ab)).mean(1) + safe_norm(b - gather_points(a, idx_ba)).mean(1)
+
+
+Tensor = torch.Tensor
+
+
+def knn_backward(fn: Callable[..., tuple[Tensor, Tensor]], a: Tensor, b: Tensor, k: int) -> None:
+    fn(a, b, k)[0].sum().backward()
+
+
+def chamfer_backward(fn: Callable[[Tensor, Tensor], Tensor], a: Tensor, b: Tensor) -> None:
+    fn(a, b).sum().backward()
 
 
 def library_table(batch: int, sizes: list[int], k: int, repeats: int) -> None:
-    print(f"\n### Library, forward + backward, B={batch}, k={k}, float32 (search of this checkout)\n")
-    print("| N=M | knn ms | chamfer_distance ms |")
-    print("|---|---|---|")
+    print(f"\n### Library (this checkout) vs the previous implementation, forward + backward, B={batch}, k={k}, D=3\n")
+    print("| N=M | knn previous ms | knn ms | ratio | CD previous ms | CD ms | ratio | knn differing | CD rel diff |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for n in sizes:
         gen = torch.Generator().manual_seed(n)
         a = torch.randn(batch, n, 3, generator=gen).requires_grad_(True)
         b = torch.randn(batch, n, 3, generator=gen).requires_grad_(True)
-        times = median_ms({"knn": partial(knn_backward, a, b, k), "chamfer": partial(chamfer_backward, a, b)}, repeats)
-        print(f"| {n} | {times['knn']:.2f} | {times['chamfer']:.2f} |")
+        fns = {
+            "knn old": partial(knn_backward, previous_knn, a, b, k),
+            "knn new": partial(knn_backward, knn, a, b, k),
+            "cd old": partial(chamfer_backward, previous_chamfer, a, b),
+            "cd new": partial(chamfer_backward, chamfer_distance, a, b),
+        }
+        t = median_ms(fns, repeats)
+        with torch.no_grad():
+            knn_differs = int((knn(a, b, k)[0] != previous_knn(a, b, k)[0]).sum())
+            cd_new, cd_old = chamfer_distance(a, b), previous_chamfer(a, b)
+            cd_rel = float(((cd_new - cd_old).abs() / cd_old).max())
+        print(
+            f"| {n} | {t['knn old']:.2f} | {t['knn new']:.2f} | {t['knn old'] / t['knn new']:.2f} | "
+            f"{t['cd old']:.2f} | {t['cd new']:.2f} | {t['cd old'] / t['cd new']:.2f} | "
+            f"{knn_differs} of {batch * n * k} | {cd_rel:.1e} |"
+        )
 
 
 def main() -> None:
