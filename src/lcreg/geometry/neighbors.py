@@ -8,11 +8,12 @@ differences, so they are accurate and differentiable with respect to both clouds
 ``torch.cdist`` mode (:func:`cdist`): coordinates (``D <= 3``) use ``compute_mode="donot_use_mm_for_euclid_dist"``,
 sums of squared differences, exact to rounding wherever the clouds are; wider features (DGCNN's dynamic graphs) use
 the matrix-product expansion ``|a|^2 - 2 a.b + |b|^2`` (``"use_mm_for_euclid_dist"``) after shifting both inputs by
-the centroid of ``a``, which limits its cancellation. Measured by ``benchmarks/bench_geometry.py`` (B = 16, N = M =
-1024, k = 16, 2-core CPU): the exact mode is about 1.8x faster than the previous expanded search for ``D = 3`` and
-finds the same neighbours as a float64 search even 1 km from the origin, where the unshifted matrix-product mode gets
-99 % of the rows wrong; for ``D = 64`` the matrix-product mode is about 2x faster than the previous search and the
-exact mode about 2x slower.
+the centroid of ``a``, which limits its cancellation. Measured with ``benchmarks/bench_geometry.py --threads 1``
+(B = 16, k = 16, CPU): for ``D = 3``, ``knn``/``chamfer_distance`` (forward + backward) are 1.7-1.85x faster than
+the previous expanded search at N = M = 1024-2048 but 8-16 % slower at 128-256 points (a small matrix product is
+cheaper than ``cdist``'s difference loop there), and the exact mode finds the float64 neighbours even 1 km from the
+origin, where the unshifted matrix-product mode gets 99 % of the rows wrong; for ``D = 64`` the matrix-product mode
+is about 2x faster than the previous search, the exact mode 2.5x slower.
 """
 
 from __future__ import annotations
