@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
-from lcreg.data.datamodule import PairDataset, collate_pairs
+from lcreg.data.collate import collate_pairs
+from lcreg.data.datamodule import PairDataset
 from lcreg.data.pairs import PairProtocol
 from lcreg.data.synthetic import synthetic_shapes
 from lcreg.geometry import se3

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from lcreg.checks import (
+    DatasetLayoutError,
     NonFiniteError,
     ShapeError,
     TooFewPointsError,
@@ -21,6 +22,7 @@ def test_error_hierarchy() -> None:
     assert issubclass(ShapeError, ValueError)
     assert issubclass(NonFiniteError, ValueError)
     assert issubclass(TooFewPointsError, ValueError)
+    assert issubclass(DatasetLayoutError, ValueError)
 
 
 def test_shape_error_attributes_and_message() -> None:

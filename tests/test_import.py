@@ -44,3 +44,12 @@ def test_every_lazy_export_resolves_to_its_name() -> None:
     for name in lcreg.__all__:
         if name != "__version__":
             assert getattr(lcreg, name).__name__ == name, name
+
+
+def test_package_is_marked_typed() -> None:
+    """PEP 561 marker next to the package (hatch's ``packages = ["src/lcreg"]`` puts it in the wheel)."""
+    from pathlib import Path
+
+    import lcreg
+
+    assert (Path(lcreg.__file__).parent / "py.typed").is_file()

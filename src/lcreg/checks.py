@@ -5,7 +5,9 @@ All checks raise typed errors that name the offending argument, never ``assert``
 * :class:`ShapeError` (a ``ValueError``) for a wrong shape, with ``expected`` and ``actual`` attributes;
 * ``TypeError`` for a non-tensor or an unsupported dtype (float32 and float64 are supported);
 * :class:`NonFiniteError` (a ``ValueError``) for NaN or Inf values;
-* :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs.
+* :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs;
+* :class:`PointCloudFileError` (a ``ValueError``) for a point-cloud file that exists but cannot be used;
+* :class:`DatasetLayoutError` (a ``ValueError``) for a dataset folder whose files do not follow the expected layout.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from collections.abc import Sequence
 import torch
 
 __all__ = [
+    "DatasetLayoutError",
     "NonFiniteError",
     "PointCloudFileError",
     "ShapeError",
@@ -65,6 +68,10 @@ class PointCloudFileError(ValueError):
     def __init__(self, path: object, reason: str) -> None:
         self.path = str(path)
         super().__init__(f"point-cloud file {self.path!r}: {reason}")
+
+
+class DatasetLayoutError(ValueError):
+    """A dataset folder exists but its files do not follow the expected layout (the message names the path)."""
 
 
 def check_float(x: object, name: str) -> torch.Tensor:

@@ -7,13 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from lcreg.checks import DatasetLayoutError
 from lcreg.data.datamodule import ModelNet40DataModule
-from lcreg.data.modelnet40 import (
-    DatasetLayoutError,
-    load_modelnet40_h5,
-    load_shape_names,
-    modelnet40_objects,
-)
+from lcreg.data.modelnet40 import load_modelnet40_h5, load_shape_names, modelnet40_objects
 from lcreg.types import RegistrationBatch
 
 from _shared_data import shared_data

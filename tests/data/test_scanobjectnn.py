@@ -8,8 +8,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from lcreg.checks import NonFiniteError, ShapeError
-from lcreg.data.modelnet40 import DatasetLayoutError
+from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError
 from lcreg.data.scanobjectnn import (
     SCANOBJECTNN_CLASSES,
     VARIANT_SUFFIXES,

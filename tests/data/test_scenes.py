@@ -8,7 +8,7 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from lcreg.data.scenes import ScenePair, ScenePairDataModule, ScenePairDataset, voxel_downsample
+from lcreg.data.scenes import ScenePair, ScenePairDataModule, ScenePairDataset
 from lcreg.data.threedmatch import SevenScenesDataModule
 from lcreg.geometry import se3
 
@@ -32,21 +32,6 @@ def _write_pair(tmp_path: Path, n: int = 300) -> ScenePair:
     np.save(tmp_path / "src.npy", src.astype(np.float32))
     np.save(tmp_path / "ref.npy", scene.astype(np.float32))
     return ScenePair(tmp_path / "src.npy", tmp_path / "ref.npy", gt, name="toy/0-1")
-
-
-def test_voxel_downsample_matches_a_per_voxel_mean_loop() -> None:
-    rng = np.random.default_rng(3)
-    pts = rng.uniform(-1, 1, size=(2000, 3)).astype(np.float32)
-    out = voxel_downsample(pts, 0.25)
-    groups: dict[tuple[int, ...], list[np.ndarray]] = {}
-    for p in pts.astype(np.float64):
-        groups.setdefault(tuple(np.floor(p / 0.25).astype(int)), []).append(p)
-    expected = np.array([np.mean(v, axis=0) for v in groups.values()])
-    assert out.shape == expected.shape and out.dtype == np.float32
-    dist, _ = cKDTree(expected).query(out)
-    assert dist.max() < 1e-6
-    with pytest.raises(ValueError, match="voxel_size"):
-        voxel_downsample(pts, 0.0)
 
 
 @pytest.mark.parametrize(("align", "center", "angle"), [(True, True, 45.0), (False, True, 45.0), (False, False, 0.0)])

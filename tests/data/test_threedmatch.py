@@ -8,8 +8,8 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from lcreg.checks import DatasetLayoutError
 from lcreg.data.io import read_points
-from lcreg.data.modelnet40 import DatasetLayoutError
 from lcreg.data.threedmatch import (
     BENCHMARKS,
     SEVEN_SCENES_REDKITCHEN,

@@ -29,6 +29,15 @@ def test_matches_brute_force(dtype: torch.dtype, squared: bool) -> None:
     np.testing.assert_allclose(got.double().numpy(), brute_force(a, b, squared), rtol=1e-5)
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e3])
+def test_float32_matches_a_float64_brute_force_on_the_same_points(offset: float) -> None:
+    gen = torch.Generator().manual_seed(5)
+    a = torch.randn(4, 300, 3, generator=gen) + offset
+    b = torch.randn(4, 200, 3, generator=gen) + offset + 0.1
+    expected = brute_force(a.double().numpy(), b.double().numpy(), squared=False)
+    np.testing.assert_allclose(chamfer_distance(a, b).double().numpy(), expected, rtol=1e-6)
+
+
 def test_hand_made_value() -> None:
     a = torch.tensor([[[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]])
     b = torch.tensor([[[0.0, 1.0, 0.0]]])

@@ -8,7 +8,14 @@ from scipy.spatial.distance import cdist
 
 from lcreg.checks import ShapeError, TooFewPointsError
 from lcreg.geometry import neighbors
-from lcreg.geometry.neighbors import gather_points, knn, pairwise_sq_distances, safe_norm
+from lcreg.geometry.neighbors import (
+    EXACT_MAX_DIM,
+    gather_points,
+    knn,
+    knn_indices,
+    pairwise_sq_distances,
+    safe_norm,
+)
 
 TOL = {torch.float32: 1e-5, torch.float64: 1e-12}
 
@@ -30,6 +37,65 @@ def test_pairwise_sq_distances_far_from_origin_and_nonnegative() -> None:
     assert (got >= 0).all()
     expected = cdist(a[0].double().numpy(), a[0].double().numpy(), "sqeuclidean")
     np.testing.assert_allclose(got[0].double().numpy(), expected, atol=1e-9, rtol=1e-4)
+
+
+def _brute_force(query: torch.Tensor, points: torch.Tensor) -> np.ndarray:
+    """float64 distances ``(B, Q, N)`` of the (float32) points, by explicit differences."""
+    q, p = query.double().numpy(), points.double().numpy()
+    return np.sqrt(((q[:, :, None, :] - p[:, None, :, :]) ** 2).sum(-1))
+
+
+@pytest.mark.parametrize("dim", [3, 5, 64])
+def test_cdist_matches_brute_force_far_from_the_origin(dim: int) -> None:
+    """Both modes stay accurate 1 km from the origin (exact sums for D <= 3, centroid-shifted product above)."""
+    gen = torch.Generator().manual_seed(7)
+    a = torch.randn(2, 70, dim, generator=gen) + 1e3
+    b = torch.randn(2, 90, dim, generator=gen) + 1e3
+    expected = _brute_force(a, b)
+    got = neighbors.cdist(a, b)
+    assert got.shape == (2, 70, 90) and got.dtype == torch.float32
+    rtol = 1e-6 if dim <= EXACT_MAX_DIM else 1e-4
+    np.testing.assert_allclose(got.double().numpy(), expected, rtol=rtol)
+
+
+def test_cdist_plain_matrix_product_would_fail_far_away() -> None:
+    """Why the exact mode: torch.cdist's unshifted matrix product loses the neighbours of float32 points at 1 km."""
+    gen = torch.Generator().manual_seed(8)
+    a, b = torch.randn(1, 200, 3, generator=gen) + 1e3, torch.randn(1, 300, 3, generator=gen) + 1e3
+    truth = _brute_force(a, b).argmin(-1)
+    assert (neighbors.cdist(a, b).argmin(-1).numpy() == truth).all()
+    plain = torch.cdist(a, b, compute_mode="use_mm_for_euclid_dist").argmin(-1).numpy()
+    assert (plain != truth).mean() > 0.5
+
+
+@pytest.mark.parametrize("dim", [3, 5])
+def test_pairwise_sq_distances_gradcheck(dim: int) -> None:
+    gen = torch.Generator().manual_seed(9)
+    a = torch.randn(2, 5, dim, generator=gen, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(2, 4, dim, generator=gen, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(pairwise_sq_distances, (a, b))
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e3])
+def test_knn_equals_a_brute_force_reference(offset: float) -> None:
+    """float32 kNN = float64 brute force on the same points: indices (no ties here), distances to 1e-6 relative."""
+    gen = torch.Generator().manual_seed(10)
+    query = torch.randn(3, 64, 3, generator=gen) + offset
+    points = torch.randn(3, 500, 3, generator=gen) + offset
+    dists, idx = knn(query, points, 8)
+    reference = _brute_force(query, points)
+    ref_idx = np.argsort(reference, axis=-1, kind="stable")[..., :8]
+    np.testing.assert_array_equal(idx.numpy(), ref_idx)
+    np.testing.assert_allclose(dists.double().numpy(), np.take_along_axis(reference, ref_idx, -1), rtol=1e-6)
+
+
+def test_knn_indices_in_feature_space_match_brute_force() -> None:
+    """Wide features (matrix-product mode, as DGCNN's dynamic graph uses it)."""
+    gen = torch.Generator().manual_seed(11)
+    features = torch.randn(2, 128, 64, generator=gen, dtype=torch.float64)
+    idx = knn_indices(features, features, 10)
+    ref_idx = np.argsort(_brute_force(features, features), axis=-1, kind="stable")[..., :10]
+    np.testing.assert_array_equal(idx.numpy(), ref_idx)
 
 
 @pytest.mark.parametrize("k", [1, 4, 16])

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
-from lcreg.data.datamodule import PairDataset, SyntheticDataModule, collate_pairs
+from lcreg.data.collate import collate_pairs
+from lcreg.data.datamodule import PairDataset, SyntheticDataModule
 from lcreg.data.pairs import PairProtocol
 from lcreg.data.synthetic import synthetic_shapes
 from lcreg.geometry import se3

@@ -3,15 +3,18 @@
 * :mod:`lcreg.data.pairs`: the one pair protocol (:class:`PairProtocol`, :func:`make_pair`), shared by every dataset;
 * :mod:`lcreg.data.synthetic`: embedded procedural shapes with analytic normals (no files);
 * :mod:`lcreg.data.modelnet40`: the official ModelNet40 HDF5 layout and its unseen-objects/-categories protocols;
-* :mod:`lcreg.data.datamodule`: :class:`PairDataset`, :func:`collate_pairs` and the object DataModules;
+* :mod:`lcreg.data.datamodule`: :class:`PairDataset` and the object DataModules;
+* :mod:`lcreg.data.collate`: :func:`collate_pairs`, pair dicts into a :class:`~lcreg.types.RegistrationBatch`;
 * :mod:`lcreg.data.scanobjectnn`: the official ScanObjectNN h5 layout and its DataModule (object protocol);
-* :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files;
+* :mod:`lcreg.data.io`: :func:`read_points` for ``.ply``/``.pcd``/``.xyz``/``.npy``/KITTI ``.bin`` files and
+  :func:`~lcreg.data.io.voxel_downsample` (Open3D's voxel grid, the one downsampler of point arrays);
 * :mod:`lcreg.data.scenes`: scene pairs from files (:class:`ScenePair`, :class:`ScenePairDataset`,
   :class:`ScenePairDataModule`);
 * :mod:`lcreg.data.threedmatch`: 3DMatch / 7-Scenes fragment pairs and :class:`SevenScenesDataModule`;
 * :mod:`lcreg.data.kitti`: KITTI odometry pairs and :class:`KITTIOdometryDataModule`.
 
-Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning.
+Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning. :class:`DatasetLayoutError` is
+:class:`lcreg.checks.DatasetLayoutError` (re-exported here as part of the data API).
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ __all__ = [
 ]
 
 _SOURCES = {
-    "DatasetLayoutError": "modelnet40",
+    "DatasetLayoutError": "lcreg.checks",
     "KITTIOdometryDataModule": "kitti",
     "ModelNet40DataModule": "datamodule",
     "ObjectSet": "pairs",
@@ -59,7 +62,7 @@ _SOURCES = {
     "ScenePairDataset": "scenes",
     "SevenScenesDataModule": "threedmatch",
     "SyntheticDataModule": "datamodule",
-    "collate_pairs": "datamodule",
+    "collate_pairs": "collate",
     "kitti_pairs": "kitti",
     "load_modelnet40_h5": "modelnet40",
     "load_scanobjectnn_h5": "scanobjectnn",
@@ -75,7 +78,8 @@ _SOURCES = {
 def __getattr__(name: str) -> Any:
     """Import the submodule that defines ``name`` on first access."""
     if name in _SOURCES:
-        return getattr(importlib.import_module(f"{__name__}.{_SOURCES[name]}"), name)
+        source = _SOURCES[name]
+        return getattr(importlib.import_module(source if "." in source else f"{__name__}.{source}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -4,7 +4,7 @@
   (validation, test) seed a fresh generator with ``seed + index``, so the same pairs come out on every run, in every
   worker and every epoch; training datasets draw a new seed from the global torch RNG on every call (seeded per
   worker by ``lightning.seed_everything(workers=True)``), so training pairs change every epoch.
-* :func:`collate_pairs` stacks pair dicts into a :class:`lcreg.types.RegistrationBatch`.
+* the loaders batch pairs with :func:`lcreg.data.collate.collate_pairs` (a :class:`lcreg.types.RegistrationBatch`).
 * :class:`PairDataModule` holds the protocol options (the LightningCLI keys under ``data.init_args``), carves the
   validation objects out of the training pool with a seeded permutation (never out of the test set) and builds the
   loaders; subclasses only say which objects make up the pools.
@@ -21,17 +21,16 @@ from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
 from lcreg.checks import ShapeError
+from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
 from lcreg.data.synthetic import synthetic_shapes
-from lcreg.types import RegistrationBatch
 
 __all__ = [
     "ModelNet40DataModule",
     "PairDataModule",
     "PairDataset",
     "SyntheticDataModule",
-    "collate_pairs",
 ]
 
 _SEED_HIGH = 2**62
@@ -103,52 +102,6 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         pair = make_pair(self.points[index], normals, self.protocol, self.generator(index))
         pair["index"] = torch.tensor(index, dtype=torch.int64)
         return pair
-
-
-def collate_pairs(items: list[dict[str, torch.Tensor]]) -> RegistrationBatch:
-    """Stack pair dicts (from :class:`PairDataset`) into a batch.
-
-    Args:
-        items: Dicts with ``points_src (N, 3)``, ``points_ref (M, 3)`` and optionally ``transform_ref_src (4, 4)``,
-            ``normals_src``/``normals_ref`` and ``index``; other keys (``angles_zyx``) are dropped.
-
-    Returns:
-        A :class:`~lcreg.types.RegistrationBatch` with ``points_src (B, N, 3)``, ``points_ref (B, M, 3)``,
-        ``transform_ref_src (B, 4, 4)`` (or ``None``), normals ``(B, N, 3)``/``(B, M, 3)`` (or ``None``) and
-        ``index (B,)``.
-
-    Raises:
-        ValueError: If ``items`` is empty or some items have a key that others lack.
-        ShapeError: If the clouds of the batch do not all have the same size.
-    """
-    if not items:
-        raise ValueError("`items` must not be empty")
-    keys = ("points_src", "points_ref", "transform_ref_src", "normals_src", "normals_ref", "index")
-    stacked: dict[str, torch.Tensor | None] = {}
-    for key in keys:
-        present = [key in item for item in items]
-        if not any(present):
-            stacked[key] = None
-            continue
-        if not all(present):
-            raise ValueError(f"`{key}` is present in {sum(present)} of {len(items)} items; a batch needs all or none")
-        values = [item[key] for item in items]
-        for i, value in enumerate(values):
-            if value.shape != values[0].shape:
-                # Every pair of a batch must have the same size (fixed num_points and partial_keep).
-                raise ShapeError(f"items[{i}]['{key}']", tuple(values[0].shape), value.shape)
-        stacked[key] = torch.stack(values)
-    points_src, points_ref = stacked["points_src"], stacked["points_ref"]
-    if points_src is None or points_ref is None:
-        raise ValueError("every item needs `points_src` and `points_ref`")
-    return RegistrationBatch(
-        points_src=points_src,
-        points_ref=points_ref,
-        transform_ref_src=stacked["transform_ref_src"],
-        normals_src=stacked["normals_src"],
-        normals_ref=stacked["normals_ref"],
-        index=stacked["index"],
-    )
 
 
 class PairDataModule(LightningDataModule):
@@ -255,7 +208,7 @@ class PairDataModule(LightningDataModule):
             self.test_set = PairDataset.from_objects(test, self.pair_protocol, deterministic=True, seed=self.seed)
 
     def _loader(self, dataset: PairDataset | None, name: str, shuffle: bool) -> DataLoader[Any]:
-        """A DataLoader over ``dataset`` with :func:`collate_pairs`.
+        """A DataLoader over ``dataset`` with :func:`~lcreg.data.collate.collate_pairs`.
 
         The shuffled (training) loader drops the last incomplete batch when there is a full one (as the DCP/PCRNet
         originals do): a batch of one pair breaks batch-wise BatchNorm (FMR-Net's decoder, PCRNet-style MLPs).

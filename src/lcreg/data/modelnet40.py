@@ -26,12 +26,12 @@ from typing import Literal
 import h5py
 import numpy as np
 
+from lcreg.checks import DatasetLayoutError
 from lcreg.data.pairs import ObjectSet
 
 __all__ = [
     "EXPECTED_LAYOUT",
     "NUM_SEEN_CLASSES",
-    "DatasetLayoutError",
     "load_modelnet40_h5",
     "load_shape_names",
     "modelnet40_objects",
@@ -49,10 +49,6 @@ EXPECTED_LAYOUT = (
     "listing h5 files (resolved by basename inside <root>), each h5 with keys 'data' (S, P, 3), 'label' (S,) or "
     "(S, 1) and optionally 'normal' (S, P, 3); optional <root>/shape_names.txt"
 )
-
-
-class DatasetLayoutError(ValueError):
-    """A dataset folder exists but its files do not follow the expected layout (the message names the path)."""
 
 
 def _check_root(root: str | Path) -> Path:

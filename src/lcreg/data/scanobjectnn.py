@@ -44,9 +44,8 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from lcreg.checks import NonFiniteError, ShapeError
+from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError
 from lcreg.data.datamodule import PairDataModule
-from lcreg.data.modelnet40 import DatasetLayoutError
 from lcreg.data.pairs import ObjectSet
 
 __all__ = [

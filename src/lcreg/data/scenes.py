@@ -4,7 +4,8 @@ A scene dataset is a list of :class:`ScenePair` (two files and the ground truth 
 into the reference file's frame). :class:`ScenePairDataset` turns pair ``i`` into a registration pair, the same
 way on every call (generator seeded with ``seed + i``):
 
-1. read both files (:func:`lcreg.data.io.read_points`) and voxel-downsample them (``voxel_size``, optional);
+1. read both files (:func:`lcreg.data.io.read_points`) and voxel-downsample them (``voxel_size``, optional;
+   :func:`lcreg.data.io.voxel_downsample`, Open3D's grid);
 2. sample ``num_points`` points per cloud without replacement (``None`` keeps every point; a cloud with fewer points
    is padded by repeating random points, which changes neither a max-pooled descriptor nor a nearest neighbour);
 3. optionally map the source into the reference frame with the ground truth (``align``) and shift both clouds so
@@ -29,13 +30,13 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
-from lcreg.data.datamodule import collate_pairs
-from lcreg.data.io import read_points
+from lcreg.data.collate import collate_pairs
+from lcreg.data.io import read_points, voxel_downsample
 from lcreg.data.pairs import PairProtocol
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_euler_transform
 
-__all__ = ["ScenePair", "ScenePairDataModule", "ScenePairDataset", "voxel_downsample"]
+__all__ = ["ScenePair", "ScenePairDataModule", "ScenePairDataset"]
 
 Split = Literal["train", "val", "test"]
 
@@ -57,25 +58,6 @@ class ScenePair:
     transform_ref_src: np.ndarray = field(repr=False, compare=False)
     name: str = ""
     overlap: float | None = None
-
-
-def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Centroid of the points in every occupied cubic voxel (Open3D's ``voxel_down_sample``), ``(N', 3)`` float32.
-
-    Args:
-        points: ``(N, 3)`` points.
-        voxel_size: Voxel edge (same unit as the points), ``> 0``.
-
-    Raises:
-        ValueError: If ``voxel_size <= 0``.
-    """
-    if not voxel_size > 0:
-        raise ValueError(f"`voxel_size` must be > 0, got {voxel_size}")
-    keys = np.floor(points / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3), dtype=np.float64)
-    np.add.at(sums, inverse.reshape(-1), points.astype(np.float64))
-    return (sums / counts[:, None]).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=128)

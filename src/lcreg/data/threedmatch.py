@@ -20,7 +20,7 @@ to 0.13 above the listed value); the fraction of the source points covered by th
 
 Pair selection (:func:`threedmatch_pairs`): a gt.log pair is kept when its listed overlap is strictly more than
 ``min_overlap`` (the "more than 70 %" of the 7-Scenes protocol). ``gt_overlap.log`` is needed for that: when it is
-missing, or lacks a gt.log pair, a :class:`~lcreg.data.modelnet40.DatasetLayoutError` /
+missing, or lacks a gt.log pair, a :class:`~lcreg.checks.DatasetLayoutError` /
 :class:`FileNotFoundError` is raised instead of silently dropping pairs, unless ``min_overlap <= 0`` (no filter;
 the overlap is then filled in when known and ``None`` otherwise). Every pair of the 3DLoMatch lists has an overlap
 of at most 30 %, so select them with ``min_overlap=0`` (or ``0.1``).
@@ -36,7 +36,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lcreg.data.modelnet40 import DatasetLayoutError
+from lcreg.checks import DatasetLayoutError
 from lcreg.data.scenes import ScenePair, ScenePairDataModule, Split
 
 __all__ = [

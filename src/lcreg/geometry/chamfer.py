@@ -2,9 +2,10 @@
 
 ``CD(A, B) = mean_{a in A} min_{b in B} ||a - b|| + mean_{b in B} min_{a in A} ||b - a||``.
 
-Nearest neighbours are found without autograd in chunks of the distance matrix (both directions from one pass, so
-memory stays bounded, e.g. ``B = 32``, ``N = M = 1024``), then the distances are recomputed from the coordinate
-differences. The gradient therefore flows only through the matched pairs, and is 0 (finite) at coinciding points.
+Nearest neighbours are found without autograd in chunks of the ``torch.cdist`` distance matrix (exact mode, see
+:func:`lcreg.geometry.neighbors.cdist`; both directions from one pass, so memory stays bounded, e.g. ``B = 32``,
+``N = M = 1024``), then the distances are recomputed from the coordinate differences. The gradient therefore flows
+only through the matched pairs, and is 0 (finite) at coinciding points.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from lcreg.checks import check_points, check_same_batch
-from lcreg.geometry.neighbors import _CHUNK_ELEMENTS, gather_points, pairwise_sq_distances, safe_norm
+from lcreg.geometry.neighbors import _CHUNK_ELEMENTS, cdist, gather_points, safe_norm
 
 __all__ = ["chamfer_distance"]
 
@@ -26,9 +27,9 @@ def _nearest_both_ways(points_a: torch.Tensor, points_b: torch.Tensor) -> tuple[
     idx_ba = torch.zeros(batch, num_b, dtype=torch.long, device=points_b.device)  # (B, M)
     with torch.no_grad():
         for start, part in zip(range(0, points_a.shape[1], chunk), points_a.detach().split(chunk, dim=1)):
-            d2 = pairwise_sq_distances(part, points_b.detach())  # (B, c, M)
-            idx_ab.append(d2.argmin(dim=2))
-            val, arg = d2.min(dim=1)  # (B, M)
+            dist = cdist(part, points_b.detach())  # (B, c, M)
+            idx_ab.append(dist.argmin(dim=2))
+            val, arg = dist.min(dim=1)  # (B, M)
             better = val < best_ba
             best_ba = torch.where(better, val, best_ba)
             idx_ba = torch.where(better, arg + start, idx_ba)
