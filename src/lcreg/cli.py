@@ -13,10 +13,10 @@ arguments (``model.init_args.optimizer``), so the top-level ``optimizer:`` key o
 Configs compose: ``--config`` may be given several times (later files override earlier ones; ``loss_terms+:``
 appends to a list), and a file may list the files it builds on under ``compose:`` (paths relative to that file),
 which are read first, recursively. ``configs/dcp_lc.yaml`` is ``compose: [models/dcp.yaml, lc.yaml,
-data/modelnet40.yaml, data/dcp_protocol.yaml]``. Test-time components are model arguments too: ``configs/refine/icp.yaml`` sets
-``model.init_args.refiner`` (ICP after any model's estimate), ``configs/voxelize/lk27.yaml`` sets
-``model.init_args.voxel_grid`` (voxelised IC-LK for the LK models). ``lcreg fit`` refuses models with nothing to
-train (classical methods) before anything runs.
+data/modelnet40.yaml, data/dcp_protocol.yaml]``. Test-time components are model arguments too:
+``configs/refine/icp.yaml`` sets ``model.init_args.refiner`` (ICP after any model's estimate),
+``configs/voxelize/lk27.yaml`` sets ``model.init_args.voxel_grid`` (voxelised IC-LK for the LK models).
+``lcreg fit`` refuses models with nothing to train (classical methods) before anything runs.
 
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
