@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
 from lcreg.benchmarking.building import build_cli_for
+from lcreg.benchmarking.measure import timed
 
 if TYPE_CHECKING:
     from lightning.pytorch import LightningDataModule, Trainer
@@ -87,9 +88,7 @@ def fit(name: str, overrides: Sequence[str] = (), configs: Sequence[str | Path] 
         raise ValueError(f"{name}: the checkpoint callback monitors {monitor!r}, not {SELECTION_METRIC}")
     if not isinstance(cli.model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
         raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
-    start = time.perf_counter()
-    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
-    seconds = time.perf_counter() - start
+    _, seconds = timed(partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule))
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")
