@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -286,11 +287,12 @@ def test_result_log_resume_skips_finished_rows(tmp_path: Path) -> None:
     assert len(path.read_text().splitlines()) == 3
 
 
-def test_output_path_and_options(tmp_path: Path) -> None:
+def test_output_path_and_options(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     assert output_path("x.md", "y.md", smoke=True) == Path("x.md")
     assert output_path(None, "y.md", smoke=False) is None
     smoke = output_path(None, "y.md", smoke=True)
-    assert smoke is not None and smoke.name == "y.md" and smoke.parent.is_dir()
+    assert smoke is not None and smoke.name == "y.md" and smoke.parent.is_dir() and smoke.parent.parent == tmp_path
     assert key_values(["a=1", "b=x=y"], "--ckpt") == {"a": "1", "b": "x=y"}
     with pytest.raises(SystemExit, match="--ckpt expects key=value"):
         key_values(["a"], "--ckpt")
