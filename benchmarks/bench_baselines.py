@@ -1,13 +1,15 @@
 """Speed of the correspondence-based baselines and the cost of local consistency, in one process.
 
     python benchmarks/bench_baselines.py [--root ../shared/data/modelnet40_mini] [--device cpu|cuda]
+    python benchmarks/bench_baselines.py --smoke     # seconds, embedded synthetic pairs (checks the script runs)
 
-* Inference ms/pair of DCP-v2, PRNet, IDAM and DeepGMR (default constructor arguments = the originals' sizes) at
+* Inference ms/pair of DCP-v2, PRNet, IDAM and DeepGMR (their configs in ``configs/``: the originals' sizes) at
   500/1000/2000 points, batch 1 and batch 8 (``--batch-sizes``), on real ModelNet40 test pairs (synthetic shapes
-  without the data), with Open3D point-to-point ICP on the same pairs as the in-process peer;
-* one training step (forward, loss, backward, Adam step) of each host without and with LC
-  (``LocalConsistency(K, 64)``, weight 1), same weights and batch, steps alternated to cancel drift; reports the
-  median step time and the LC overhead in % (target: at most 10 %).
+  without the data), with Open3D point-to-point ICP (``configs/icp.yaml``, gate 0.2) on the same pairs as the
+  in-process peer;
+* one training step (forward, full training loss, backward, Adam step) of each host without and with LC (the
+  ``<host>_lc`` config: ``LocalConsistency(K, 64)``, weight 1), same seed (so the same host weights) and batch, steps
+  alternated to cancel drift; reports the median step time and the LC overhead in % (target: at most 10 %).
 
 The paper's runtime reference (Titan Xp) lists DCP at 6/9/20 ms for 500/1000/2000 points.
 """
@@ -15,33 +17,34 @@ The paper's runtime reference (Titan Xp) lists DCP at 6/9/20 ms for 500/1000/200
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
-from collections.abc import Callable
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
 
 import torch
-from bench_dvds import pairs, time_model
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
-from lcreg.baselines.classical import ICP
+from lcreg.benchmarking import (
+    METHODS,
+    add_smoke_argument,
+    build,
+    cli_args,
+    machine_line,
+    markdown_table,
+    output_path,
+    pair_batches,
+    registration_speed,
+    time_calls,
+    training_loss,
+    write_text,
+)
 from lcreg.models.base import RegistrationModule
-from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.types import RegistrationBatch
 
-
-def hosts() -> dict[str, Callable[[LocalConsistency | None], RegistrationModule]]:
-    """Factories of the hosts with their default sizes and an optional LC module."""
-    from lcreg.baselines.dcp import DCP
-    from lcreg.baselines.deepgmr import DeepGMR
-    from lcreg.baselines.idam import IDAM
-    from lcreg.baselines.prnet import PRNet
-
-    return {
-        "DCP-v2": lambda lc: DCP(local_consistency=lc),
-        "PRNet": lambda lc: PRNet(local_consistency=lc),
-        "IDAM": lambda lc: IDAM(local_consistency=lc),
-        "DeepGMR": lambda lc: DeepGMR(local_consistency=lc),
-    }
+HOSTS = ("dcp", "prnet", "idam", "deepgmr")
+SIZES = (500, 1000, 2000)
+SMOKE = {"sizes": (64,), "pairs": 2, "batch_sizes": [1, 2], "repeats": 1, "train_batch": 2, "train_points": 64}
+SEED = ["--seed_everything=0"]  # X and LC + X start from the same host weights
 
 
 def feature_dim(model: RegistrationModule, batch: RegistrationBatch) -> int:
@@ -50,39 +53,57 @@ def feature_dim(model: RegistrationModule, batch: RegistrationBatch) -> int:
         return int(model.lc_encoder()(batch.points_src[:1, :64]).shape[-1])  # type: ignore[operator]
 
 
-def step_seconds(model: RegistrationModule, batch: RegistrationBatch, opt: torch.optim.Optimizer, sync: bool) -> float:
-    """Wall time of one optimisation step."""
-    if sync:
-        torch.cuda.synchronize()
-    start = time.perf_counter()
+def train_step(model: RegistrationModule, batch: RegistrationBatch, opt: torch.optim.Optimizer) -> None:
+    """One optimisation step on the full training loss."""
     opt.zero_grad()
-    model.training_losses(model.training_forward(batch), batch)["loss"].backward()
+    training_loss(model, batch)["loss"].backward()
     opt.step()
-    if sync:
-        torch.cuda.synchronize()
-    return time.perf_counter() - start
 
 
-def lc_overhead(name: str, factory: Callable, batch: RegistrationBatch, device: str, repeats: int) -> str:
-    """Median step time without/with LC (alternating) and the overhead."""
-    torch.manual_seed(0)
-    base = factory(None).to(device).train()
-    k = feature_dim(base, batch)
-    torch.manual_seed(0)
-    with_lc = factory(LocalConsistency(k, num_local_points=64)).to(device).train()
-    models = {"X": base, "LC + X": with_lc}
+def lc_overhead(host: str, batch: RegistrationBatch, device: str, repeats: int) -> list[object]:
+    """Median step time without/with LC (alternating rounds after a warm-up round) and the overhead."""
+    names = {"X": host, "LC + X": METHODS[host].lc_variant or host}
+    models = {v: build(name, overrides=SEED).to(device).train() for v, name in names.items()}
     opts = {v: torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=1e-4) for v, m in models.items()}
-    times: dict[str, list[float]] = {v: [] for v in models}
-    for i in range(repeats + 1):
-        for variant in models:
-            seconds = step_seconds(models[variant], batch, opts[variant], device == "cuda")
-            if i > 0:  # first round is warm-up
-                times[variant].append(seconds)
-    t_x, t_lc = (statistics.median(times[v]) for v in models)
-    return f"| {name} | {k} | {1000 * t_x:.0f} | {1000 * t_lc:.0f} | {100 * (t_lc / t_x - 1):+.1f} % |"
+    steps = {v: partial(train_step, models[v], batch, opts[v]) for v in models}
+    t_x, t_lc = (t.median_s for t in time_calls(steps, repeats, warmup=1, device=device).values())
+    k = feature_dim(models["X"], batch)
+    return [METHODS[host].label, k, f"{1000 * t_x:.0f}", f"{1000 * t_lc:.0f}", f"{100 * (t_lc / t_x - 1):+.1f} %"]
 
 
-def main() -> None:
+def inference_table(args: argparse.Namespace) -> str:
+    """ms/pair of every host at every size and batch size, and of ICP."""
+    models = {host: build(host, overrides=SEED).to(args.device) for host in HOSTS}
+    icp = build("icp", overrides=cli_args("model", {"distance_factor": 4.0}))  # voxel 0.05: gate 0.2
+    header = ["points", *(f"{METHODS[h].label} b={b}" for h in models for b in args.batch_sizes), "ICP"]
+    rows, source = [], ""
+    for n in args.sizes:
+        batches, source = pair_batches(args.root, pairs=args.pairs, num_points=n, batch_size=args.pairs)
+        src, ref = batches[0].points_src, batches[0].points_ref
+        cells = [
+            registration_speed(m, src, ref, b, args.repeats).ms_per_pair
+            for m in models.values()
+            for b in args.batch_sizes
+        ]
+        cells.append(registration_speed(icp, src, ref, 1, args.repeats).ms_per_pair)
+        rows.append([n, *(f"{ms:.1f}" for ms in cells)])
+    return markdown_table(header, rows) + f"\nms/pair; pairs from: {source}"
+
+
+def training_table(args: argparse.Namespace) -> str:
+    """The LC overhead of one training step, per host."""
+    batches, source = pair_batches(
+        args.root, pairs=args.train_batch, num_points=args.train_points, batch_size=args.train_batch
+    )
+    batch = move_data_to_device(batches[0], args.device)
+    header = ["host", "K", "X ms/step", "LC + X ms/step", "LC overhead"]
+    rows = [lc_overhead(host, batch, args.device, args.repeats) for host in HOSTS]
+    return f"training step, batch {args.train_batch} x {args.train_points} points ({source}):\n" + markdown_table(
+        header, rows
+    )
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--device", default="cpu")
@@ -92,32 +113,29 @@ def main() -> None:
     parser.add_argument("--train-batch", type=int, default=16)
     parser.add_argument("--train-points", type=int, default=1024)
     parser.add_argument("--skip-inference", action="store_true")
-    args = parser.parse_args()
-    factories = hosts()
-    print(f"device {args.device}, torch threads {torch.get_num_threads()}, median of {args.repeats} runs")
+    parser.add_argument("--out", default=None, help="also write the report (Markdown) here")
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    args.sizes = SIZES
+    if args.smoke:
+        vars(args).update(SMOKE)
+    if args.smoke or not (args.root and Path(args.root).is_dir()):
+        args.root = None  # the embedded synthetic shapes
+    return args
 
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    parts = [f"device {args.device}: {machine_line(args.device)}, median of {args.repeats} runs"]
+    print(parts[0], flush=True)
     if not args.skip_inference:
-        torch.manual_seed(0)
-        models = {name: make(None).to(args.device) for name, make in factories.items()}
-        icp = ICP(voxel_size=0.05, distance_factor=4.0, method="point_to_point")  # gate 0.2
-        header = " | ".join(f"{n} b={b}" for n in models for b in args.batch_sizes)
-        print(f"\n| points | {header} | ICP |")
-        print("|---" * (len(args.batch_sizes) * len(models) + 2) + "|")
-        for n in (500, 1000, 2000):
-            batch, source = pairs(n, args.pairs, args.root)
-            cells = []
-            for model in models.values():
-                cells += [f"{time_model(model, batch, b, args.device, args.repeats):.1f}" for b in args.batch_sizes]
-            cells.append(f"{time_model(icp, batch, 1, 'cpu', args.repeats):.1f}")
-            print(f"| {n} | " + " | ".join(cells) + " |")
-        print(f"ms/pair; pairs from: {source}")
-
-    batch, source = pairs(args.train_points, args.train_batch, args.root)
-    batch = move_data_to_device(batch, args.device)
-    print(f"\ntraining step, batch {args.train_batch} x {args.train_points} points ({source}):")
-    print("| host | K | X ms/step | LC + X ms/step | LC overhead |\n|---|---|---|---|---|")
-    for name, make in factories.items():
-        print(lc_overhead(name, make, batch, args.device, args.repeats), flush=True)
+        parts.append(inference_table(args))
+        print(parts[-1], flush=True)
+    parts.append(training_table(args))
+    print(parts[-1], flush=True)
+    out = output_path(args.out, "bench_baselines.md", args.smoke)
+    if out:
+        write_text(out, "\n\n".join(parts) + "\n")
 
 
 if __name__ == "__main__":

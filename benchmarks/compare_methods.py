@@ -3,6 +3,7 @@
     python benchmarks/compare_methods.py --out docs/results/compare_methods.md \
         --ckpt dvds=runs/.../best.ckpt --ckpt dcp=runs/.../best.ckpt \
         --train pointnetlk=200,512,16 --train pcrnet=300,512,20 --train fmr=300,512,8
+    python benchmarks/compare_methods.py --smoke     # seconds: trains DVDs 2 steps on synthetic pairs, 3 rows
 
 * Learned methods (DVDs, PointNetLK, PCRNet, FMR-Net, DCP, PRNet, IDAM, DeepGMR) are built from their config in
   ``configs/`` and need weights: ``--ckpt key=path`` (a checkpoint chosen on validation), or ``--train
@@ -25,155 +26,95 @@ Rows are appended to ``<out>.jsonl`` as they finish (a rerun skips them); the Ma
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import sys
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from lcreg.evaluation import EvaluationReport, evaluate, markdown_table
+from lcreg.benchmarking import (
+    METHODS,
+    Budget,
+    ResultLog,
+    add_smoke_argument,
+    build,
+    cli_args,
+    fit,
+    fit_overrides,
+    key_values,
+    machine_line,
+    markdown_table,
+    output_path,
+    pair_batches,
+    report_table,
+    synthetic_overrides,
+    write_text,
+)
+from lcreg.evaluation import EvaluationReport, evaluate
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-REFINE = CONFIGS / "refine" / "icp.yaml"
-NOISE = {"clean": 0.0, "noise σ 0.01": 0.01}
-
-
-@dataclass(frozen=True)
-class Method:
-    """One row: a config, whether it needs weights, and an optional ICP refinement."""
-
-    key: str
-    label: str
-    config: str
-    learned: bool
-    refine: bool = False
-    weights_from: str | None = None  # the learned method whose checkpoint a "+ ICP" row reuses
-
-
-METHODS = [
-    Method("dvds", "DVDs", "dvds_modelnet40.yaml", True),
-    Method("pointnetlk", "PointNetLK", "pointnetlk.yaml", True),
-    Method("pcrnet", "PCRNet", "pcrnet.yaml", True),
-    Method("fmr", "FMR-Net", "fmr.yaml", True),
-    Method("dcp", "DCP-v2", "dcp.yaml", True),
-    Method("prnet", "PRNet", "prnet.yaml", True),
-    Method("idam", "IDAM", "idam.yaml", True),
-    Method("deepgmr", "DeepGMR", "deepgmr.yaml", True),
-    Method("icp", "ICP point-to-point", "icp.yaml", False),
-    Method("icp_plane", "ICP point-to-plane", "icp_plane.yaml", False),
-    Method("ransac", "FPFH + RANSAC", "ransac.yaml", False),
-    Method("fgr", "FPFH + FGR", "fgr.yaml", False),
-    Method("ransac_icp", "FPFH + RANSAC + ICP", "ransac.yaml", False, refine=True),
-    Method("fgr_icp", "FPFH + FGR + ICP", "fgr.yaml", False, refine=True),
-    Method("dvds_icp", "DVDs + ICP", "dvds_modelnet40.yaml", True, refine=True, weights_from="dvds"),
+ROWS = [
+    "dvds",
+    "pointnetlk",
+    "pcrnet",
+    "fmr",
+    "dcp",
+    "prnet",
+    "idam",
+    "deepgmr",
+    "icp",
+    "icp_plane",
+    "ransac",
+    "fgr",
+    "ransac_icp",
+    "fgr_icp",
+    "dvds_icp",
 ]
+NOISE = {"clean": 0.0, "noise σ 0.01": 0.01}
+NUM_POINTS = 1024
+SMOKE = {"only": ["dvds", "dvds_icp", "icp"], "train": ["dvds=2,64,2"], "num_points": 64, "batch_size": 2}
 
 
-def _pairs(key: str, items: list[str]) -> dict[str, str]:
-    out = {}
-    for item in items:
-        name, _, value = item.partition("=")
-        if not value:
-            raise SystemExit(f"{key} expects key=value, got {item!r}")
-        out[name] = value
-    return out
+def data_overrides(args: argparse.Namespace, budget: Budget) -> list[str]:
+    """The training data of a ``--train`` run: ModelNet40 under ``--root`` (synthetic pairs in a smoke run)."""
+    if args.smoke:
+        return synthetic_overrides(num_points=budget.points, batch_size=budget.batch)
+    values = {"root": args.root, "protocol": args.protocol, "num_points": budget.points, "batch_size": budget.batch}
+    return cli_args("data", {**values, "seed": 1234})
 
 
-def train(method: Method, budget: str, args: argparse.Namespace) -> str:
-    """``lcreg fit`` on the method's config with ``steps,points,batch``; returns the best checkpoint (validation)."""
-    from lcreg.cli import build_cli
-
-    steps, points, batch = (int(v) for v in budget.split(","))
-    run_dir = Path(args.run_dir)
-    cli = build_cli(
-        [
-            "fit",
-            "--config",
-            str(CONFIGS / method.config),
-            "--seed_everything=0",
-            f"--trainer.max_steps={steps}",
-            "--trainer.max_epochs=-1",
-            f"--trainer.val_check_interval={max(1, steps // 4)}",
-            "--trainer.check_val_every_n_epoch=null",
-            "--trainer.enable_progress_bar=false",
-            "--trainer.enable_model_summary=false",
-            f"--trainer.logger.init_args.save_dir={run_dir}",
-            f"--trainer.logger.init_args.name={method.key}",
-            f"--trainer.default_root_dir={run_dir}",
-            f"--data.init_args.root={args.root}",
-            f"--data.init_args.protocol={args.protocol}",
-            f"--data.init_args.num_points={points}",
-            f"--data.init_args.batch_size={batch}",
-            "--data.init_args.seed=1234",
-        ]
-    )
-    callback = cli.trainer.checkpoint_callback
-    best = getattr(callback, "best_model_path", "")
-    if not best:
-        raise RuntimeError(f"training {method.key} produced no checkpoint")
-    return str(best)
+def train(key: str, budget: Budget, args: argparse.Namespace) -> str:
+    """``lcreg fit`` on the method's config with the budget; returns the best checkpoint (validation)."""
+    run = fit_overrides(budget.steps, max(1, budget.steps // 4), args.run_dir, name=key, seed=0)
+    return str(fit(key, [*run, *data_overrides(args, budget)]).best_checkpoint)
 
 
-def build(method: Method, ckpt: str | None) -> Any:
-    """The model of a config (weights from ``ckpt`` for learned methods), with the ICP refiner if asked."""
-    from lcreg.cli import build_cli
-
-    configs = ["--config", str(CONFIGS / method.config)]
-    if method.refine:
-        configs += ["--config", str(REFINE)]
-    model = build_cli(configs, run=False).model
-    return (model if ckpt is None else model.load_weights(ckpt)).eval()
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--root", default="../shared/data/modelnet40_mini")
-    parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
-    parser.add_argument("--ckpt", nargs="*", default=[], help="key=path of a trained checkpoint")
-    parser.add_argument("--train", nargs="*", default=[], help="key=steps,points,batch: train here on CPU")
-    parser.add_argument("--only", nargs="*", default=None, help="evaluate these keys only")
-    parser.add_argument("--batch-size", type=int, default=16)
-    parser.add_argument("--run-dir", default="runs/compare")
-    parser.add_argument("--out", default="docs/results/compare_methods.md")
-    args = parser.parse_args()
-
-    from lcreg.data.datamodule import ModelNet40DataModule
-
-    ckpts, budgets = _pairs("--ckpt", args.ckpt), _pairs("--train", args.train)
-    jsonl = Path(args.out).with_suffix(".jsonl")
-    done = (
-        {(r["key"], r["setting"]): r for r in map(json.loads, jsonl.read_text().splitlines())} if jsonl.exists() else {}
-    )
-    sets = {}
+def test_sets(args: argparse.Namespace) -> tuple[dict[str, list[Any]], str]:
+    """The test batches of every noise setting, and where they come from."""
+    root, pairs = (None, 2) if args.smoke else (args.root, None)
+    sets, source = {}, ""
     for setting, sigma in NOISE.items():
-        dm = ModelNet40DataModule(
-            root=args.root, protocol=args.protocol, num_points=1024, batch_size=args.batch_size, noise_sigma=sigma
+        options = {"protocol": args.protocol, "noise_sigma": sigma}
+        sets[setting], source = pair_batches(
+            root, pairs=pairs, num_points=args.num_points, batch_size=args.batch_size, **options
         )
-        dm.setup("test")
-        sets[setting] = list(dm.test_dataloader())
-    for method in METHODS:
-        if args.only is not None and method.key not in args.only:
+    return sets, source
+
+
+def evaluate_method(key: str, ckpts: dict[str, str], budgets: dict[str, str], sets: dict, log: ResultLog) -> None:
+    """Every unfinished setting of one method, appended to the log."""
+    source = METHODS[key].weights_from or key
+    model = None
+    for setting, batches in sets.items():
+        if log.done(key=key, setting=setting):
             continue
-        source = method.weights_from or method.key
-        if method.learned and source not in ckpts and source in budgets:
-            ckpts[source] = train(method, budgets[source], args)
-            print(f"{method.key}: trained, best checkpoint {ckpts[source]}", flush=True)
-        if method.learned and source not in ckpts:
-            print(f"{method.key}: no checkpoint, not evaluated", flush=True)
-            continue
-        model = None
-        for setting, batches in sets.items():
-            if (method.key, setting) in done:
-                continue
-            model = model or build(method, ckpts.get(source))
-            torch.manual_seed(0)  # stochastic test-time choices (PRNet's Gumbel noise) are the same for every run
-            report = evaluate(model, batches, method.label)
-            row = {
-                "key": method.key,
-                "label": method.label,
+        model = model or build(key, ckpts.get(source)).eval()
+        torch.manual_seed(0)  # stochastic test-time choices (PRNet's Gumbel noise) are the same for every run
+        report = evaluate(model, batches, METHODS[key].label)
+        log.append(
+            {
+                "key": key,
+                "label": report.name,
                 "setting": setting,
                 "metrics": report.metrics,
                 "ms_per_pair": report.ms_per_pair,
@@ -181,39 +122,77 @@ def main() -> None:
                 "checkpoint": ckpts.get(source),
                 "budget": budgets.get(source),
             }
-            done[(method.key, setting)] = row
-            with jsonl.open("a") as fh:
-                fh.write(json.dumps(row) + "\n")
-            print(f"{method.key} [{setting}] {json.dumps(report.metrics)} {report.ms_per_pair:.1f} ms/pair", flush=True)
-        write_table(done, args)
+        )
+        print(f"{key} [{setting}] {report.metrics} {report.ms_per_pair:.1f} ms/pair", flush=True)
 
 
-def write_table(rows: dict[tuple[str, str], dict[str, Any]], args: argparse.Namespace) -> None:
-    """Rewrite the Markdown table from every finished row."""
+def table(log: ResultLog, args: argparse.Namespace) -> str:
+    """The Markdown document from every finished row."""
     lines = [
         "# Every method on the same ModelNet40 test pairs",
         "",
-        f"Command: `python benchmarks/compare_methods.py {' '.join(sys.argv[1:])}`",
-        f"Machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads, CPU.",
-        f"Data: `{args.root}`, protocol {args.protocol}, test split, seed 1234, 1024 points, two independent "
-        "samplings, Euler U[0°, 45°] per axis, t U[-0.5, 0.5]; noisy: Gaussian sigma 0.01 clipped at 0.05 on both "
-        "clouds.",
+        f"Command: `python benchmarks/compare_methods.py {' '.join(args.argv)}`",
+        f"Machine: {machine_line()}.",
+        f"Data: {args.source}, seed 1234, {args.num_points} points, two "
+        "independent samplings, Euler U[0°, 45°] per axis, t U[-0.5, 0.5]; noisy: Gaussian sigma 0.01 clipped at 0.05 "
+        "on both clouds.",
         "",
     ]
     for setting in NOISE:
+        rows = [row for row in (log.find(key=key, setting=setting) for key in ROWS) if row is not None]
         reports = [
             EvaluationReport(r["label"], r["metrics"], torch.empty(0), torch.empty(0), r["ms_per_pair"], r["pairs"])
-            for r in (rows.get((method.key, setting)) for method in METHODS)
-            if r is not None
+            for r in rows
         ]
-        lines += [f"## {setting}", "", markdown_table(reports), ""]
-    lines += ["## Weights", "", "| method | checkpoint | budget trained here (steps, points, batch) |", "|---|---|---|"]
-    for method in METHODS:
-        row = rows.get((method.key, "clean"))
-        if row is not None and method.learned:
-            lines.append(f"| {row['label']} | `{row['checkpoint']}` | {row['budget'] or 'given'} |")
-    Path(args.out).write_text("\n".join(lines) + "\n")
+        lines += [f"## {setting}", "", report_table(reports), ""]
+    weights = [
+        [row["label"], f"`{row['checkpoint']}`", row["budget"] or "given"]
+        for row in (log.find(key=key, setting="clean") for key in ROWS if METHODS[key].learned)
+        if row is not None
+    ]
+    header = ["method", "checkpoint", "budget trained here (steps, points, batch)"]
+    return "\n".join([*lines, "## Weights", "", markdown_table(header, weights)]) + "\n"
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--root", default="../shared/data/modelnet40_mini")
+    parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
+    parser.add_argument("--ckpt", nargs="*", default=[], help="key=path of a trained checkpoint")
+    parser.add_argument("--train", nargs="*", default=[], help="key=steps,points,batch: train here on CPU")
+    parser.add_argument("--only", nargs="*", default=None, choices=ROWS, help="evaluate these keys only")
+    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--run-dir", default="runs/compare")
+    parser.add_argument("--out", default=None, help="Markdown table (default docs/results/compare_methods.md)")
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    args.num_points = NUM_POINTS
+    if args.smoke:
+        vars(args).update(SMOKE)
+    args.out = output_path(args.out, "compare_methods.md", args.smoke) or Path("docs/results/compare_methods.md")
+    if args.smoke:
+        args.run_dir = str(args.out.parent / "runs")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    ckpts, budgets = key_values(args.ckpt, "--ckpt"), key_values(args.train, "--train")
+    log = ResultLog(args.out.with_suffix(".jsonl"), key=("key", "setting"))
+    sets, args.source = test_sets(args)
+    for key in ROWS:
+        if args.only is not None and key not in args.only:
+            continue
+        source = METHODS[key].weights_from or key
+        if METHODS[key].learned and source not in ckpts and source in budgets:
+            ckpts[source] = train(source, Budget.parse(budgets[source], "--train"), args)
+            print(f"{key}: trained, best checkpoint {ckpts[source]}", flush=True)
+        if METHODS[key].learned and source not in ckpts:
+            print(f"{key}: no checkpoint, not evaluated", flush=True)
+            continue
+        evaluate_method(key, ckpts, budgets, sets, log)
+        write_text(args.out, table(log, args))
 
 
 if __name__ == "__main__":

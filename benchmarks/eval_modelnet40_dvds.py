@@ -2,7 +2,11 @@
 
     python benchmarks/eval_modelnet40_dvds.py --ckpt runs/.../checkpoints/<best>.ckpt \
         --root ../shared/data/modelnet40_mini --out docs/results/modelnet40_dvds.md
+    python benchmarks/eval_modelnet40_dvds.py --smoke    # seconds, synthetic pairs, untrained weights saved as --ckpt
 
+Models: ``configs/dvds_modelnet40.yaml`` with the checkpoint's weights, and with the config's initialisation for each
+``--init-seeds`` seed; Open3D point-to-point ICP (``configs/icp.yaml`` with the gate set to each ``--icp-distances``
+value, 50 iterations).
 Pairs: ModelNet40DataModule(protocol) test split, seed 1234 (the configs' default), 1024 points, Euler U[0, 45°],
 t U[-0.5, 0.5], independent samplings; optional Gaussian noise (--noise-sigma, clip 0.05).
 """
@@ -10,20 +14,37 @@ t U[-0.5, 0.5], independent samplings; optional Gaussian noise (--noise-sigma, c
 from __future__ import annotations
 
 import argparse
-import platform
+from collections.abc import Sequence
 from pathlib import Path
 
-import torch
+from lcreg.benchmarking import (
+    add_smoke_argument,
+    build,
+    cli_args,
+    machine_line,
+    mean_std_row,
+    output_path,
+    pair_batches,
+    report_table,
+    save_weights,
+    write_text,
+)
+from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.models.base import RegistrationModule
 
-from lcreg.baselines.classical import ICP
-from lcreg.data.datamodule import ModelNet40DataModule
-from lcreg.evaluation import EvaluationReport, evaluate, markdown_table, mean_std_row
-from lcreg.models.dvds import DVDs
+SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2]}
 
 
-def main() -> None:
+def icp(distance: float) -> RegistrationModule:
+    """ICP from the identity, max correspondence distance ``distance`` (voxel = gate, factor 1), 50 iterations."""
+    return build(
+        "icp", overrides=cli_args("model", {"voxel_size": distance, "distance_factor": 1.0, "max_iterations": 50})
+    )
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ckpt", required=True, help="trained DVDs checkpoint (chosen on validation)")
+    parser.add_argument("--ckpt", default=None, help="trained DVDs checkpoint (chosen on validation); required")
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
     parser.add_argument("--num-points", type=int, default=1024)
@@ -46,50 +67,47 @@ def main() -> None:
         help="initialisation seeds of the untrained-weights baseline (reported as mean ± std)",
     )
     parser.add_argument("--out", default=None, help="Markdown file to write the table to")
-    args = parser.parse_args()
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    args.pairs = None
+    if args.smoke:
+        vars(args).update(SMOKE)
+        args.root = None  # the embedded synthetic shapes
+    args.out = output_path(args.out, "modelnet40_dvds.md", args.smoke)
+    if args.smoke and not args.ckpt:
+        args.ckpt = str(save_weights(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".ckpt")))
+    if not args.ckpt:
+        parser.error("--ckpt is required (outside --smoke)")
+    return args
 
-    dm = ModelNet40DataModule(
-        root=args.root,
-        protocol=args.protocol,
-        num_points=args.num_points,
-        batch_size=args.batch_size,
-        noise_sigma=args.noise_sigma,
-        seed=args.seed,
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    options = {"protocol": args.protocol, "noise_sigma": args.noise_sigma, "seed": args.seed}
+    batches, source = pair_batches(
+        args.root, pairs=args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
     )
-    dm.setup("test")
-    batches = list(dm.test_dataloader())
-
-    trained = DVDs.load_from_checkpoint(args.ckpt, map_location="cpu")
-    hparams = {k: v for k, v in trained.hparams.items() if not k.startswith("_")}
-    untrained_reports = []
-    for init_seed in args.init_seeds:
-        torch.manual_seed(init_seed)
-        untrained_reports.append(evaluate(DVDs(**hparams), batches, f"DVDs (untrained weights, seed {init_seed})"))
-    reports: list[EvaluationReport] = [
-        evaluate(trained, batches, f"DVDs (trained, {Path(args.ckpt).name})"),
-        *untrained_reports,
+    untrained = [
+        evaluate(build("dvds", overrides=[f"--seed_everything={s}"]), batches, f"DVDs (untrained weights, seed {s})")
+        for s in args.init_seeds
     ]
-    for dist in args.icp_distances:
-        icp = ICP(voxel_size=dist, distance_factor=1.0, method="point_to_point", max_iterations=50)  # gate = dist
-        reports.append(evaluate(icp, batches, f"Open3D ICP p2p (identity init, dist {dist}, 50 it.)"))
+    reports: list[EvaluationReport] = [
+        evaluate(build("dvds", args.ckpt), batches, f"DVDs (trained, {Path(args.ckpt).name})"),
+        *untrained,
+        *(evaluate(icp(d), batches, f"Open3D ICP p2p (identity init, dist {d}, 50 it.)") for d in args.icp_distances),
+    ]
     seeds = ", ".join(str(s) for s in args.init_seeds)
-    table = (
-        markdown_table(reports)
-        + "\n"
-        + mean_std_row(untrained_reports, f"DVDs untrained, mean ± std over seeds {seeds}")
-    )
+    table = report_table(reports) + "\n" + mean_std_row(untrained, f"DVDs untrained, mean ± std over seeds {seeds}")
     header = (
-        f"ModelNet40 `{args.root}`, protocol {args.protocol}, {reports[0].num_pairs} test pairs, "
-        f"{args.num_points} points, noise sigma {args.noise_sigma}, batch {args.batch_size}, "
-        f"CPU: {platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}\n"
+        f"{source}, {reports[0].num_pairs} test pairs, {args.num_points} points, noise sigma {args.noise_sigma}, "
+        f"batch {args.batch_size}, {machine_line()}\n"
     )
     for r in reports:
         print(f"{r.name}: mean IC-LK/ICP iterations {r.extra['mean_iterations']:.2f}")
     print(header)
     print(table)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(header + "\n" + table + "\n")
+        write_text(args.out, header + "\n" + table + "\n")
 
 
 if __name__ == "__main__":

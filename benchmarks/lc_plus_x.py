@@ -2,8 +2,10 @@
 
     python benchmarks/lc_plus_x.py --hosts dcp prnet idam deepgmr --seeds 0 1 2 --max-steps 120 \
         --out docs/results/lc_plus_x.md
+    python benchmarks/lc_plus_x.py --smoke           # seconds: DCP and LC + DCP, 2 steps on synthetic pairs
 
-For every host, variant (``configs/<host>.yaml`` = X, ``configs/<host>_lc.yaml`` = LC + X) and seed, the run
+For every host, variant (the registered method X, ``configs/models/<host>.yaml``, and LC + X, the same plus ``configs/lc.yaml``) and
+seed, the run
 1. builds model and data from the config through the CLI (the configs are what is measured), with
    ``seed_everything = seed`` (initialisation and training order; the LC metric has its own seed, so X and LC + X
    start from the same host weights) and the data's pair seed fixed at 1234 (the same validation and test pairs
@@ -21,16 +23,32 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
-import platform
 import statistics
-import time
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import torch
+from lcreg.benchmarking import (
+    METHODS,
+    Budget,
+    ResultLog,
+    add_smoke_argument,
+    cli_args,
+    fit,
+    fit_overrides,
+    format_mean_std,
+    key_values,
+    load_weights,
+    machine_line,
+    markdown_row,
+    markdown_table,
+    output_path,
+    synthetic_overrides,
+    write_text,
+)
 
-NAMES = {"dcp": "DCP", "prnet": "PRNet", "idam": "IDAM", "deepgmr": "DeepGMR"}
+HOSTS = ["dcp", "prnet", "idam", "deepgmr"]
 METRICS = {
     "rmse_r_deg": "RMSE(R) °",
     "mae_r_deg": "MAE(R) °",
@@ -38,15 +56,23 @@ METRICS = {
     "mae_t": "MAE(t)",
     "recall_r2_t0p01": "recall (2°, 0.01)",
 }
+SMOKE = {"hosts": ["dcp"], "seeds": [0], "max_steps": 2, "val_every": 1, "batch_size": 2, "num_points": 64}
 
 
-def budget(host: str, args: argparse.Namespace) -> dict[str, int | None]:
-    """Steps, points and batch size of a host: ``--host-budget host=steps,points,batch`` or the global options."""
-    for item in args.host_budget:
-        name, values = item.split("=")
-        if name == host:
-            steps, points, batch = (int(v) for v in values.split(","))
-            return {"max_steps": steps, "num_points": points, "batch_size": batch, "val_every": max(1, steps // 3)}
+def variants(host: str) -> dict[str, str]:
+    """The registered methods of X and LC + X."""
+    lc = METHODS[host].lc_variant
+    if lc is None:
+        raise SystemExit(f"{host} has no LC + X variant in the registry")
+    return {"X": host, "LC + X": lc}
+
+
+def plan(host: str, args: argparse.Namespace) -> dict[str, int | None]:
+    """Steps, points, batch size and validation interval of a host: ``--host-budget`` or the global options."""
+    budgets = key_values(args.host_budget, "--host-budget")
+    if host in budgets:
+        b = Budget.parse(budgets[host], "--host-budget")
+        return {"max_steps": b.steps, "num_points": b.points, "batch_size": b.batch, "val_every": max(1, b.steps // 3)}
     return {
         "max_steps": args.max_steps,
         "num_points": args.num_points,
@@ -55,46 +81,32 @@ def budget(host: str, args: argparse.Namespace) -> dict[str, int | None]:
     }
 
 
-def run_one(config: Path, seed: int, args: argparse.Namespace, run_dir: Path, plan: dict) -> dict[str, Any]:
-    """Train and test one (config, seed); returns the test metrics and bookkeeping."""
-    from lcreg.cli import build_cli
+def data_overrides(args: argparse.Namespace, p: dict[str, int | None]) -> list[str]:
+    """ModelNet40 under ``--root`` with the pair seed 1234 and the plan's sizes (synthetic pairs in a smoke run)."""
+    if args.smoke:
+        return synthetic_overrides(num_points=p["num_points"] or 64, batch_size=p["batch_size"] or 2)
+    values = {"root": args.root, "protocol": args.protocol, "seed": 1234, "num_workers": args.num_workers}
+    return cli_args("data", {**values, "batch_size": p["batch_size"], "num_points": p["num_points"]})
 
-    overrides = [
-        f"--seed_everything={seed}",
-        f"--trainer.max_steps={plan['max_steps']}",
-        "--trainer.max_epochs=-1",
-        f"--trainer.val_check_interval={plan['val_every']}",
-        "--trainer.check_val_every_n_epoch=null",
-        "--trainer.enable_progress_bar=false",
-        "--trainer.enable_model_summary=false",
-        f"--trainer.logger.init_args.save_dir={run_dir}",
-        "--trainer.logger.init_args.name=",
-        f"--trainer.default_root_dir={run_dir}",
-        f"--data.init_args.root={args.root}",
-        f"--data.init_args.protocol={args.protocol}",
-        "--data.init_args.seed=1234",
-        f"--data.init_args.num_workers={args.num_workers}",
-    ]
-    if plan["batch_size"]:
-        overrides.append(f"--data.init_args.batch_size={plan['batch_size']}")
-    if plan["num_points"]:
-        overrides.append(f"--data.init_args.num_points={plan['num_points']}")
-    cli = build_cli(["--config", str(config), *overrides], run=False)
-    start = time.perf_counter()
-    cli.trainer.fit(cli.model, datamodule=cli.datamodule)
-    train_s = time.perf_counter() - start
-    best = cli.trainer.checkpoint_callback.best_model_path if cli.trainer.checkpoint_callback else ""
-    lc_final = _last_logged(cli.trainer, "train/lc")  # before testing, which resets the logged metrics
-    tested = cli.trainer.test(cli.model, datamodule=cli.datamodule, ckpt_path=best or None, verbose=False)[0]
+
+def run_one(name: str, seed: int, args: argparse.Namespace, run_dir: Path, p: dict[str, Any]) -> dict[str, Any]:
+    """Train and test one (method, seed); returns the test metrics and bookkeeping."""
+    run = fit_overrides(p["max_steps"], p["val_every"], run_dir, seed=seed)
+    result = fit(name, [*run, *data_overrides(args, p)])
+    lc_final = _last_logged(result.trainer, "train/lc")  # before testing, which resets the logged metrics
+    load_weights(result.model, result.best_checkpoint)
+    tested = result.trainer.test(result.model, datamodule=result.datamodule, verbose=False)[0]
+    dm: Any = result.datamodule
     return {
-        "config": str(config),
+        "method": name,
+        "configs": list(METHODS[name].config_files()),
         "seed": seed,
-        "train_s": round(train_s, 1),
-        "steps": int(cli.trainer.global_step),
-        "best_ckpt": best,
-        "num_test_pairs": len(cli.datamodule.test_set),
-        "num_points": cli.datamodule.hparams.num_points,
-        "batch_size": cli.datamodule.hparams.batch_size,
+        "train_s": round(result.seconds, 1),
+        "steps": int(result.trainer.global_step),
+        "best_ckpt": str(result.best_checkpoint),
+        "num_test_pairs": len(dm.test_set),
+        "num_points": dm.hparams.num_points,
+        "batch_size": dm.hparams.batch_size,
         "lc_final": lc_final,
         **{k: float(tested[f"test/{k}"]) for k in METRICS},
     }
@@ -120,37 +132,38 @@ def lc_trajectory(row: dict[str, Any]) -> tuple[float, float, float] | None:
     return float(steps[0]["train/lc_step"]), float(steps[-1]["train/lc_step"]), float(steps[-1]["train/loss_step"])
 
 
-def _mean_std(values: list[float], digits: int) -> str:
-    std = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.fmean(values):.{digits}f} ± {std:.{digits}f}"
+def _cells(runs: list[dict[str, Any]]) -> list[str]:
+    """mean ± std over seeds of every metric (recall in %)."""
+    cells = []
+    for key in METRICS:
+        if key.startswith("recall"):
+            cells.append(format_mean_std([r[key] for r in runs], ".1f", ".1f", scale=100.0) + " %")
+        else:
+            digits = ".2f" if key.endswith("deg") else ".4f"
+            cells.append(format_mean_std([r[key] for r in runs], digits, digits))
+    return cells
 
 
-def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
+def table(log: ResultLog, args: argparse.Namespace) -> str:
     """Markdown: one line per (host, variant) with mean ± std, then the LC - X differences."""
-    lines = [
-        "| method | " + " | ".join(METRICS.values()) + " | seeds | test pairs | budget | train s/run |",
-        "|---" * (len(METRICS) + 5) + "|",
-    ]
-    verdicts = []
+    header = ["method", *METRICS.values(), "seeds", "test pairs", "budget", "train s/run"]
+    lines, verdicts = [markdown_table(header)], []
     for host in args.hosts:
         by_variant = {}
-        for variant, suffix in (("X", ""), ("LC + X", "_lc")):
-            config = str(Path(args.config_dir) / f"{host}{suffix}.yaml")
-            runs = [r for r in rows if r["config"] == config and r["seed"] in args.seeds]
+        for variant, name in variants(host).items():
+            runs = [r for seed in args.seeds if (r := log.find(method=name, seed=seed)) is not None]
             if not runs:
                 continue
             by_variant[variant] = runs
-            name = NAMES.get(host, host) if variant == "X" else f"LC + {NAMES.get(host, host)}"
-            cells = [_mean_std([r[k] for r in runs], 2 if k.endswith("deg") else 4) for k in METRICS]
-            cells[-1] = _mean_std([100 * r["recall_r2_t0p01"] for r in runs], 1) + " %"
-            train_s = statistics.fmean(r["train_s"] for r in runs)
             r0 = runs[0]
-            plan = f"{r0['steps']} steps x {r0['batch_size']} pairs x {r0['num_points']} pts"
-            tail = f" | {len(runs)} | {r0['num_test_pairs']} | {plan} | {train_s:.0f} |"
-            lines.append(f"| {name} | " + " | ".join(cells) + tail)
+            budget = f"{r0['steps']} steps x {r0['batch_size']} pairs x {r0['num_points']} pts"
+            train_s = f"{statistics.fmean(r['train_s'] for r in runs):.0f}"
+            lines.append(
+                markdown_row([METHODS[name].label, *_cells(runs), len(runs), r0["num_test_pairs"], budget, train_s])
+            )
         if len(by_variant) == 2:
-            verdicts.append(_verdict(NAMES.get(host, host), by_variant["X"], by_variant["LC + X"]))
-            verdicts.append(_lc_share(NAMES.get(host, host), by_variant["LC + X"]))
+            verdicts.append(_verdict(METHODS[host].label, by_variant["X"], by_variant["LC + X"]))
+            verdicts.append(_lc_share(METHODS[host].label, by_variant["LC + X"]))
     return "\n".join(lines) + "\n\n" + "\n".join(verdicts) + "\n"
 
 
@@ -183,11 +196,22 @@ def _lc_share(name: str, runs: list[dict[str, Any]]) -> str:
     )
 
 
-def main() -> None:
+def header(args: argparse.Namespace) -> str:
+    """Title, command and budget description."""
+    data = "embedded synthetic shapes, smoke run" if args.smoke else f"{Path(args.root).name}, {args.protocol}"
+    return (
+        f"# LC + X on ModelNet40 ({data})\n\n"
+        f"Command: `python benchmarks/lc_plus_x.py {args.command}`\n\n"
+        f"Machine: {machine_line()}. Budget per run: the optimiser steps, pairs per batch and points per cloud in the "
+        "table (the same for X and LC + X), validation three times per run, checkpoint chosen on val/rre_mean_deg, "
+        "tested once on the same test pairs.\n\n"
+    )
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--hosts", nargs="+", default=["dcp", "prnet", "idam", "deepgmr"])
+    parser.add_argument("--hosts", nargs="+", default=HOSTS, choices=HOSTS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--config-dir", default="configs")
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
     parser.add_argument("--max-steps", type=int, default=120)
@@ -202,40 +226,38 @@ def main() -> None:
     )
     parser.add_argument("--num-workers", type=int, default=0)
     parser.add_argument("--run-dir", default="runs/lc_plus_x")
-    parser.add_argument("--out", default="docs/results/lc_plus_x.md")
-    args = parser.parse_args()
+    parser.add_argument("--out", default=None, help="Markdown table (default docs/results/lc_plus_x.md)")
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    args.command = " ".join(sys.argv[1:] if argv is None else argv)
+    if args.smoke:
+        vars(args).update(SMOKE)
+    args.out = output_path(args.out, "lc_plus_x.md", args.smoke) or Path("docs/results/lc_plus_x.md")
+    if args.smoke:
+        args.run_dir = str(args.out.parent / "runs")
+    return args
 
-    out = Path(args.out)
-    jsonl = out.with_suffix(".jsonl")
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines()] if jsonl.exists() else []
+
+def read_log(path: Path) -> ResultLog:
+    """Finished runs; rows written before the registry (keyed by ``config``) get their method from the file name."""
+    log = ResultLog(path, key=("method", "seed"))
+    for row in log.rows:
+        row.setdefault("method", Path(row.get("config", "")).stem)
+    return log
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    log = read_log(args.out.with_suffix(".jsonl"))
     for host in args.hosts:
-        for suffix in ("", "_lc"):
-            config = Path(args.config_dir) / f"{host}{suffix}.yaml"
+        for name in variants(host).values():
             for seed in args.seeds:
-                if any(r["config"] == str(config) and r["seed"] == seed for r in rows):
+                if log.done(method=name, seed=seed):
                     continue
-                run_dir = Path(args.run_dir) / f"{host}{suffix}" / f"seed{seed}"
-                row = run_one(config, seed, args, run_dir, budget(host, args))
-                rows.append(row)
-                jsonl.parent.mkdir(parents=True, exist_ok=True)
-                with jsonl.open("a") as fh:
-                    fh.write(json.dumps(row) + "\n")
-                print(json.dumps(row), flush=True)
-
-    header = (
-        f"# LC + X on ModelNet40 ({Path(args.root).name}, {args.protocol})\n\n"
-        f"Command: `python benchmarks/lc_plus_x.py --hosts {' '.join(args.hosts)} "
-        f"--seeds {' '.join(map(str, args.seeds))} --max-steps {args.max_steps} --val-every {args.val_every}"
-        + (f" --batch-size {args.batch_size}" if args.batch_size else "")
-        + (f" --num-points {args.num_points}" if args.num_points else "")
-        + (f" --host-budget {' '.join(args.host_budget)}" if args.host_budget else "")
-        + f"`\n\nMachine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads. Budget per run: the optimiser steps, pairs per batch and points per "
-        "cloud in the table (the same for X and LC + X), validation three times per run, checkpoint chosen on "
-        "val/rre_mean_deg, tested once on the same test pairs.\n\n"
-    )
-    out.write_text(header + table(rows, args))
-    print(out.read_text())
+                row = run_one(name, seed, args, Path(args.run_dir) / name / f"seed{seed}", plan(host, args))
+                print(log.append(row), flush=True)
+    write_text(args.out, header(args) + table(log, args))
+    print(args.out.read_text())
 
 
 if __name__ == "__main__":

@@ -24,9 +24,13 @@ method: ``configs/icp.yaml`` and ``configs/icp_plane.yaml`` are two baselines) a
 global methods (their job is to land in ICP's basin); candidates = configurations within 0.02 of the best score
 (about one pair per noise level); among them the lowest mean rotation error (averaged over the noise levels).
 
+The grid builds the Open3D classes directly from the explicit parameters above: it chooses the values the configs
+then spell out, so it cannot start from them.
+
 Usage (from the repository root)::
 
     python benchmarks/tune_classical.py --out docs/results/tune_classical.md
+    python benchmarks/tune_classical.py --smoke      # seconds, two synthetic pairs per noise level
 """
 
 from __future__ import annotations
@@ -37,13 +41,22 @@ import platform
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 import torch
 
 from lcreg.baselines.classical import FGR, ICP, RANSAC, FeatureRegistration
-from lcreg.data.datamodule import ModelNet40DataModule
+from lcreg.benchmarking import (
+    add_smoke_argument,
+    markdown_row,
+    markdown_table,
+    output_path,
+    pair_batches,
+    timed,
+    write_text,
+)
 from lcreg.metrics.functional import rotation_error_deg, translation_error
 from lcreg.types import RegistrationBatch
 
@@ -126,11 +139,15 @@ class Config:
         return float(np.mean([r.rot_mean for r in self.rows]))
 
 
-def load_pairs(root: str, noise: float) -> list[RegistrationBatch]:
-    """The deterministic validation batches at ``noise``."""
-    dm = ModelNet40DataModule(root=root, num_points=1024, batch_size=32, seed=1234, noise_sigma=noise)
-    dm.setup("fit")
-    return list(dm.val_dataloader())
+def load_pairs(root: str | None, noise: float, smoke: bool) -> list[RegistrationBatch]:
+    """The deterministic validation batches at ``noise`` (two synthetic pairs of 64 points in a smoke run)."""
+    sizes = {"pairs": 2, "num_points": 64, "batch_size": 2} if smoke else {"num_points": 1024, "batch_size": 32}
+    return pair_batches(None if smoke else root, "val", seed=1234, noise_sigma=noise, **sizes)[0]
+
+
+def register_all(model: ICP, batches: Sequence[RegistrationBatch]) -> torch.Tensor:
+    """Predicted transforms ``(P, 4, 4)`` of every pair, through the public ``register`` entry point."""
+    return torch.cat([model.register(b.points_src, b.points_ref).transform_ref_src for b in batches])
 
 
 def ground_truth(batches: Sequence[RegistrationBatch]) -> torch.Tensor:
@@ -182,10 +199,8 @@ def run_icp(params: dict[str, Any], data: Data) -> Config:
     model = ICP(**ICP_FIXED, **params)
     config = Config(params)
     for noise, batches in data.items():
-        start = time.perf_counter()
-        pred = torch.cat([model.register(b.points_src, b.points_ref).transform_ref_src for b in batches])
-        ms = (time.perf_counter() - start) * 1000 / len(pred)
-        config.rows.append(make_row(noise, pred, ground_truth(batches), ms))
+        pred, seconds = timed(partial(register_all, model, batches))
+        config.rows.append(make_row(noise, pred, ground_truth(batches), seconds * 1000 / len(pred)))
     return config
 
 
@@ -220,11 +235,21 @@ class Featured:
 def featurize(voxel: float, downsample: bool, batches: Sequence[RegistrationBatch]) -> Featured:
     """Downsample (if set), normals and FPFH of every pair, timed per pair."""
     model = RANSAC(voxel_size=voxel, downsample=downsample, **RANSAC_FIXED, distance_factor=1.5)
-    start = time.perf_counter()
-    src = [model.prepare(p.double().numpy(), "points_src") for b in batches for p in b.points_src]
-    ref = [model.prepare(p.double().numpy(), "points_ref") for b in batches for p in b.points_ref]
-    fs, fr = [model.features(p) for p in src], [model.features(p) for p in ref]
-    return Featured(src, ref, fs, fr, (time.perf_counter() - start) * 1000 / len(src))
+
+    def prepare() -> Featured:
+        src = [model.prepare(p.double().numpy(), "points_src") for b in batches for p in b.points_src]
+        ref = [model.prepare(p.double().numpy(), "points_ref") for b in batches for p in b.points_ref]
+        return Featured(src, ref, [model.features(p) for p in src], [model.features(p) for p in ref], 0.0)
+
+    featured, seconds = timed(prepare)
+    featured.ms = seconds * 1000 / len(featured.sources)
+    return featured
+
+
+def register_featured_all(model: FeatureRegistration, feats: Featured) -> list[Any]:
+    """The method's results on every prepared pair."""
+    items = zip(feats.sources, feats.targets, feats.feat_src, feats.feat_ref)
+    return [model.register_featured(s, t, a, b) for s, t, a, b in items]
 
 
 def run_featured(
@@ -233,12 +258,8 @@ def run_featured(
     """A RANSAC/FGR variant on cached features; the config and its predictions per noise level."""
     config, preds = Config(params), {}
     for noise, feats in cache.items():
-        start = time.perf_counter()
-        outs = [
-            model.register_featured(s, t, a, b)
-            for s, t, a, b in zip(feats.sources, feats.targets, feats.feat_src, feats.feat_ref)
-        ]
-        ms = (time.perf_counter() - start) * 1000 / len(outs) + feats.ms
+        outs, seconds = timed(partial(register_featured_all, model, feats))
+        ms = seconds * 1000 / len(outs) + feats.ms
         preds[noise] = torch.as_tensor(np.stack([o.transform for o in outs]))
         config.rows.append(make_row(noise, preds[noise], ground_truth(data[noise]), ms))
     return config, preds
@@ -284,6 +305,11 @@ def tune_features(data: Data, t0: float) -> FeatureTuning:
     return out
 
 
+def refine_all(icp: ICP, batches: Sequence[RegistrationBatch], inits: Sequence[torch.Tensor]) -> torch.Tensor:
+    """ICP of every pair from the given estimates ``(B, 4, 4)`` per batch; predictions ``(P, 4, 4)``."""
+    return torch.cat([icp(b.points_src, b.points_ref, init=i).transform_ref_src for b, i in zip(batches, inits)])
+
+
 def refine_rows(init: dict[float, torch.Tensor], data: Data, icp_chosen: dict[str, Config]) -> list[str]:
     """ICP from the given estimates: tight gates, then the chosen (identity-start) ICP configurations."""
     variants: list[tuple[str, dict[str, Any]]] = []
@@ -299,13 +325,9 @@ def refine_rows(init: dict[float, torch.Tensor], data: Data, icp_chosen: dict[st
         cells = []
         for noise, batches in data.items():
             inits = init[noise].float().split([len(b) for b in batches])
-            start = time.perf_counter()
-            pred = torch.cat(
-                [icp(b.points_src, b.points_ref, init=i).transform_ref_src for b, i in zip(batches, inits)]
-            )
-            ms = (time.perf_counter() - start) * 1000 / len(pred)
-            cells.append(make_row(noise, pred, ground_truth(batches), ms).cell())
-        lines.append(f"| + ICP {label} | " + " | ".join(cells) + " |")
+            pred, seconds = timed(partial(refine_all, icp, batches, inits))
+            cells.append(make_row(noise, pred, ground_truth(batches), seconds * 1000 / len(pred)).cell())
+        lines.append(markdown_row([f"+ ICP {label}", *cells]))
     return lines
 
 
@@ -322,9 +344,8 @@ def fmt_params(params: dict[str, Any]) -> str:
 
 def header(first: str, score: bool = True) -> list[str]:
     """Table header with one column per noise level (and a score column)."""
-    cols = " | ".join(f"σ={n}: mean / median RRE °, recall (2°,0.01) / (5°,0.05), ms/pair" for n in NOISES)
-    last = " score |" if score else ""
-    return [f"| {first} | {cols} |{last}", "|---|" + "---|" * (len(NOISES) + int(score))]
+    cols = [f"σ={n}: mean / median RRE °, recall (2°,0.01) / (5°,0.05), ms/pair" for n in NOISES]
+    return markdown_table([first, *cols, *(["score"] if score else [])]).splitlines()
 
 
 def table(configs: Sequence[Config], strict: bool, chosen: Sequence[Config]) -> list[str]:
@@ -332,8 +353,7 @@ def table(configs: Sequence[Config], strict: bool, chosen: Sequence[Config]) -> 
     lines = header("config")
     for c in configs:
         mark = " **(chosen)**" if any(c is k for k in chosen) else ""
-        cells = " | ".join(r.cell() for r in c.rows)
-        lines.append(f"| {fmt_params(c.params)}{mark} | {cells} | {c.score(strict):.3f} |")
+        lines.append(markdown_row([fmt_params(c.params) + mark, *(r.cell() for r in c.rows), f"{c.score(strict):.3f}"]))
     return lines
 
 
@@ -400,11 +420,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Run the grid and write the markdown report."""
     parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
-    parser.add_argument("--out", default="docs/results/tune_classical.md")
+    parser.add_argument("--out", default=None, help="Markdown report (default docs/results/tune_classical.md)")
+    add_smoke_argument(parser)
     args = parser.parse_args(argv)
+    args.out = output_path(args.out, "tune_classical.md", args.smoke) or "docs/results/tune_classical.md"
 
     t0 = time.perf_counter()
-    data = {noise: load_pairs(args.root, noise) for noise in NOISES}
+    data = {noise: load_pairs(args.root, noise, args.smoke) for noise in NOISES}
     print(f"validation pairs per noise level: { {n: sum(len(b) for b in bs) for n, bs in data.items()} }", flush=True)
     icp_configs, icp_chosen = tune_icp(data, t0)
     feats = tune_features(data, t0)
@@ -447,14 +469,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "fgr": table(feats.fgr, False, [fgr_best]),
         "refine": [
             *header("estimate (ms/pair: RANSAC incl. FPFH; ICP rows: the ICP step only)", score=False),
-            f"| RANSAC alone ({fmt_params(ransac_best.params)}) | "
-            + " | ".join(r.cell() for r in ransac_best.rows)
-            + " |",
+            markdown_row([f"RANSAC alone ({fmt_params(ransac_best.params)})", *(r.cell() for r in ransac_best.rows)]),
             *refine,
         ],
     }
-    with open(args.out, "w", encoding="utf-8") as fh:
-        fh.write("\n".join(report(args, data, elapsed, sections)))
+    write_text(args.out, "\n".join(report(args, data, elapsed, sections)))
     print(f"wrote {args.out} in {elapsed:.0f}s")
 
 

@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from lcreg.evaluation import evaluate, markdown_table
+from lcreg.benchmarking import report_table
+from lcreg.evaluation import evaluate
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -36,7 +37,7 @@ def test_evaluate_perfect_and_failed_estimates() -> None:
     assert report.metrics["recall_r2_t0p01"] == pytest.approx(5 / 6)
     assert report.metrics["rre_median_deg"] == pytest.approx(0.0, abs=1e-3)
     assert torch.isnan(report.rotation_error_deg[5]) and report.rotation_error_deg[:5].abs().max() < 1e-3
-    table = markdown_table([report])
+    table = report_table([report])
     assert "| oracle |" in table and "83.3 %" in table and table.count("\n") == 2
 
 
@@ -47,7 +48,7 @@ def test_evaluate_needs_ground_truth() -> None:
 
 
 def test_mean_std_row_over_seeds() -> None:
-    from lcreg.evaluation import mean_std_row
+    from lcreg.benchmarking import mean_std_row
 
     gt, _ = random_euler_transform(4, generator=torch.Generator().manual_seed(2))
     bad = gt.clone()

@@ -1,0 +1,122 @@
+"""The benchmark harness: every script in ``benchmarks/`` is a thin front end of this package.
+
+* :mod:`~lcreg.benchmarking.registry`: the methods by name (label, config files, learned or not, refinement);
+* :mod:`~lcreg.benchmarking.building`: :func:`build` a method as ``lcreg test`` does, :func:`load_weights`;
+* :mod:`~lcreg.benchmarking.measure`: :func:`timed` (the one timing primitive, synchronised on CUDA), medians of
+  repeats, registration speed, peak memory, fresh-process measurements;
+* :mod:`~lcreg.benchmarking.training`: :func:`training_loss` and short :func:`fit` runs with a step budget;
+* :mod:`~lcreg.benchmarking.data`: deterministic benchmark pairs and the synthetic data of ``--smoke`` runs;
+* :mod:`~lcreg.benchmarking.writers`: Markdown tables, ``mean ± std``, resumable JSONL results;
+* :mod:`~lcreg.benchmarking.options`: command-line pieces of the scripts (``key=value``, budgets, ``--smoke``).
+"""
+
+from __future__ import annotations
+
+from lcreg.benchmarking.building import (
+    CheckpointError,
+    CheckpointFormatError,
+    CheckpointMismatchError,
+    CheckpointNotFoundError,
+    CheckpointReadError,
+    build,
+    build_cli_for,
+    cli_arguments,
+    load_weights,
+    save_weights,
+)
+from lcreg.benchmarking.data import pair_batches, split_batches, synthetic_options, synthetic_overrides
+from lcreg.benchmarking.measure import (
+    RegistrationSpeed,
+    Timing,
+    device_of,
+    peak_rss_mib,
+    registration_speed,
+    run_fresh_process,
+    synchronize,
+    time_call,
+    time_calls,
+    timed,
+)
+from lcreg.benchmarking.options import Budget, add_smoke_argument, key_values
+from lcreg.benchmarking.registry import (
+    DATA_CONFIGS,
+    METHODS,
+    REFINE_CONFIG,
+    VOXELIZE_CONFIG,
+    MethodSpec,
+    cli_args,
+    config_dir,
+    config_path,
+    data_config,
+    method,
+    voxelize_overrides,
+)
+from lcreg.benchmarking.training import SELECTION_METRIC, FitResult, fit, fit_overrides, training_loss
+from lcreg.benchmarking.writers import (
+    REPORT_COLUMNS,
+    ResultLog,
+    format_mean_std,
+    machine_line,
+    markdown_row,
+    markdown_table,
+    mean_std_row,
+    output_path,
+    report_table,
+    write_text,
+)
+
+__all__ = [
+    "DATA_CONFIGS",
+    "METHODS",
+    "REFINE_CONFIG",
+    "REPORT_COLUMNS",
+    "SELECTION_METRIC",
+    "VOXELIZE_CONFIG",
+    "Budget",
+    "CheckpointError",
+    "CheckpointFormatError",
+    "CheckpointMismatchError",
+    "CheckpointNotFoundError",
+    "CheckpointReadError",
+    "FitResult",
+    "MethodSpec",
+    "RegistrationSpeed",
+    "ResultLog",
+    "Timing",
+    "add_smoke_argument",
+    "build",
+    "build_cli_for",
+    "cli_args",
+    "cli_arguments",
+    "config_dir",
+    "config_path",
+    "data_config",
+    "device_of",
+    "fit",
+    "fit_overrides",
+    "format_mean_std",
+    "key_values",
+    "load_weights",
+    "machine_line",
+    "markdown_row",
+    "markdown_table",
+    "mean_std_row",
+    "method",
+    "output_path",
+    "pair_batches",
+    "peak_rss_mib",
+    "registration_speed",
+    "report_table",
+    "run_fresh_process",
+    "save_weights",
+    "split_batches",
+    "synchronize",
+    "synthetic_options",
+    "synthetic_overrides",
+    "time_call",
+    "time_calls",
+    "timed",
+    "training_loss",
+    "voxelize_overrides",
+    "write_text",
+]

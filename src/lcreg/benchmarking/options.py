@@ -1,0 +1,61 @@
+"""Command-line pieces shared by the benchmark scripts: ``key=value`` lists, training budgets, ``--smoke``."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+__all__ = ["Budget", "add_smoke_argument", "key_values"]
+
+
+def key_values(items: Sequence[str], option: str) -> dict[str, str]:
+    """``["dvds=a.ckpt", "dcp=b.ckpt"]`` as a dict.
+
+    Raises:
+        SystemExit: If an item has no ``=`` or an empty side (the message names ``option``).
+    """
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if not key or not value:
+            raise SystemExit(f"{option} expects key=value, got {item!r}")
+        out[key] = value
+    return out
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A training budget: optimiser steps, points per cloud and pairs per batch."""
+
+    steps: int
+    points: int
+    batch: int
+
+    @classmethod
+    def parse(cls, text: str, option: str = "budget") -> Budget:
+        """``"steps,points,batch"`` (e.g. ``"200,512,16"``).
+
+        Raises:
+            SystemExit: If ``text`` is not three positive integers.
+        """
+        try:
+            steps, points, batch = (int(v) for v in text.split(","))
+        except ValueError:
+            raise SystemExit(f"{option} expects steps,points,batch (three integers), got {text!r}") from None
+        if min(steps, points, batch) < 1:
+            raise SystemExit(f"{option} values must be positive, got {text!r}")
+        return cls(steps, points, batch)
+
+    def __str__(self) -> str:
+        return f"{self.steps},{self.points},{self.batch}"
+
+
+def add_smoke_argument(parser: argparse.ArgumentParser) -> None:
+    """``--smoke``: run in seconds on tiny embedded synthetic pairs, untrained weights allowed (checks, no figures)."""
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="check that the script runs: a few seconds on tiny embedded synthetic pairs (no data files, untrained "
+        "weights allowed, output under --out or a temporary folder); the figures mean nothing",
+    )
