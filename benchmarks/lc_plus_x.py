@@ -4,8 +4,8 @@
         --out docs/results/lc_plus_x.md
     python benchmarks/lc_plus_x.py --smoke           # seconds: DCP and LC + DCP, 2 steps on synthetic pairs
 
-For every host, variant (the registered method X, ``configs/models/<host>.yaml``, and LC + X, the same plus ``configs/lc.yaml``) and
-seed, the run
+For every host, variant (the registered method X, ``configs/models/<host>.yaml``, and LC + X, the same plus
+``configs/lc.yaml``) and seed, the run
 1. builds model and data from the config through the CLI (the configs are what is measured), with
    ``seed_everything = seed`` (initialisation and training order; the LC metric has its own seed, so X and LC + X
    start from the same host weights) and the data's pair seed fixed at 1234 (the same validation and test pairs

@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_geometry.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_geometry.py"
 
 
 def test_smoke_run_reports_identical_values() -> None:
