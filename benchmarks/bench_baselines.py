@@ -47,12 +47,6 @@ SMOKE = {"sizes": (64,), "pairs": 2, "batch_sizes": [1, 2], "repeats": 1, "train
 SEED = ["--seed_everything=0"]  # X and LC + X start from the same host weights
 
 
-def feature_dim(model: RegistrationModule, batch: RegistrationBatch) -> int:
-    """Output width of the host's encoder (what LC is built for)."""
-    with torch.no_grad():
-        return int(model.lc_encoder()(batch.points_src[:1, :64]).shape[-1])  # type: ignore[operator]
-
-
 def train_step(model: RegistrationModule, batch: RegistrationBatch, opt: torch.optim.Optimizer) -> None:
     """One optimisation step on the full training loss."""
     opt.zero_grad()
@@ -67,7 +61,7 @@ def lc_overhead(host: str, batch: RegistrationBatch, device: str, repeats: int) 
     opts = {v: torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=1e-4) for v, m in models.items()}
     steps = {v: partial(train_step, models[v], batch, opts[v]) for v in models}
     t_x, t_lc = (t.median_s for t in time_calls(steps, repeats, warmup=1, device=device).values())
-    k = feature_dim(models["X"], batch)
+    k = models["X"].descriptor_dim  # the width LC is bound to
     return [METHODS[host].label, k, f"{1000 * t_x:.0f}", f"{1000 * t_lc:.0f}", f"{100 * (t_lc / t_x - 1):+.1f} %"]
 
 

@@ -46,17 +46,28 @@ from lcreg.benchmarking import (
     training_loss,
     voxelize_overrides,
 )
+from lcreg.cli import expand_configs
 from lcreg.evaluation import evaluate
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationResult
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
+
+def _lc_terms(num_local_points: int) -> list[dict]:
+    """configs/lc.yaml's term with a smaller |X1|, as a --model.init_args.loss_terms value."""
+    lc = {
+        "class_path": "lcreg.nn.local_consistency.LocalConsistency",
+        "init_args": {"num_local_points": num_local_points},
+    }
+    return [{"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss", "init_args": {"local_consistency": lc}}]
+
+
 TINY_DVDS = cli_args(
     "model",
     {
         "encoder_channels": [8, 16],
-        "num_local_points": 16,
+        "loss_terms": _lc_terms(16),
         "decoder_grid_size": 4,
         "decoder_hidden": [8],
         "normal_hidden": [8],
@@ -79,7 +90,8 @@ class FakeClock:
 
 def _model_class(spec_configs: tuple[str, ...]) -> str:
     """The ``model.class_path`` of the last config of a method that has a model block."""
-    paths = [yaml.safe_load(config_path(c).read_text()).get("model", {}).get("class_path") for c in spec_configs]
+    files = expand_configs([arg for c in spec_configs for arg in ("--config", str(config_path(c)))])[1::2]
+    paths = [(yaml.safe_load(Path(f).read_text()) or {}).get("model", {}).get("class_path") for f in files]
     return [p for p in paths if p][-1]
 
 
@@ -98,7 +110,7 @@ def test_registry_links_point_to_registered_methods() -> None:
         assert spec.weights_from in (None, *METHODS) and spec.lc_variant in (None, *METHODS)
         if spec.lc_variant:
             assert METHODS[spec.lc_variant].learned and spec.learned
-    assert METHODS["ransac_icp"].config_files() == ("ransac.yaml", REFINE_CONFIG)
+    assert METHODS["ransac_icp"].config_files() == ("models/ransac.yaml", "data/modelnet40.yaml", REFINE_CONFIG)
     with pytest.raises(KeyError, match="unknown method 'nope'; known: dvds"):
         method("nope")
     with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
@@ -136,7 +148,7 @@ def test_cli_args_write_json_and_skip_none() -> None:
         "--model.init_args.e=x",
         "--model.init_args.f=null",
     ]
-    assert voxelize_overrides(normalize=False) == ["--voxelize.init_args.normalize=false"]
+    assert voxelize_overrides(normalize=False) == ["--model.init_args.voxel_grid.init_args.normalize=false"]
 
 
 # --- checkpoints ---------------------------------------------------------------------------------------------------
@@ -243,16 +255,14 @@ def test_training_loss_includes_injected_local_consistency() -> None:
     model = build(
         "dcp_lc",
         overrides=[
-            *cli_args("model", {"emb_dims": 16, "ff_dims": 16, "k": 4}),
-            "--model.init_args.local_consistency.init_args.feature_dim=16",
-            "--model.init_args.local_consistency.init_args.num_local_points=8",
+            *cli_args("model", {"emb_dims": 16, "ff_dims": 16, "k": 4, "loss_terms": _lc_terms(8)}),
         ],
     )
     batch = pair_batches(None, pairs=2, num_points=32, batch_size=2)[0][0]
     torch.manual_seed(0)
     losses = training_loss(model.train(), batch)
     torch.manual_seed(0)
-    host_only = model.compute_loss(model.training_forward(batch), batch)  # what the pilot regression measured
+    host_only = model._compute_loss(model.training_forward(batch), batch)  # what the pilot regression measured
     assert "lc" in losses and "lc" not in host_only
     total = host_only["loss"] + losses["lc"]
     assert float(losses["loss"].detach()) == pytest.approx(float(total.detach()), rel=1e-5)

@@ -76,7 +76,7 @@ parameter                default (absolute)   what it does                      
 ``tuple_test``           True                 run the tuple consistency test                  FGR paper / Open3D value
 =======================  ===================  ==============================================  ==========================
 
-``configs/icp_plane.yaml`` runs point-to-plane ICP with its own validation choice, ``voxel_size=0.08`` (gate
+``configs/models/icp_plane.yaml`` runs point-to-plane ICP with its own validation choice, ``voxel_size=0.08`` (gate
 0.64, normal radius 0.16); the :class:`ICP` defaults are the point-to-point choice.
 
 ``result.aux`` holds Open3D's ``"fitness"`` and ``"inlier_rmse"`` ``(B,)`` per pair. ``converged`` is

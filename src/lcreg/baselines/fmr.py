@@ -13,7 +13,7 @@ Faithful to ``XiaoshuiHuang/fmr`` (``reference/baselines.md`` section 6):
 * unsupervised loss (``--train-type 0``, the default): ``CD(X, dec(psi(X))) + CD(Y, dec(psi(Y)))`` with squared
   nearest-neighbour distances, mean per direction, directions summed; ``pose_weight > 0`` adds the
   semi-supervised term ``16 MSE(T T_gt^-1, I)`` (``--train-type 1``);
-* Adam, lr 1e-3, batch 8 (``configs/fmr.yaml``).
+* Adam, lr 1e-3, batch 8 (``configs/models/fmr.yaml``).
 
 Deviations: with ``pose_weight = 0`` training skips the IC-LK solve (the original runs it every step and discards
 the estimate, which the loss does not use: same gradients, less time); ``N`` defaults to 1024 (lcreg's pairs) instead

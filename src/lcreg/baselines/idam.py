@@ -21,7 +21,7 @@ Follows the official code (``jiahaowork/idam``, commit ``766c1b76``, ``model.py`
    sum 1) feed a weighted Procrustes fit (:func:`procrustes_step`). ``R, t`` are detached as in the original; the
    source is moved and the transform composed.
 
-Losses (mutual supervision, every weight 1, no pose loss), :meth:`IDAM.compute_loss`:
+Losses (mutual supervision, every weight 1, no pose loss), ``IDAM._compute_loss``:
 
 * ``score``: iteration 0 only, ``MSE(s_src, sum_j p_ij log p_ij) + MSE(s_ref, sum_i q_ij log q_ij)`` with ``p``/``q``
   the row/column softmax of the similarity, the targets detached (:func:`negative_entropy`);

@@ -22,14 +22,14 @@ safe norm whose gradient is 0 there.
 
 Faithful: encoder (no BN), regressor widths and order of the concatenation ``[reference, source]``, quaternion +
 translation output, 8 iterations with the reference feature computed once, end-to-end gradients, centring,
-Chamfer loss (scale included), Adam lr 1e-3, batch 20, 200 epochs (``configs/pcrnet.yaml``).
+Chamfer loss (scale included), Adam lr 1e-3, batch 20, 200 epochs (``configs/models/pcrnet.yaml``).
 
 Deviations from the reference:
 
 * Data protocol: the reference trains on ModelNet40 with the *same* points in both clouds, a source rotated by Euler
   ``'xyz'`` angles ``U[-45, 45]`` deg and translated ``U[-1, 1]`` per axis, drawn once per shape at construction.
   Here lcreg's ModelNet40 protocol is used (unseen objects, independent samplings, Euler ``U[0, 45]`` deg,
-  ``t U[-0.5, 0.5]``, fresh transforms every epoch): see ``configs/pcrnet.yaml``.
+  ``t U[-0.5, 0.5]``, fresh transforms every epoch): see ``configs/models/pcrnet.yaml``.
 * Checkpoints are selected on ``val/rre_mean_deg`` (validation pairs) instead of the test loss.
 * The estimate is composed as a ``(B, 4, 4)`` matrix product. (``learning3d``'s ``iPCRNet`` rotates the *rows* of
   its running ``est_R`` like points, which accumulates the transpose of the composed rotation; its moved source,
@@ -37,7 +37,7 @@ Deviations from the reference:
 * ``identity_init`` (an option, off by default as in the reference) zeroes the output layer's weights and sets its
   bias to the identity pose, so every delta starts at the identity instead of a near-random rotation (a
   default-initialised output layer gives a small random quaternion, which normalises to an arbitrary rotation).
-  It is not the default because it showed no clear gain in a short CPU run (``configs/pcrnet.yaml``, 512 points,
+  It is not the default because it showed no clear gain in a short CPU run (``configs/models/pcrnet.yaml``, 512 points,
   batch 20, seed 0, 200 steps; ``docs/results/compare_methods.md``): validation mean RRE after 50/100/150/200 steps
   was 92.1/91.5/102.9/85.2 deg with the reference initialisation and 21.2/21.1/21.1/21.1 deg with
   ``identity_init``. Neither had learnt per-pair rotations: on the 164 test pairs the identity-init checkpoint

@@ -12,7 +12,7 @@ Faithful to ``hmgoforth/PointNetLK`` (see ``reference/baselines.md`` section 5.1
 * before the solve, one train-mode encoder pass over both clouds updates BatchNorm's running statistics; the
   solve then runs the encoder in eval mode;
 * loss ``||r||^2 + 16 MSE(T T_gt^-1, I_4)`` with ``r`` the feature residual of the last iteration;
-* Adam, lr 1e-3, no weight decay, no scheduler (``configs/pointnetlk.yaml``).
+* Adam, lr 1e-3, no weight decay, no scheduler (``configs/models/pointnetlk.yaml``).
 
 Deviations: ``||r||^2`` is summed over features and averaged over the batch (the original sums over the batch
 too, so its weight grows with the batch size); ``J^T J`` gets a relative damping of 1e-6 (the original inverts it

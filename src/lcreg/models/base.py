@@ -180,7 +180,7 @@ class RegistrationModule(LightningModule):
         self.save_hyperparameters(ignore=list(COMPONENT_ARGS), frame=frame.f_back if frame else None)
 
     def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
-        """The forward pass whose result ``compute_loss`` receives during training.
+        """The forward pass whose result ``training_losses`` receives during training.
 
         Default: ``forward`` on the batch's clouds. Override only when training needs more than the clouds (IDAM
         samples its training points with the ground-truth correspondences).

@@ -44,7 +44,7 @@ __all__ = ["VoxelGrid", "voxel_lk"]
 
 
 class VoxelGrid:
-    """Settings of voxelised IC-LK (a LightningCLI ``voxelize:`` block or :meth:`LucasKanadeModule.set_voxel_grid`).
+    """Settings of voxelised IC-LK (``voxel_grid`` of an LK model; ``configs/voxelize/lk27.yaml``).
 
     Args:
         grid: Voxels per axis (``K = grid^3``; paper: 27 voxels, ``grid = 3``).
