@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -27,6 +26,7 @@ from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from lcreg.benchmarking import (
     add_smoke_argument,
+    apply_smoke,
     build,
     cli_args,
     machine_line,
@@ -106,11 +106,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
     args.sizes, args.batch_sizes = SIZES, BATCH_SIZES
-    if args.smoke:
-        vars(args).update(SMOKE)
-    if args.smoke or not (args.root and Path(args.root).is_dir()):
-        args.root = None  # the embedded synthetic shapes
-    return args
+    return apply_smoke(args, SMOKE)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

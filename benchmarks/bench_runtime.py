@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from pathlib import Path
 
 import torch
 
@@ -26,6 +25,7 @@ from lcreg.benchmarking import (
     METHODS,
     RegistrationSpeed,
     add_smoke_argument,
+    apply_smoke,
     build,
     key_values,
     machine_line,
@@ -86,11 +86,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
     args.sizes = SIZES
-    if args.smoke:
-        vars(args).update(SMOKE)
-    if args.smoke or not (args.root and Path(args.root).is_dir()):
-        args.root = None  # the embedded synthetic shapes
-    return args
+    return apply_smoke(args, SMOKE)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -37,7 +37,7 @@ from lcreg.benchmarking.measure import (
     time_calls,
     timed,
 )
-from lcreg.benchmarking.options import Budget, add_smoke_argument, key_values
+from lcreg.benchmarking.options import Budget, add_smoke_argument, apply_smoke, key_values
 from lcreg.benchmarking.registry import (
     DATA_CONFIGS,
     METHODS,
@@ -84,6 +84,7 @@ __all__ = [
     "ResultLog",
     "Timing",
     "add_smoke_argument",
+    "apply_smoke",
     "build",
     "build_cli_for",
     "cli_args",

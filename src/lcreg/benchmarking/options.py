@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-__all__ = ["Budget", "add_smoke_argument", "key_values"]
+__all__ = ["Budget", "add_smoke_argument", "apply_smoke", "key_values"]
 
 
 def key_values(items: Sequence[str], option: str) -> dict[str, str]:
@@ -59,3 +61,20 @@ def add_smoke_argument(parser: argparse.ArgumentParser) -> None:
         help="check that the script runs: a few seconds on tiny embedded synthetic pairs (no data files, untrained "
         "weights allowed, output under --out or a temporary folder); the figures mean nothing",
     )
+
+
+def apply_smoke(args: argparse.Namespace, smoke: Mapping[str, Any]) -> argparse.Namespace:
+    """Apply a script's ``--smoke`` settings, and use the embedded shapes when ``args.root`` is not a folder.
+
+    Args:
+        args: Parsed arguments with ``smoke`` and ``root``.
+        smoke: The script's smoke settings (tiny sizes, one seed, ...).
+
+    Returns:
+        ``args``, updated in place.
+    """
+    if args.smoke:
+        vars(args).update(smoke)
+    if args.smoke or not (args.root and Path(args.root).is_dir()):
+        args.root = None  # the embedded synthetic shapes
+    return args
