@@ -219,6 +219,8 @@ def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
     for key in ("train/loss", "train/global", "train/lc", "val/loss", "val/rre_mean_deg"):
         assert key in logged and torch.isfinite(logged[key]), key
     assert "train/lc_grad_norm" in logged and float(logged["train/lc_grad_norm"]) > 0
+    for key in ("train/j_cond", "train/j_sensitivity", "train/j_dir_rx", "train/j_dir_tz"):  # J conditioning
+        assert key in logged and 0 < float(logged[key]) < float("inf"), key
     trainer.test(model, datamodule=data)
     assert "test/rre_mean_deg" in trainer.callback_metrics
     assert "test/loss" not in trainer.callback_metrics  # the training losses are not computed at test time

@@ -122,3 +122,57 @@ def test_mixin_refuses_lcreg_models_at_class_creation() -> None:
 
         class _Wrong(RegistrationModule, LocalConsistencyMixin):  # the order that silently dropped LC
             pass
+
+
+def test_self_motion_pairs_are_two_samplings_related_by_the_generated_motion() -> None:
+    from lcreg.geometry import se3
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    points, _, _ = synthetic_shapes(3, 200, seed=1)
+    clouds = torch.tensor(points, dtype=torch.float64)
+    term = SelfMotionLoss(sample_fraction=0.5, max_angle_deg=30.0, max_translation=0.2)
+    torch.manual_seed(0)
+    src, ref, motion = term.make_pairs(clouds)
+    assert src.shape == ref.shape == (3, 100, 3) and motion.shape == (3, 4, 4)
+    back = se3.transform_points(se3.inverse(motion), ref)
+    for cloud, a, b in zip(clouds, src, back, strict=True):
+        # both samplings are subsets of the cloud without repeats, and differ from each other
+        da, db = torch.cdist(a, cloud).min(1).values, torch.cdist(b, cloud).min(1).values
+        assert float(da.max()) < 1e-6 and float(db.max()) < 1e-6
+        assert len(torch.unique(a, dim=0)) == 100 and not torch.equal(a, b)
+    angles = torch.rad2deg(torch.arccos(((motion[:, :3, :3].diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))
+    assert float(angles.max()) <= 30.0 * 3**0.5 and float(motion[:, :3, 3].abs().max()) <= 0.2
+
+
+def test_self_motion_trains_through_the_solve_without_the_dataset_pose(batch: RegistrationBatch) -> None:
+    import dataclasses
+
+    from lcreg.models.dvds import DVDs
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    torch.manual_seed(0)
+    model = DVDs(
+        encoder_channels=(16, 32),
+        lambda_recon=0,
+        lambda_normal=0,
+        lambda_global=0,
+        loss_terms=[SelfMotionLoss(weight=2.0)],
+        diagnostics_every_n_steps=0,
+    ).train()
+    unlabeled = dataclasses.replace(batch, transform_ref_src=None)
+    losses = model.training_losses(model.training_forward(unlabeled), unlabeled)
+    assert set(losses) == {"global", "self_motion", "loss"}
+    torch.testing.assert_close(losses["loss"], 2.0 * losses["self_motion"])  # lambda_global = 0
+    assert float(losses["self_motion"]) > 0
+    losses["loss"].backward()
+    grad = sum(float(p.grad.abs().sum()) for p in model.encoder.parameters() if p.grad is not None)
+    assert grad > 0  # through the differentiable solve, although DVDs' own solve holds the estimate fixed
+    assert not model.solver.differentiable
+
+
+@pytest.mark.parametrize("kwargs", [{"sample_fraction": 0.0}, {"sample_fraction": 1.5}, {"noise_std": -1.0}])
+def test_self_motion_rejects_bad_settings(kwargs: dict[str, float]) -> None:
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        SelfMotionLoss(**kwargs)

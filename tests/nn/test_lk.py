@@ -195,3 +195,40 @@ def test_points_are_validated() -> None:
         InverseCompositionalLK()(enc, good[..., :2], good)
     with pytest.raises(ValueError, match="points_ref"):
         InverseCompositionalLK()(enc, good, good[:1])
+
+
+def test_jacobian_diagnostics_match_numpy_svd_and_see_a_blind_direction() -> None:
+    import numpy as np
+
+    from lcreg.nn.lk import TWIST_NAMES, jacobian_diagnostics
+
+    gen = torch.Generator().manual_seed(0)
+    jac = torch.randn(5, 40, 6, generator=gen, dtype=torch.float64)
+    feat = torch.randn(5, 40, generator=gen, dtype=torch.float64)
+    out = jacobian_diagnostics(jac, feat)
+    sv = np.linalg.svd(jac.numpy(), compute_uv=False)  # (5, 6) descending
+    norm = np.linalg.norm(feat.numpy(), axis=-1)
+    np.testing.assert_allclose(float(out["cond"]), np.median(sv[:, -1] / sv[:, 0]), rtol=1e-10)
+    np.testing.assert_allclose(float(out["sensitivity"]), np.median(sv[:, -1] / norm), rtol=1e-10)
+    cols = np.linalg.norm(jac.numpy(), axis=1) / norm[:, None]
+    for k, name in enumerate(TWIST_NAMES):
+        np.testing.assert_allclose(float(out[f"dir_{name}"]), np.median(cols[:, k]), rtol=1e-10)
+    blind = jac.clone()
+    blind[..., 2] = 0  # the descriptor no longer sees rotations about z
+    out_blind = jacobian_diagnostics(blind, feat)
+    assert float(out_blind["cond"]) < 1e-12 and float(out_blind["dir_rz"]) == 0.0
+
+
+def test_solver_returns_its_jacobian_and_a_per_call_differentiable_override() -> None:
+    src, ref, _ = _problem(b=2, n=64)
+    encoder = _encoder()
+    solver = InverseCompositionalLK(max_iterations=3)
+    plain = solver(encoder, src, ref)
+    _, jac = twist_jacobian(encoder, ref - ref.mean(1, keepdim=True))
+    torch.testing.assert_close(plain.aux["jacobian"], jac)
+    assert not plain.transform_ref_src.requires_grad
+    kept = solver(encoder, src, ref, differentiable=True)
+    assert kept.transform_ref_src.requires_grad and not solver.differentiable
+    torch.testing.assert_close(kept.transform_ref_src.detach(), plain.transform_ref_src)
+    grads = torch.autograd.grad(kept.transform_ref_src.sum(), list(encoder.parameters()), allow_unused=True)
+    assert any(g is not None and g.abs().sum() > 0 for g in grads)

@@ -98,7 +98,7 @@ class FMRNet(LucasKanadeModule):
             src = batch.points_src
             return RegistrationResult.fixed_iterations(se3.identity(len(batch), src.device, src.dtype), num_iters=0)
         self.update_norm_statistics(batch)
-        return self(batch.points_src, batch.points_ref)
+        return super().training_forward(batch)
 
     def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Reconstruction Chamfer of both clouds (squared distances), plus the optional pose term."""

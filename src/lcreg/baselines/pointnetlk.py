@@ -91,7 +91,7 @@ class PointNetLK(LucasKanadeModule):
     def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
         """Update BatchNorm statistics (train mode), then the differentiable IC-LK solve (eval-mode encoder)."""
         self.update_norm_statistics(batch)
-        return self(batch.points_src, batch.points_ref)
+        return super().training_forward(batch)
 
     def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``residual_weight ||r||^2 + pose_weight 16 MSE(T T_gt^-1, I)`` (needs the ground-truth pose)."""

@@ -187,6 +187,13 @@ class RegistrationModule(LightningModule):
         """
         return self(batch.points_src, batch.points_ref)
 
+    def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """``forward`` with the autograd graph kept through the estimate (loss terms that train through it).
+
+        Default: ``forward``. Models whose own loss holds the estimate fixed (the IC-LK models) override it.
+        """
+        return self(points_src, points_ref)
+
     # --- shared machinery ------------------------------------------------------------------------------------
     @property
     def refiner(self) -> RegistrationModule | None:

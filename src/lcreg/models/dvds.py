@@ -11,7 +11,8 @@ pose; per batch:
    ``loss_terms=[LocalConsistencyLoss(...)]``, ``configs/lc.yaml``),
    ``L_CD = CD(xi(psi(X)), X) + CD(xi(psi(Y)), Y)`` (FoldingNet decoder ``xi``, Chamfer not squared),
    ``L_n = sum_P (1 - mean_i cos(l([p_i, psi(P)]), n_i))`` (normal head ``l``),
-   ``L = L_p + lambda1 L_CD + lambda2 L_n`` (defaults 0.5, 0.1; the LC term's ``weight`` is 1 in the paper).
+   ``L = L_p + lambda1 L_CD + lambda2 L_n`` (defaults 0.5, 0.1; the LC term's ``weight`` is 1 in the paper;
+   ``lambda_global`` scales the descriptor residual of ``L_p``, 1 in the paper).
 
 Normals come from the batch (ModelNet40 provides them). Without normals they are estimated by PCA
 (:func:`lcreg.geometry.normals.estimate_normals`) and compared with ``|cos|`` since their sign is arbitrary.
@@ -55,6 +56,8 @@ class DVDs(LucasKanadeModule):
         jacobian: ``"analytic"`` (exact, default), ``"autodiff"`` or ``"finite_difference"``.
         lambda_recon: ``lambda1`` (self-reconstruction; 0 disables it).
         lambda_normal: ``lambda2`` (normal estimation; 0 disables it).
+        lambda_global: Weight of the global residual ``L_p``'s descriptor term (paper: 1; 0 keeps it logged but
+            unoptimised, e.g. when a :class:`~lcreg.models.loss_terms.SelfMotionLoss` trains the descriptor).
         decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
         decoder_hidden: FoldingNet MLP widths.
         normal_hidden: Normal-head MLP widths.
@@ -77,6 +80,7 @@ class DVDs(LucasKanadeModule):
         jacobian: JacobianMode = "analytic",
         lambda_recon: float = 0.5,
         lambda_normal: float = 0.1,
+        lambda_global: float = 1.0,
         decoder_grid_size: int = 32,
         decoder_hidden: Sequence[int] = (256, 256),
         normal_hidden: Sequence[int] = (128, 64),
@@ -93,14 +97,16 @@ class DVDs(LucasKanadeModule):
             jacobian=jacobian,
             **kwargs,
         )
-        if lambda_recon < 0 or lambda_normal < 0:
+        if min(lambda_recon, lambda_normal, lambda_global) < 0:
             raise ValueError(
-                f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}"
+                f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}, "
+                f"lambda_global={lambda_global}"
             )
         self._save_hparams()
         k = self.encoder.feature_dim
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal
+        self.lambda_global = lambda_global
         self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden) if lambda_recon > 0 else None
         self.normal_head = NormalHead(k, normal_hidden) if lambda_normal > 0 else None
         if global_loss not in ("l2", "normalized_l2"):
@@ -132,7 +138,7 @@ class DVDs(LucasKanadeModule):
             scale = (0.5 * (f_wx.pow(2).sum(-1) + f_y.pow(2).sum(-1))).sqrt()
             residual = residual / scale.clamp_min(torch.finfo(scale.dtype).eps)
         losses = {"global": residual.mean()}
-        losses["loss"] = losses["global"]
+        losses["loss"] = self.lambda_global * losses["global"]
         if self.decoder is not None:
             recon = chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()
             losses["recon"] = recon

@@ -25,13 +25,16 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from lcreg.geometry import se3
+from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.nn.local_consistency import LocalConsistency
+from lcreg.nn.losses import lk_pose_loss
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 if TYPE_CHECKING:
     from lcreg.models.base import RegistrationModule
 
-__all__ = ["LocalConsistencyLoss", "LossTerm"]
+__all__ = ["LocalConsistencyLoss", "LossTerm", "SelfMotionLoss", "random_subsets"]
 
 
 class LossTerm(nn.Module):
@@ -110,3 +113,84 @@ class LocalConsistencyLoss(LossTerm):
         return self.local_consistency(
             model.descriptor_encoder(), batch.points_src, batch.points_ref, result.transform_ref_src
         )
+
+
+def random_subsets(points: torch.Tensor, size: int) -> torch.Tensor:
+    """An independent random subset of ``size`` points of every cloud (no repeats), ``(B, size, 3)``.
+
+    Uses the global RNG on the clouds' device (``seed_everything`` makes it reproducible).
+    """
+    b, n, _ = points.shape
+    idx = torch.rand(b, n, device=points.device).argsort(dim=1)[:, :size]
+    return points.gather(1, idx[..., None].expand(-1, -1, points.shape[-1]))
+
+
+class SelfMotionLoss(LossTerm):
+    """Label-free pose term on self-generated pairs: one cloud, two samplings, a known random motion.
+
+    For every source cloud ``X`` of the batch two independent random subsets ``A`` and ``B`` of
+    ``sample_fraction * N`` points are drawn, a rigid motion ``G`` (Euler angles ``U[0, max_angle_deg]``,
+    translation ``U[-max_translation, max_translation]``, the ModelNet40 protocol's ranges) is drawn, and the host
+    registers ``A`` to ``G B (+ noise)`` with the graph kept through its solve
+    (:meth:`~lcreg.models.base.RegistrationModule.differentiable_forward`). The term is PointNetLK's pose loss
+    ``16 MSE(T G^-1, I)`` against the generated ``G``. The motion is made by the term, never read from the
+    dataset: the batch's ground-truth pose is not used, so the term works on any unlabeled scans.
+
+    Why DVDs needs it (issue 12): at the IC-LK estimate the paper's residual ``||psi(W X) - psi(Y)||`` carries no
+    information about the remaining error, so it can only be lowered by making ``psi`` insensitive to motion; a
+    known motion is the label-free signal that rewards seeing motion.
+
+    Args:
+        weight: Factor of the term.
+        name: Log key (``{stage}/self_motion``).
+        max_angle_deg: Bound of each generated Euler angle (degrees).
+        max_translation: Bound of each generated translation component (cloud units).
+        sample_fraction: Share of the cloud's points in each of the two samplings (``(0, 1]``; 1 gives the same
+            points in both clouds, in another order).
+        noise_std: Standard deviation of Gaussian noise added to the moved sampling (cloud units).
+
+    Raises:
+        ValueError: On bounds out of range.
+    """
+
+    def __init__(
+        self,
+        weight: float = 1.0,
+        name: str = "self_motion",
+        max_angle_deg: float = 45.0,
+        max_translation: float = 0.5,
+        sample_fraction: float = 0.75,
+        noise_std: float = 0.0,
+    ) -> None:
+        super().__init__(weight, name)
+        if not 0 < sample_fraction <= 1:
+            raise ValueError(f"`sample_fraction` must be in (0, 1], got {sample_fraction}")
+        if max_angle_deg < 0 or max_translation < 0 or noise_std < 0:
+            raise ValueError(
+                "`max_angle_deg`, `max_translation` and `noise_std` must be >= 0, got "
+                f"{max_angle_deg}, {max_translation}, {noise_std}"
+            )
+        self.max_angle_deg = max_angle_deg
+        self.max_translation = max_translation
+        self.sample_fraction = sample_fraction
+        self.noise_std = noise_std
+
+    def make_pairs(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Self-generated pairs from clouds ``(B, N, 3)``: ``(source (B, n, 3), reference (B, n, 3), G (B, 4, 4))``.
+
+        ``reference = G subset_2 + noise``, so ``G`` maps ``source`` into ``reference`` (``transform_ref_src``).
+        """
+        size = max(1, int(self.sample_fraction * points.shape[1]))
+        src, other = random_subsets(points, size), random_subsets(points, size)
+        motion = random_euler_transform(len(points), self.max_angle_deg, self.max_translation, dtype=points.dtype)[0]
+        motion = motion.to(points.device)
+        ref = se3.transform_points(motion, other)
+        if self.noise_std > 0:
+            ref = ref + self.noise_std * torch.randn_like(ref)
+        return src, ref, motion
+
+    def forward(self, model: RegistrationModule, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
+        """``16 MSE(T G^-1, I)`` of the host's differentiable estimate on pairs made from ``batch.points_src``."""
+        src, ref, motion = self.make_pairs(batch.points_src.detach())
+        estimate = model.differentiable_forward(src, ref).transform_ref_src
+        return lk_pose_loss(estimate, motion)

@@ -7,6 +7,10 @@ subclass adds its losses and nothing else. ``eval_iterations`` lets a model run 
 validation/test than in training (PointNetLK: 10 and 20). A ``voxel_grid`` (constructor argument,
 ``configs/voxelize/lk27.yaml``) switches every evaluation (validation, test, predict, ``register``) to voxelised
 IC-LK for large clouds (:mod:`lcreg.nn.voxel_lk`); training always uses the plain solver.
+
+Every training step logs how well the descriptor still sees motion (:func:`lcreg.nn.lk.jacobian_diagnostics` of
+the solve's Jacobian): ``train/j_cond``, ``train/j_sensitivity`` and ``train/j_dir_{rx,ry,rz,tx,ty,tz}``. A
+collapsing self-supervised descriptor shows there first (issue 12); ``benchmarks/plot_learning_curves.py`` draws them.
 """
 
 from __future__ import annotations
@@ -16,25 +20,14 @@ from typing import Any
 
 import torch
 
-from lcreg.geometry import se3
 from lcreg.models.base import RegistrationModule
-from lcreg.nn.lk import InverseCompositionalLK, JacobianMode
-from lcreg.nn.losses import transform_mse
+from lcreg.nn.lk import InverseCompositionalLK, JacobianMode, jacobian_diagnostics
+from lcreg.nn.losses import lk_pose_loss
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["LucasKanadeModule", "lk_pose_loss"]
-
-
-def lk_pose_loss(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
-    """PointNetLK's pose loss ``16 MSE(T_pred T_gt^-1, I_4)``: the squared Frobenius norm, averaged over the batch.
-
-    Args:
-        transform_pred: Estimates ``(B, 4, 4)``.
-        transform_gt: Ground truths ``(B, 4, 4)`` (both map source into reference).
-    """
-    return 16.0 * transform_mse(transform_pred, se3.inverse(transform_gt))
+__all__ = ["LucasKanadeModule", "lk_pose_loss"]  # lk_pose_loss: re-exported from lcreg.nn.losses
 
 
 class LucasKanadeModule(RegistrationModule):
@@ -102,6 +95,23 @@ class LucasKanadeModule(RegistrationModule):
         if self._voxel_grid is not None:
             return voxel_lk(self.solver, self.encoder, self._voxel_grid, points_src, points_ref, self.eval_iterations)
         return self.solver(self.encoder, points_src, points_ref, max_iterations=self.eval_iterations)
+
+    def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """The training-mode solve with the graph kept through it, whatever ``differentiable`` says."""
+        return self.solver(self.encoder, points_src, points_ref, differentiable=True)
+
+    def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
+        """``forward`` on the batch's clouds; logs the Jacobian diagnostics of the solve."""
+        result = self(batch.points_src, batch.points_ref)
+        self.log_jacobian_diagnostics(result, len(batch))
+        return result
+
+    def log_jacobian_diagnostics(self, result: RegistrationResult, batch_size: int) -> None:
+        """Log ``train/j_*`` (:func:`~lcreg.nn.lk.jacobian_diagnostics`) when the result carries a Jacobian."""
+        if "jacobian" not in result.aux or self._trainer is None:
+            return
+        for name, value in jacobian_diagnostics(result.aux["jacobian"], result.aux["feature_ref"]).items():
+            self.log(f"train/j_{name}", value.float(), on_step=True, on_epoch=False, batch_size=batch_size)
 
     def update_norm_statistics(self, batch: RegistrationBatch) -> None:
         """One train-mode encoder pass over both clouds (no graph) so BatchNorm's running statistics follow the data.

@@ -29,10 +29,11 @@ from lcreg.checks import check_points, check_same_batch
 from lcreg.geometry import se3
 from lcreg.types import RegistrationResult
 
-__all__ = ["InverseCompositionalLK", "JacobianMode", "twist_jacobian"]
+__all__ = ["TWIST_NAMES", "InverseCompositionalLK", "JacobianMode", "jacobian_diagnostics", "twist_jacobian"]
 
 JacobianMode = Literal["analytic", "autodiff", "finite_difference"]
 Encoder = Callable[[torch.Tensor], torch.Tensor]
+TWIST_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")  # order of the twist ``[omega, v]``
 
 
 def _generators(points: torch.Tensor) -> torch.Tensor:
@@ -74,6 +75,34 @@ def twist_jacobian(
         psi, pert = feats[:b], feats[b:].reshape(6, b, -1)
         return psi, ((pert - psi) / fd_step).permute(1, 2, 0)
     raise ValueError(f"unknown Jacobian mode {mode!r}; expected 'analytic', 'autodiff' or 'finite_difference'")
+
+
+def jacobian_diagnostics(jacobian: torch.Tensor, feature: torch.Tensor) -> dict[str, torch.Tensor]:
+    """How well the descriptor still sees motion: conditioning of the IC-LK Jacobian, batch medians.
+
+    A self-supervised objective can lower its residual by making ``psi`` insensitive to motion; these numbers show
+    it (issue 12): ``cond`` = smallest / largest singular value of ``J`` (1: every twist direction seen equally,
+    0: one direction invisible), ``sensitivity`` = smallest singular value over ``||psi||`` (how far the
+    descriptor moves, relative to its size, under the least-seen unit twist), ``dir_<k>`` = ``||J e_k|| / ||psi||``
+    per twist direction (``rx ry rz``: per radian, ``tx ty tz``: per distance unit).
+
+    Args:
+        jacobian: ``d psi / d xi`` at the reference, ``(B, K, 6)``.
+        feature: The reference descriptors ``psi (B, K)``.
+
+    Returns:
+        Scalars (float64, no graph): ``"cond"``, ``"sensitivity"`` and ``"dir_rx"`` ... ``"dir_tz"``.
+    """
+    jac = jacobian.detach().double()
+    norm = feature.detach().double().norm(dim=-1).clamp_min(torch.finfo(torch.float64).tiny)  # (B,)
+    sv = torch.linalg.svdvals(jac)  # (B, 6), descending
+    out = {
+        "cond": (sv[:, -1] / sv[:, 0].clamp_min(torch.finfo(torch.float64).tiny)).median(),
+        "sensitivity": (sv[:, -1] / norm).median(),
+    }
+    columns = jac.norm(dim=1) / norm[:, None]  # (B, 6)
+    out.update({f"dir_{name}": columns[:, k].median() for k, name in enumerate(TWIST_NAMES)})
+    return out
 
 
 class InverseCompositionalLK(nn.Module):
@@ -132,6 +161,7 @@ class InverseCompositionalLK(nn.Module):
         points_src: torch.Tensor,
         points_ref: torch.Tensor,
         max_iterations: int | None = None,
+        differentiable: bool | None = None,
     ) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
 
@@ -141,11 +171,14 @@ class InverseCompositionalLK(nn.Module):
             points_ref: Reference clouds ``(B, M, 3)``.
             max_iterations: Overrides the solver's ``max_iterations`` for this call (PointNetLK: 10 in training,
                 20 at test).
+            differentiable: Overrides the solver's ``differentiable`` for this call (a loss term that trains
+                through the solve of a model whose own loss holds the estimate fixed).
 
         Returns:
             :class:`RegistrationResult` with ``residual_history (B, iterations)`` (``||r||`` before each update),
-            ``aux["feature_ref"] (B, K)`` and ``aux["residual"] (B, K)``, the last residual ``r`` (before the last
-            update; differentiable when the solver is).
+            ``aux["feature_ref"] (B, K)``, ``aux["jacobian"] (B, K, 6)`` at the centred reference and
+            ``aux["residual"] (B, K)``, the last residual ``r`` (before the last update; differentiable when the
+            solve is).
         """
         if max_iterations is not None and max_iterations < 1:
             raise ValueError(f"`max_iterations` must be >= 1, got {max_iterations}")
@@ -156,7 +189,8 @@ class InverseCompositionalLK(nn.Module):
         if isinstance(encoder, nn.Module):
             encoder.eval()
         try:
-            with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            grad = self.differentiable if differentiable is None else differentiable
+            with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
                 return self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations)
         finally:
             if was_training and isinstance(encoder, nn.Module):
@@ -190,5 +224,5 @@ class InverseCompositionalLK(nn.Module):
             converged=~active,
             num_iters=iters,
             residual_history=torch.stack(history, dim=1),
-            aux={"feature_ref": feat_ref, "residual": resid},
+            aux={"feature_ref": feat_ref, "jacobian": jac, "residual": resid},
         )

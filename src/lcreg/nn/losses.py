@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from lcreg.geometry import se3
 
-__all__ = ["cycle_consistency_mse", "rotation_translation_mse", "transform_mse"]
+__all__ = ["cycle_consistency_mse", "lk_pose_loss", "rotation_translation_mse", "transform_mse"]
 
 
 def rotation_translation_mse(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
@@ -26,6 +26,16 @@ def transform_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch
     """``MSE(T_a T_b, I_4)`` (DeepGMR's and PointNetLK's pose loss with ``T_b`` the inverse ground truth)."""
     eye = torch.eye(4, dtype=transform_a.dtype, device=transform_a.device).expand_as(transform_a)
     return F.mse_loss(transform_a @ transform_b, eye)
+
+
+def lk_pose_loss(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
+    """PointNetLK's pose loss ``16 MSE(T_pred T_gt^-1, I_4)``: the squared Frobenius norm, averaged over the batch.
+
+    Args:
+        transform_pred: Estimates ``(B, 4, 4)``.
+        transform_gt: Ground truths ``(B, 4, 4)`` (both map source into reference).
+    """
+    return 16.0 * transform_mse(transform_pred, se3.inverse(transform_gt))
 
 
 def cycle_consistency_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch.Tensor:
