@@ -72,8 +72,17 @@ class FitResult:
     seconds: float
 
 
-def fit(name: str, overrides: Sequence[str] = (), configs: Sequence[str | Path] = ()) -> FitResult:
+def fit(
+    name: str, overrides: Sequence[str] = (), configs: Sequence[str | Path] = (), validate_first: bool = False
+) -> FitResult:
     """Train method ``name`` as ``lcreg fit`` would (its configs, then ``overrides``, e.g. :func:`fit_overrides`).
+
+    Args:
+        name: Method of the registry.
+        overrides: CLI arguments after the configs.
+        configs: Extra config files after the method's own.
+        validate_first: Validate the initial weights before training, so the run's ``metrics.csv`` starts with a
+            step-0 validation row (learning curves start at the untrained model).
 
     Raises:
         ValueError: If the config's checkpoint callback does not select on :data:`SELECTION_METRIC`.
@@ -88,6 +97,8 @@ def fit(name: str, overrides: Sequence[str] = (), configs: Sequence[str | Path] 
         raise ValueError(f"{name}: the checkpoint callback monitors {monitor!r}, not {SELECTION_METRIC}")
     if not isinstance(cli.model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
         raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
+    if validate_first:
+        cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
     _, seconds = timed(partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule))
     best = getattr(callback, "best_model_path", "")
     if not best:
