@@ -47,7 +47,17 @@ class Variant(NamedTuple):
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
-    "selfsup": Variant("dvds", ("dvds_selfsup_modelnet40.yaml",)),
+    "selfsup": Variant("dvds", ("self_motion.yaml",)),  # = configs/dvds_selfsup_modelnet40.yaml
+    "self_motion_only": Variant(
+        "dvds",
+        ("self_motion.yaml",),
+        (
+            '--model.init_args.loss_terms=[{"class_path": "lcreg.models.loss_terms.SelfMotionLoss"}]',
+            "--model.init_args.lambda_global=0",
+            "--model.init_args.lambda_recon=0",
+            "--model.init_args.lambda_normal=0",
+        ),
+    ),
     "pointnetlk": Variant(
         "pointnetlk",
         overrides=(

@@ -63,10 +63,12 @@ pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
 def _lc_points(model: torch.nn.Module) -> list[int]:
-    """``num_local_points`` of each injected LC term (``[]``: no LC)."""
+    """``num_local_points`` of each injected LC term (``[]``: no LC); other terms are only self-motion terms."""
+    from lcreg.models.loss_terms import SelfMotionLoss
+
     terms = list(model.loss_terms)  # type: ignore[arg-type]
-    assert all(isinstance(t, LocalConsistencyLoss) for t in terms), terms
-    return [t.local_consistency.num_local_points for t in terms]
+    assert all(isinstance(t, LocalConsistencyLoss | SelfMotionLoss) for t in terms), terms
+    return [t.local_consistency.num_local_points for t in terms if isinstance(t, LocalConsistencyLoss)]
 
 
 # --- every documented composition --------------------------------------------------------------------------------
@@ -122,8 +124,19 @@ RECIPES = {
     "dvds.yaml": (DVDs, [64], SyntheticDataModule),
     "dvds_modelnet40.yaml": (DVDs, [64], ModelNet40DataModule),
     "dcp_lc.yaml": (DCP, [64], ModelNet40DataModule),
+    "dvds_selfsup_modelnet40.yaml": (DVDs, [64], ModelNet40DataModule),
     **{name: (DVDs, lc, ModelNet40DataModule) for name, (lc, _, _) in DVDS_ROWS.items()},
 }
+
+
+@pytest.mark.parametrize("host", ["dvds", "pointnetlk", "dcp"])
+def test_self_motion_yaml_appends_the_label_free_term_to_any_host(host: str) -> None:
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    cli = build_cli(config_args(f"models/{host}.yaml", "self_motion.yaml", "data/embedded.yaml"), run=False)
+    assert [type(t) for t in cli.model.injected_terms][-1] is SelfMotionLoss
+    recipe = build_cli(config_args("dvds_selfsup_modelnet40.yaml"), run=False).model
+    assert [t.name for t in recipe.injected_terms] == ["lc", "self_motion"]  # composed once, not twice
 
 
 def test_every_recipe_and_ablation_file_is_listed() -> None:
