@@ -36,6 +36,7 @@ __all__ = [
     "DPI",
     "FIGURES",
     "PANEL_SIZE",
+    "SUMMARY_HEADER",
     "SUMMARY_KEYS",
     "Band",
     "CurveFigure",
