@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -221,6 +222,10 @@ def test_summary_table_is_markdown(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------------ figures
 
+needs_matplotlib = pytest.mark.skipif(
+    importlib.util.find_spec("matplotlib") is None, reason="matplotlib is not installed (pip install -e '.[dev]')"
+)
+
 
 def read_png(path: Path) -> np.ndarray:
     from matplotlib.image import imread
@@ -243,6 +248,7 @@ def test_figure_pixels() -> None:
     assert figure_pixels(5) == (1200, 645)
 
 
+@needs_matplotlib
 def test_plot_curves_writes_one_png_per_figure_of_the_expected_size(tmp_path: Path) -> None:
     runs = {
         "model D": [read_metrics(write_synthetic_metrics(tmp_path / f"d{s}.csv", seed=s)) for s in range(3)],
@@ -255,6 +261,7 @@ def test_plot_curves_writes_one_png_per_figure_of_the_expected_size(tmp_path: Pa
     assert_drawn(read_png(written[2]), 5)  # loss, global, lc, recon, normal
 
 
+@needs_matplotlib
 def test_absent_keys_leave_their_panels_and_figures_out(tmp_path: Path) -> None:
     runs = {"D": [{"val/rre_median_deg": series([0, 5], [3.0, 2.0]), "lr": series([0, 5], [1e-3, 1e-4])}]}
     written = plot_curves(runs, tmp_path, prefix="x_")
@@ -264,6 +271,7 @@ def test_absent_keys_leave_their_panels_and_figures_out(tmp_path: Path) -> None:
     assert plot_curves({"D": [{}]}, tmp_path / "empty") == [] and not (tmp_path / "empty").exists()
 
 
+@needs_matplotlib
 def test_negative_values_keep_a_linear_axis(tmp_path: Path) -> None:
     runs = {"D": [{"train/loss": series([0, 1, 2], [0.5, -0.2, -0.4])}]}
     (path,) = plot_curves(runs, tmp_path)
@@ -273,6 +281,7 @@ def test_negative_values_keep_a_linear_axis(tmp_path: Path) -> None:
 # ------------------------------------------------------------------------------------------------ end to end
 
 
+@needs_matplotlib
 @pytest.mark.usefixtures("isolated_cli")
 def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
     from lcreg.cli import main

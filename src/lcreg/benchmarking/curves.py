@@ -502,8 +502,11 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
 
 def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smooth: float) -> Path:
     """Draw ``specs`` on an Agg canvas of :func:`figure_pixels` and write the PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as err:  # pragma: no cover - matplotlib is in the dev and plot extras
+        raise ImportError("learning curves need matplotlib: pip install 'lcreg[plot]'") from err
 
     width, height = figure_pixels(len(specs))
     fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, layout="constrained")
