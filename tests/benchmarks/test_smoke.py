@@ -25,6 +25,7 @@ RUNS = {
     "kitti_full_pair": [],
     "lc_plus_x": [],
     "pilot_dvds_variants": [],
+    "plot_learning_curves": [],
     "tune_classical": [],
 }
 

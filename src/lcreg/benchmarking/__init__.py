@@ -7,6 +7,7 @@
 * :mod:`~lcreg.benchmarking.training`: :func:`training_loss` and short :func:`fit` runs with a step budget;
 * :mod:`~lcreg.benchmarking.data`: deterministic benchmark pairs and the synthetic data of ``--smoke`` runs;
 * :mod:`~lcreg.benchmarking.writers`: Markdown tables, ``mean ± std``, resumable JSONL results;
+* :mod:`~lcreg.benchmarking.curves`: learning curves of ``lcreg fit`` runs (``metrics.csv`` -> PNGs, summary table);
 * :mod:`~lcreg.benchmarking.options`: command-line pieces of the scripts (``key=value``, budgets, ``--smoke``).
 """
 
@@ -23,6 +24,18 @@ from lcreg.benchmarking.building import (
     cli_arguments,
     load_weights,
     save_weights,
+)
+from lcreg.benchmarking.curves import (
+    Band,
+    Series,
+    aggregate,
+    load_runs,
+    plot_curves,
+    read_metrics,
+    run_files,
+    summary_rows,
+    summary_table,
+    write_synthetic_metrics,
 )
 from lcreg.benchmarking.data import pair_batches, split_batches, synthetic_options, synthetic_overrides
 from lcreg.benchmarking.measure import (
@@ -72,6 +85,7 @@ __all__ = [
     "REPORT_COLUMNS",
     "SELECTION_METRIC",
     "VOXELIZE_CONFIG",
+    "Band",
     "Budget",
     "CheckpointError",
     "CheckpointFormatError",
@@ -82,8 +96,10 @@ __all__ = [
     "MethodSpec",
     "RegistrationSpeed",
     "ResultLog",
+    "Series",
     "Timing",
     "add_smoke_argument",
+    "aggregate",
     "apply_smoke",
     "build",
     "build_cli_for",
@@ -97,6 +113,7 @@ __all__ = [
     "fit_overrides",
     "format_mean_std",
     "key_values",
+    "load_runs",
     "load_weights",
     "machine_line",
     "markdown_row",
@@ -106,11 +123,16 @@ __all__ = [
     "output_path",
     "pair_batches",
     "peak_rss_mib",
+    "plot_curves",
+    "read_metrics",
     "registration_speed",
     "report_table",
+    "run_files",
     "run_fresh_process",
     "save_weights",
     "split_batches",
+    "summary_rows",
+    "summary_table",
     "synchronize",
     "synthetic_options",
     "synthetic_overrides",
@@ -119,5 +141,6 @@ __all__ = [
     "timed",
     "training_loss",
     "voxelize_overrides",
+    "write_synthetic_metrics",
     "write_text",
 ]
