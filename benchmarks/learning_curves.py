@@ -8,7 +8,9 @@ Every (variant, seed) is one ``lcreg fit`` (:func:`lcreg.benchmarking.fit`) that
 (step 0), then validates every ``--val-every`` steps; checkpoints are chosen on ``val/rre_mean_deg``. Each run's
 ``metrics.csv`` (losses, the IC-LK Jacobian diagnostics ``train/j_*``, validation registration) is kept under
 ``--run-dir/<variant>/seed<k>``. Finished runs are listed in ``<run-dir>/runs.jsonl`` and skipped on a rerun, so a
-long study can be run in chunks. The figures come from ``benchmarks/plot_learning_curves.py`` on those CSV files.
+long study can be run in chunks. ``--out x.md`` writes the summary table of every finished run of the chosen
+variants (:func:`lcreg.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``, ``x_jacobian.png``,
+... by :func:`lcreg.benchmarking.plot_curves`, as ``benchmarks/plot_learning_curves.py`` draws them).
 
 Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order):
 model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
@@ -31,8 +33,13 @@ from lcreg.benchmarking import (
     cli_args,
     fit,
     fit_overrides,
+    load_runs,
     machine_line,
+    output_path,
+    plot_curves,
+    summary_table,
     synthetic_overrides,
+    write_text,
 )
 
 
@@ -108,6 +115,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--run-dir", default="runs/learning_curves")
+    parser.add_argument("--out", default=None, help="summary table (.md); the PNGs are written beside it")
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
@@ -124,6 +132,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     for name in args.variants:
         for seed in args.seeds:
             run(args, name, seed, log)
+    out = output_path(args.out, "learning_curves.md", args.smoke)
+    if out:
+        report(args, log, out)
+
+
+def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
+    """Summary table and learning-curve PNGs of the finished runs of ``args.variants`` at this budget."""
+    files: dict[str, list[str]] = {}
+    for row in log.rows:
+        if row["variant"] in args.variants and (row["points"], row["steps"]) == (args.points, args.steps):
+            files.setdefault(row["variant"], []).append(row["metrics_csv"])
+    runs = load_runs(files)
+    head = f"{args.points} points, {args.steps} steps, batch {args.batch}; {machine_line()}; runs: {args.run_dir}"
+    write_text(out, "\n".join([head, "", summary_table(runs), ""]))
+    for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):
+        print(f"wrote {path}", flush=True)
+    print(f"wrote {out}", flush=True)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ RUNS = {
     "eval_scenes --tune": ["--tune"],
     "kitti_full_pair": [],
     "lc_plus_x": [],
+    "learning_curves": [],
     "pilot_dvds_variants": [],
     "plot_learning_curves": [],
     "tune_classical": [],
