@@ -217,6 +217,8 @@ def test_summary_table_is_markdown(tmp_path: Path) -> None:
         "| val/recall_r2_t0p01",
         "| val/loss",
         "| train/loss",
+        "| train/j_sensitivity",
+        "| train/j_cond",
     ]
 
 
@@ -322,3 +324,13 @@ def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
     for path in written:
         read_png(path)
     assert "| val/rre_mean_deg | model D | 1 |" in summary_table(runs)
+
+
+def test_summary_lists_the_jacobian_diagnostics_best_when_highest(tmp_path: Path) -> None:
+    from lcreg.benchmarking.curves import summary_rows
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("epoch,step,train/j_sensitivity,train/j_cond\n0,9,0.05,0.3\n0,19,0.01,0.1\n0,29,0.02,0.2\n")
+    rows = {row[0]: row for row in summary_rows(load_runs({"collapse": [path]}))}
+    assert rows["train/j_sensitivity"][3:6] == ["0.05 @ 9", "0.02 @ 29", "0.05"]
+    assert rows["train/j_cond"][5:] == ["0.3", "9"]

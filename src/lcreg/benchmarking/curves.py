@@ -191,8 +191,11 @@ SUMMARY_KEYS = (
     "val/recall_r2_t0p01",
     "val/loss",
     "train/loss",
+    "train/j_sensitivity",
+    "train/j_cond",
 )
-"""Keys of :func:`summary_table` (those logged); recalls are best when highest, the others when lowest."""
+"""Keys of :func:`summary_table` (those logged); recalls and the Jacobian diagnostics ``train/j_*`` (how well the
+descriptor sees motion) are best when highest, the others when lowest."""
 
 
 # --------------------------------------------------------------------------------------------------- reading
@@ -299,12 +302,13 @@ def _seed_series(seeds: Sequence[Metrics], key: str) -> list[Series]:
 
 
 def _higher_is_better(key: str) -> bool:
-    return "recall" in key.rsplit("/", 1)[-1]
+    name = key.rsplit("/", 1)[-1]
+    return "recall" in name or name.startswith("j_")
 
 
 def _value_cell(key: str, values: Sequence[float]) -> str:
     """``mean ± std`` (a single seed: its value); recalls in %."""
-    percent = _higher_is_better(key)
+    percent = "recall" in key.rsplit("/", 1)[-1]
     if len(values) == 1:
         return f"{100 * values[0]:.1f} %" if percent else f"{values[0]:.4g}"
     if percent:
