@@ -264,6 +264,15 @@ def test_every_file_in_the_package_folder_is_registered() -> None:
     assert cards == files, "every shipped .pt has a model card <name>.md and every card a file"
 
 
+def test_the_wheel_ships_the_weights_and_cards() -> None:
+    """hatchling puts every file of src/lcreg in the wheel; ``artifacts`` keeps the weights if a rule ignores them."""
+    tomllib = pytest.importorskip("tomllib")
+    config = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())
+    wheel = config["tool"]["hatch"]["build"]["targets"]["wheel"]
+    assert wheel["packages"] == ["src/lcreg"]
+    assert {"src/lcreg/weights/*.pt", "src/lcreg/weights/*.md"} <= set(wheel["artifacts"])
+
+
 def test_model_card_template_has_the_sections_of_the_export() -> None:
     text = (REPO_ROOT / "docs" / "model_card_template.md").read_text()
     assert tuple(re.findall(r"^## (.+)$", text, flags=re.M)) == CARD_HEADINGS
