@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from lcreg.weights import (
     read_weights,
     resolve_class,
     shipped_names,
+    training_only,
     weights_dir,
 )
 from lcreg.weights.export import CARD_BEGIN, CARD_END, CARD_HEADINGS
@@ -246,6 +248,12 @@ def test_a_registered_file_loads_by_name(monkeypatch: pytest.MonkeyPatch, tmp_pa
 
 
 # --- public names and the registry ---------------------------------------------------------------------------------
+def test_listing_names_stays_light() -> None:
+    script = "import sys, lcreg; lcreg.pretrained_names(); print(sorted(m for m in sys.modules if 'lightning' in m))"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
+
+
 def test_lazy_exports_and_names() -> None:
     assert lcreg.pretrained is pretrained and lcreg.pretrained_names is pretrained_names
     assert pretrained_names() == sorted(REGISTRY) and {"dvds-modelnet40", "pointnetlk-modelnet40"} <= set(REGISTRY)
@@ -295,8 +303,8 @@ def test_shipped_file_is_slim_strict_and_matches_its_card(name: str) -> None:
     assert len(data) <= MAX_FILE_BYTES
     weights = read_weights(name)
     assert weights.name == name and weights.class_path == REGISTRY[name].class_path
-    model = pretrained(name)  # strict: no tensor left over, none missing (training-only modules not built)
-    assert set(model.state_dict()) == set(weights.state_dict)
+    model = pretrained(name)  # strict: no tensor left over, none missing
+    assert {k for k in model.state_dict() if not training_only(model, k)} == set(weights.state_dict)
     card = path.with_suffix(".md").read_text()
     assert tuple(re.findall(r"^## (.+)$", card, flags=re.M)) == CARD_HEADINGS
     assert hashlib.sha256(data).hexdigest() in card and f"{len(data)} bytes" in card, "refresh the card: --card"

@@ -202,15 +202,16 @@ def resolve(name_or_path: str | Path) -> Path:
     if isinstance(name_or_path, str) and text in REGISTRY:
         path = weights_dir() / f"{text}.pt"
         if not path.is_file():
-            shipped = ", ".join(shipped_names()) or "none yet"
-            raise PretrainedNotFoundError(text, f"registered but not shipped in this installation; shipped: {shipped}")
+            present = ", ".join(shipped_names()) or "none yet"
+            raise PretrainedNotFoundError(text, f"registered but not shipped in this installation; shipped: {present}")
         return path
     if isinstance(name_or_path, Path) or text.endswith(".pt") or "/" in text or "\\" in text:
         path = Path(name_or_path)
         if not path.is_file():
             raise PretrainedNotFoundError(text, "no such file")
         return path
-    known = ", ".join(f"{n} ({'shipped' if n in shipped_names() else 'not shipped'})" for n in pretrained_names())
+    shipped = shipped_names()
+    known = ", ".join(f"{n} ({'shipped' if n in shipped else 'not shipped'})" for n in pretrained_names())
     raise UnknownPretrainedError(text, f"unknown name; known: {known}; or pass the path of an exported .pt file")
 
 
