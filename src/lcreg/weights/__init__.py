@@ -228,7 +228,7 @@ def read_weights(name_or_path: str | Path) -> PretrainedWeights:
     path = resolve(name_or_path)
     try:
         content = read_torch_file(path)
-    except CheckpointError as err:  # the reasons after "checkpoint '<path>': "
+    except CheckpointError as err:  # same reasons, named after the weights
         error = PretrainedNotFoundError if isinstance(err, CheckpointNotFoundError) else PretrainedReadError
         raise error(source, err.reason, path) from err
     weights = validated(content, source, path)
