@@ -1,7 +1,8 @@
 """lcreg: deep point-cloud registration (DVDs, local consistency, baselines) on PyTorch Lightning.
 
 ``import lcreg`` and ``from lcreg import LocalConsistency`` stay light: they import torch only; Lightning-based
-classes are loaded on first access.
+classes are loaded on first access. ``lcreg.pretrained("dvds-modelnet40")`` builds a model with the weights shipped
+in the package (:mod:`lcreg.weights`; ``lcreg.pretrained_names()`` lists the names).
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ _LAZY = {
     "SevenScenesDataModule": "lcreg.data.threedmatch",
     "KITTIOdometryDataModule": "lcreg.data.kitti",
     "read_points": "lcreg.data.io",
+    "pretrained": "lcreg.weights",
+    "pretrained_names": "lcreg.weights",
 }
 
 __all__ = [*_LAZY, "__version__"]

@@ -18,6 +18,11 @@ data/modelnet40.yaml, data/dcp_protocol.yaml]``. Test-time components are model 
 ``configs/voxelize/lk27.yaml`` sets ``model.init_args.voxel_grid`` (voxelised IC-LK for the LK models).
 ``lcreg fit`` refuses models with nothing to train (classical methods) before anything runs.
 
+``--weights NAME_OR_PATH`` (every subcommand) loads pretrained weights (:mod:`lcreg.weights`: a shipped name or an
+exported ``.pt`` file) into the configured model once it is built: every tensor of the file must fit, and the
+model's tensors the file lacks may only be training-only modules (decoder, normal head, loss terms), which keep their
+initialisation. ``fit`` then fine-tunes from them; a ``--ckpt_path`` replaces them (they are not loaded).
+
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
 """
@@ -32,6 +37,7 @@ from typing import Any
 import yaml
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
+from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.models.base import RegistrationModule
 
@@ -52,22 +58,51 @@ class LcregCLI(LightningCLI):
     """
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        """Accept the ``compose`` key of composed config files (already expanded by :func:`expand_configs`)."""
+        """Accept ``--weights`` and the ``compose`` key of configs (already expanded by :func:`expand_configs`)."""
         parser.add_argument(
             "--compose",
             type=list[str] | None,
             default=None,
             help="config files this config builds on (read first, relative to it); expanded before parsing",
         )
+        parser.add_argument(
+            "--weights",
+            type=str | None,
+            default=None,
+            help="pretrained weights loaded into the built model: a name of lcreg.pretrained_names() or the path of a "
+            ".pt file of `python -m lcreg.weights.export`; strict for the inference modules, training-only modules "
+            "(decoder, normal head, loss terms) keep their initialisation; `fit` fine-tunes from them; a --ckpt_path "
+            "replaces them",
+        )
 
     def instantiate_classes(self) -> None:
-        """Build model, data and trainer; refuse ``fit`` for models without a loss."""
+        """Build model, data and trainer; refuse ``fit`` for models without a loss; load ``--weights``."""
         super().instantiate_classes()
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
             raise RuntimeError(
                 f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
                 "apply, evaluate it with `lcreg test` (or `lcreg validate`)"
             )
+        self._load_pretrained_weights()
+
+    def _load_pretrained_weights(self) -> None:
+        """Load ``--weights`` into the model (:func:`lcreg.weights.load_into`), unless ``--ckpt_path`` replaces them.
+
+        Raises:
+            lcreg.weights.PretrainedError: One line naming the weights: unknown name, missing or damaged file,
+                another model class, tensors that do not fit.
+        """
+        source = self._get(self.config, "weights")
+        if not source:
+            return
+        checkpoint = self._get(self.config, "ckpt_path")
+        if checkpoint:
+            rank_zero_info(f"lcreg: --weights {source} not loaded, --ckpt_path {checkpoint} sets the model's weights")
+            return
+        from lcreg.weights import load_into
+
+        weights = load_into(self.model, source)
+        rank_zero_info(f"lcreg: loaded pretrained weights {source!r} ({weights.path}) into {type(self.model).__name__}")
 
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
         from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar

@@ -28,7 +28,7 @@ them).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
@@ -59,6 +59,8 @@ class FMRNet(LucasKanadeModule):
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (default Adam),
             ``lr_scheduler`` (none), ``loss_terms`` (e.g. local consistency), ``refiner``.
     """
+
+    training_only_modules: ClassVar[tuple[str, ...]] = ("loss_terms", "decoder")
 
     def __init__(
         self,

@@ -10,6 +10,14 @@ from typing import TYPE_CHECKING, Literal, overload
 import torch
 
 from lcreg.benchmarking.registry import config_path, method
+from lcreg.checkpoints import (
+    CheckpointError,
+    CheckpointFormatError,
+    CheckpointMismatchError,
+    CheckpointNotFoundError,
+    CheckpointReadError,
+    read_checkpoint,
+)
 
 if TYPE_CHECKING:
     from lightning.pytorch import LightningDataModule
@@ -29,30 +37,6 @@ __all__ = [
     "load_weights",
     "save_weights",
 ]
-
-
-class CheckpointError(Exception):
-    """A checkpoint could not be loaded; ``path`` names the file."""
-
-    def __init__(self, path: str | Path, message: str) -> None:
-        super().__init__(f"checkpoint {str(path)!r}: {message}")
-        self.path = Path(path)
-
-
-class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
-    """The checkpoint file does not exist."""
-
-
-class CheckpointReadError(CheckpointError, ValueError):
-    """The file is not a readable ``torch.save`` file of tensors and plain containers (empty, truncated, garbage)."""
-
-
-class CheckpointFormatError(CheckpointError, ValueError):
-    """The file loads but holds no ``state_dict`` (not a Lightning checkpoint)."""
-
-
-class CheckpointMismatchError(CheckpointError, RuntimeError):
-    """The ``state_dict`` does not fit the model (missing/unexpected keys or shapes: another architecture)."""
 
 
 def cli_arguments(name: str, configs: Sequence[str | Path] = (), overrides: Sequence[str] = ()) -> list[str]:
@@ -147,8 +131,9 @@ def build(
 def load_weights(model: torch.nn.Module, path: str | Path) -> torch.nn.Module:
     """Load the ``state_dict`` of a checkpoint into ``model`` (strict) and return ``model``.
 
-    The file is read with ``torch.load(map_location="cpu", weights_only=True)``: tensors and plain containers only,
-    no code runs (checkpoints written by ``lcreg fit`` qualify; their hyper-parameters are plain values).
+    The file is read by :func:`lcreg.checkpoints.read_checkpoint` (``torch.load(map_location="cpu",
+    weights_only=True)``): tensors and plain containers only, no code runs (checkpoints written by ``lcreg fit``
+    qualify; their hyper-parameters are plain values).
 
     Raises:
         CheckpointNotFoundError: ``path`` is not a file.
@@ -156,18 +141,7 @@ def load_weights(model: torch.nn.Module, path: str | Path) -> torch.nn.Module:
         CheckpointFormatError: The content is not a dict with a ``state_dict``.
         CheckpointMismatchError: The weights do not fit ``model``'s architecture.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointNotFoundError(path, "no such file")
-    if path.stat().st_size == 0:
-        raise CheckpointReadError(path, "empty file")
-    try:
-        content = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises EOFError, UnpicklingError, RuntimeError, ... depending on the damage
-        reason = f"not a readable weights-only torch file ({type(err).__name__}: {err})"
-        raise CheckpointReadError(path, reason) from err
-    if not isinstance(content, dict) or not isinstance(content.get("state_dict"), dict):
-        raise CheckpointFormatError(path, "no 'state_dict' (not a Lightning checkpoint)")
+    content = read_checkpoint(path)
     try:
         model.load_state_dict(content["state_dict"])
     except RuntimeError as err:

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import csv
 import inspect
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from lightning.pytorch import LightningModule
@@ -57,6 +57,11 @@ class RegistrationModule(LightningModule):
     Class attribute ``min_points``: smallest cloud the model itself accepts (hosts set it in their constructor); the
     effective :attr:`min_points` also covers the injected loss terms (LC needs ``num_local_points``).
 
+    Class attribute ``training_only_modules``: names of the submodules inference never uses (the injected loss terms;
+    DVDs adds its decoder and normal head). Exported pretrained weights (:mod:`lcreg.weights`) leave them out, and
+    loading such weights into a configured model leaves them as initialised. Class attribute ``inference_hparams``:
+    hyper-parameters under which those modules are not even built (DVDs: both loss weights 0), used by the export.
+
     Args:
         optimizer: Callable building the optimiser from the trainable parameters (default Adam, lr 1e-3).
         lr_scheduler: Optional callable building a scheduler from the optimiser (stepped per epoch;
@@ -73,6 +78,8 @@ class RegistrationModule(LightningModule):
     """
 
     has_loss: bool = True
+    training_only_modules: ClassVar[tuple[str, ...]] = ("loss_terms",)
+    inference_hparams: ClassVar[Mapping[str, Any]] = {}
     _min_points: int = 3
     _refiner: RegistrationModule | None = None
     loss_terms: torch.nn.ModuleList

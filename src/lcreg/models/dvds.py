@@ -27,8 +27,8 @@ the LC term is visible.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, Literal
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Literal
 
 import torch
 
@@ -69,6 +69,9 @@ class DVDs(LucasKanadeModule):
             ``voxel_grid``) and components (``optimizer``, ``lr_scheduler``, ``loss_terms`` such as
             ``[LocalConsistencyLoss()]``, ``refiner``).
     """
+
+    training_only_modules: ClassVar[tuple[str, ...]] = ("loss_terms", "decoder", "normal_head")
+    inference_hparams: ClassVar[Mapping[str, Any]] = {"lambda_recon": 0.0, "lambda_normal": 0.0}
 
     def __init__(
         self,

@@ -1,0 +1,96 @@
+"""Reading ``torch.save`` files weights-only (Lightning checkpoints, exported weights), with typed errors.
+
+Every file is read with ``torch.load(weights_only=True)``: tensors and plain containers only, no code runs. Needs
+torch only. :mod:`lcreg.benchmarking` (``load_weights``) and :mod:`lcreg.weights` (pretrained weights, their export)
+read through this module.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = [
+    "CheckpointError",
+    "CheckpointFormatError",
+    "CheckpointMismatchError",
+    "CheckpointNotFoundError",
+    "CheckpointReadError",
+    "one_line",
+    "read_checkpoint",
+    "read_torch_file",
+]
+
+
+class CheckpointError(Exception):
+    """A checkpoint could not be loaded; ``path`` names the file, ``reason`` says why (the message without the file)."""
+
+    def __init__(self, path: str | Path, message: str) -> None:
+        super().__init__(f"checkpoint {str(path)!r}: {message}")
+        self.path = Path(path)
+        self.reason = message
+
+
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """The checkpoint file does not exist."""
+
+
+class CheckpointReadError(CheckpointError, ValueError):
+    """The file is not a readable ``torch.save`` file of tensors and plain containers (empty, truncated, garbage)."""
+
+
+class CheckpointFormatError(CheckpointError, ValueError):
+    """The file loads but holds no ``state_dict`` (not a Lightning checkpoint)."""
+
+
+class CheckpointMismatchError(CheckpointError, RuntimeError):
+    """The ``state_dict`` does not fit the model (missing/unexpected keys or shapes: another architecture)."""
+
+
+def read_torch_file(path: str | Path, map_location: str | torch.device = "cpu") -> Any:
+    """The content of a ``torch.save`` file, read weights-only.
+
+    Args:
+        path: The file.
+        map_location: Where tensors are loaded (default the CPU).
+
+    Raises:
+        CheckpointNotFoundError: ``path`` is not a file.
+        CheckpointReadError: The file is empty or not a readable weights-only ``torch.save`` file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointNotFoundError(path, "no such file")
+    if path.stat().st_size == 0:
+        raise CheckpointReadError(path, "empty file")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # torch raises EOFError, UnpicklingError, RuntimeError, ... depending on the damage
+        reason = f"not a readable weights-only torch file ({type(err).__name__}: {one_line(str(err))})"
+        raise CheckpointReadError(path, reason) from err
+
+
+def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """A Lightning checkpoint (a dict with a ``state_dict`` dict), read weights-only.
+
+    Raises:
+        CheckpointNotFoundError: ``path`` is not a file.
+        CheckpointReadError: The file cannot be read as a weights-only ``torch.save`` file.
+        CheckpointFormatError: The content is not a dict with a ``state_dict``.
+    """
+    content = read_torch_file(path, map_location)
+    if not isinstance(content, dict) or not isinstance(content.get("state_dict"), dict):
+        raise CheckpointFormatError(path, "no 'state_dict' (not a Lightning checkpoint)")
+    return content
+
+
+def one_line(text: str, limit: int = 300) -> str:
+    """``text`` on one line, without terminal colour codes, at most ``limit`` characters (for error messages).
+
+    torch's unpickling errors span many lines and colour their advice.
+    """
+    flat = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", text).split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."

@@ -1,0 +1,412 @@
+"""Pretrained weights shipped inside the package, loaded by name: ``lcreg.pretrained("dvds-modelnet40")``.
+
+A weights file ``src/lcreg/weights/<name>.pt`` (written by ``python -m lcreg.weights.export``, next to its model card
+``<name>.md``) is a ``torch.save`` dict of plain data, read with ``torch.load(weights_only=True)`` (no code runs):
+
+* ``format``: :data:`FORMAT` (1);
+* ``name``: the name it was exported under (a :data:`REGISTRY` name for shipped files);
+* ``class_path``: the model class, e.g. ``"lcreg.models.dvds.DVDs"``; only
+  :class:`~lcreg.models.base.RegistrationModule` subclasses inside ``lcreg`` are ever imported;
+* ``init_args``: the constructor's hyper-parameters (plain values; components such as optimisers, loss terms or a
+  refiner are never saved, :data:`~lcreg.models.base.COMPONENT_ARGS`);
+* ``state_dict``: the tensors inference needs (the model's ``training_only_modules`` are left out);
+* ``lcreg_version``: the version that exported it;
+* ``metadata``: provenance, plain ``str``/``int``/``float``/``bool`` values (data, steps, command, machine, ...).
+
+Files are at most :data:`MAX_FILE_BYTES`. Loading builds ``class_path(**init_args, **overrides)`` on the CPU and
+loads the tensors strictly: every tensor of the file must fit the model (same keys, same shapes) and the model's
+tensors the file lacks may only belong to its ``training_only_modules`` (a decoder an override asked for, loss
+terms). ``import lcreg.weights`` needs torch only; Lightning is imported when a model is built.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from importlib import import_module
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from lcreg.checkpoints import CheckpointError, CheckpointNotFoundError, read_torch_file
+
+if TYPE_CHECKING:
+    from lcreg.models.base import RegistrationModule
+
+__all__ = [
+    "FORMAT",
+    "KEYS",
+    "MAX_FILE_BYTES",
+    "NAME_PATTERN",
+    "REGISTRY",
+    "PretrainedBuildError",
+    "PretrainedClassError",
+    "PretrainedError",
+    "PretrainedFormatError",
+    "PretrainedMismatchError",
+    "PretrainedNotFoundError",
+    "PretrainedReadError",
+    "PretrainedSizeError",
+    "PretrainedSpec",
+    "PretrainedWeights",
+    "UnknownPretrainedError",
+    "class_path_of",
+    "is_plain_mapping",
+    "load_into",
+    "pretrained",
+    "pretrained_names",
+    "read_weights",
+    "resolve",
+    "resolve_class",
+    "shipped_names",
+    "training_only",
+    "validated",
+    "weights_dir",
+]
+
+FORMAT = 1
+"""Version of the file layout this lcreg writes and reads."""
+KEYS = ("format", "name", "class_path", "init_args", "state_dict", "lcreg_version", "metadata")
+"""The keys of a weights file, all required, no others."""
+MAX_FILE_BYTES = 5_000_000
+"""Size limit of one weights file: 5 MB (5,000,000 bytes)."""
+NAME_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]*")
+"""Names of weights files: lower case letters, digits, ``.``, ``_`` and ``-`` (the file is ``<name>.pt``)."""
+_PLAIN_SCALARS = (str, int, float, bool, type(None))
+
+
+@dataclass(frozen=True)
+class PretrainedSpec:
+    """One shippable set of weights.
+
+    Attributes:
+        class_path: The model class the file must hold.
+        description: One line for listings and error messages.
+    """
+
+    class_path: str
+    description: str
+
+
+REGISTRY: dict[str, PretrainedSpec] = {
+    "dvds-modelnet40": PretrainedSpec(
+        "lcreg.models.dvds.DVDs", "DVDs trained self-supervised on ModelNet40 (configs/dvds_modelnet40.yaml)"
+    ),
+    "pointnetlk-modelnet40": PretrainedSpec(
+        "lcreg.baselines.pointnetlk.PointNetLK",
+        "PointNetLK trained supervised on ModelNet40 (configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml)",
+    ),
+}
+"""Every name :func:`pretrained` accepts; a name's file ships as ``<name>.pt`` in :func:`weights_dir` (or not yet)."""
+
+
+# --- errors --------------------------------------------------------------------------------------------------------
+class PretrainedError(Exception):
+    """Pretrained weights could not be used; ``source`` is the name or path asked for, ``path`` the file (if any).
+
+    The message is one line, starting with ``pretrained weights '<source>'``.
+    """
+
+    def __init__(self, source: str | Path, message: str, path: Path | None = None) -> None:
+        where = f" ({path})" if path is not None and str(path) != str(source) else ""
+        super().__init__(f"pretrained weights {str(source)!r}{where}: {message}")
+        self.source = str(source)
+        self.path = path
+
+    def __str__(self) -> str:  # KeyError (a base of UnknownPretrainedError) would quote the message
+        return str(self.args[0])
+
+
+class UnknownPretrainedError(PretrainedError, KeyError):
+    """The name is neither a registered name nor a path to a ``.pt`` file (the message lists the known names)."""
+
+
+class PretrainedNotFoundError(PretrainedError, FileNotFoundError):
+    """The file does not exist (a registered name whose file is not shipped, or a missing path)."""
+
+
+class PretrainedReadError(PretrainedError, ValueError):
+    """The file is empty, damaged or not a weights-only ``torch.save`` file."""
+
+
+class PretrainedFormatError(PretrainedError, ValueError):
+    """The file loads but is not a format-1 lcreg weights file (wrong keys, types, format or name)."""
+
+
+class PretrainedClassError(PretrainedError, TypeError):
+    """``class_path`` is not an lcreg ``RegistrationModule`` subclass, or not the class the name or model expects."""
+
+
+class PretrainedBuildError(PretrainedError, TypeError):
+    """The class refuses ``init_args`` plus the overrides (an unknown or invalid argument)."""
+
+
+class PretrainedMismatchError(PretrainedError, RuntimeError):
+    """The tensors do not fit the model: unexpected or missing keys, or other shapes (another architecture)."""
+
+
+class PretrainedSizeError(PretrainedError, ValueError):
+    """An exported file would exceed :data:`MAX_FILE_BYTES`."""
+
+
+# --- the file ------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PretrainedWeights:
+    """The validated content of a weights file.
+
+    Attributes:
+        source: The name or path asked for.
+        path: The file read.
+        name: The name stored in the file.
+        class_path: The model class.
+        init_args: Constructor hyper-parameters (plain values).
+        state_dict: Tensors on the CPU.
+        lcreg_version: Version that exported the file.
+        metadata: Provenance (plain values).
+    """
+
+    source: str
+    path: Path
+    name: str
+    class_path: str
+    init_args: dict[str, Any]
+    state_dict: dict[str, torch.Tensor]
+    lcreg_version: str
+    metadata: dict[str, str | int | float | bool]
+
+
+def weights_dir() -> Path:
+    """The package folder holding the shipped ``<name>.pt`` files and their ``<name>.md`` model cards."""
+    return Path(__file__).resolve().parent
+
+
+def pretrained_names() -> list[str]:
+    """Every registered name (:data:`REGISTRY`), shipped or not yet; :func:`shipped_names` lists the files present."""
+    return sorted(REGISTRY)
+
+
+def shipped_names() -> list[str]:
+    """The registered names whose ``<name>.pt`` file is in this installation."""
+    return [name for name in pretrained_names() if (weights_dir() / f"{name}.pt").is_file()]
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    """The file of a registered name, or ``name_or_path`` itself when it names a ``.pt`` file.
+
+    Raises:
+        UnknownPretrainedError: Neither a registered name nor a path (lists the known and shipped names).
+        PretrainedNotFoundError: A registered name whose file is not shipped, or a path that does not exist.
+    """
+    text = str(name_or_path)
+    if isinstance(name_or_path, str) and text in REGISTRY:
+        path = weights_dir() / f"{text}.pt"
+        if not path.is_file():
+            present = ", ".join(shipped_names()) or "none yet"
+            raise PretrainedNotFoundError(text, f"registered but not shipped in this installation; shipped: {present}")
+        return path
+    if isinstance(name_or_path, Path) or text.endswith(".pt") or "/" in text or "\\" in text:
+        path = Path(name_or_path)
+        if not path.is_file():
+            raise PretrainedNotFoundError(text, "no such file")
+        return path
+    shipped = shipped_names()
+    known = ", ".join(f"{n} ({'shipped' if n in shipped else 'not shipped'})" for n in pretrained_names())
+    raise UnknownPretrainedError(text, f"unknown name; known: {known}; or pass the path of an exported .pt file")
+
+
+def read_weights(name_or_path: str | Path) -> PretrainedWeights:
+    """Read and validate a weights file (registered name or path), tensors on the CPU.
+
+    Raises:
+        UnknownPretrainedError, PretrainedNotFoundError: See :func:`resolve`.
+        PretrainedReadError: The file is empty, damaged or not weights-only loadable.
+        PretrainedFormatError: Not a format-1 weights file, or a registered name's file holds another name.
+        PretrainedClassError: A registered name's file holds another class than :data:`REGISTRY` says.
+    """
+    source = str(name_or_path)
+    path = resolve(name_or_path)
+    try:
+        content = read_torch_file(path)
+    except CheckpointError as err:  # same reasons, named after the weights
+        error = PretrainedNotFoundError if isinstance(err, CheckpointNotFoundError) else PretrainedReadError
+        raise error(source, err.reason, path) from err
+    weights = validated(content, source, path)
+    spec = REGISTRY.get(source) if isinstance(name_or_path, str) else None
+    if spec is not None and weights.name != source:
+        raise PretrainedFormatError(source, f"the file holds weights named {weights.name!r}", path)
+    if spec is not None and weights.class_path != spec.class_path:
+        raise PretrainedClassError(source, f"holds {weights.class_path}, the registry expects {spec.class_path}", path)
+    return weights
+
+
+def validated(content: Any, source: str, path: Path) -> PretrainedWeights:
+    """``content`` (a loaded file) as :class:`PretrainedWeights` after checking keys, format and types.
+
+    Raises:
+        PretrainedFormatError: Not a dict with exactly :data:`KEYS`, another format, or values of other types.
+    """
+
+    def fail(message: str) -> PretrainedFormatError:
+        return PretrainedFormatError(source, message, path)
+
+    if not isinstance(content, dict):
+        raise fail(f"not an lcreg weights file (holds a {type(content).__name__}, not a dict)")
+    missing, extra = [k for k in KEYS if k not in content], sorted(str(k) for k in content if k not in KEYS)
+    if missing or extra:
+        raise fail(
+            f"not an lcreg weights file (missing keys {missing}, unexpected keys {extra}; expected {list(KEYS)})"
+        )
+    if content["format"] != FORMAT:
+        raise fail(f"format {content['format']!r} is not supported (this lcreg reads format {FORMAT})")
+    for key in ("name", "class_path", "lcreg_version"):
+        if not isinstance(content[key], str):
+            raise fail(f"{key!r} must be a string, got {type(content[key]).__name__}")
+    if not is_plain_mapping(content["init_args"]):
+        raise fail("'init_args' must be a dict of plain values (str keys; str/int/float/bool/None, lists, dicts)")
+    metadata = content["metadata"]
+    if not isinstance(metadata, dict) or not all(
+        isinstance(k, str) and isinstance(v, (str, int, float, bool)) for k, v in metadata.items()
+    ):
+        raise fail("'metadata' must be a dict of str keys and str/int/float/bool values")
+    state = content["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
+        raise fail("'state_dict' must be a dict of str keys and tensors")
+    return PretrainedWeights(
+        source, path, content["name"], content["class_path"], dict(content["init_args"]), state,
+        content["lcreg_version"], dict(metadata),
+    )  # fmt: skip
+
+
+def _is_plain(value: Any) -> bool:
+    """Whether ``value`` is JSON-like plain data (no tensors, no objects)."""
+    if isinstance(value, _PLAIN_SCALARS):
+        return True
+    if isinstance(value, (list, tuple)):
+        return all(_is_plain(v) for v in value)
+    return is_plain_mapping(value)
+
+
+def is_plain_mapping(value: Any) -> bool:
+    """Whether ``value`` is a dict of ``str`` keys and plain values (what ``init_args`` may hold)."""
+    return isinstance(value, dict) and all(isinstance(k, str) and _is_plain(v) for k, v in value.items())
+
+
+# --- the model -----------------------------------------------------------------------------------------------------
+def class_path_of(model: torch.nn.Module) -> str:
+    """``"<module>.<class>"`` of ``model``, as stored in ``class_path``."""
+    cls = type(model)
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def resolve_class(class_path: str, source: str | Path = "", path: Path | None = None) -> type[RegistrationModule]:
+    """Import ``class_path`` and check that it is a :class:`~lcreg.models.base.RegistrationModule` subclass.
+
+    Only modules inside ``lcreg`` are imported (a file cannot make the loader import other code).
+
+    Raises:
+        PretrainedClassError: Outside ``lcreg``, not importable, or not a ``RegistrationModule`` subclass.
+    """
+    from lcreg.models.base import RegistrationModule
+
+    module_name, _, class_name = class_path.rpartition(".")
+    if not module_name.startswith("lcreg.") or not class_name.isidentifier():
+        raise PretrainedClassError(source or class_path, f"class_path {class_path!r} is not a class of lcreg", path)
+    try:
+        cls = getattr(import_module(module_name), class_name)
+    except (ImportError, AttributeError) as err:
+        raise PretrainedClassError(source or class_path, f"class_path {class_path!r} cannot be imported", path) from err
+    if not (isinstance(cls, type) and issubclass(cls, RegistrationModule)):
+        raise PretrainedClassError(source or class_path, f"{class_path} is not a RegistrationModule subclass", path)
+    return cls
+
+
+def training_only(model: torch.nn.Module, key: str) -> bool:
+    """Whether state-dict ``key`` belongs to one of ``model.training_only_modules``."""
+    prefixes = getattr(model, "training_only_modules", ("loss_terms",))
+    return any(key == prefix or key.startswith(f"{prefix}.") for prefix in prefixes)
+
+
+def pretrained(name: str | Path, **overrides: Any) -> RegistrationModule:
+    """A model with pretrained weights, in eval mode on the CPU.
+
+    Args:
+        name: A registered name (:func:`pretrained_names`, e.g. ``"dvds-modelnet40"``) or the path of a ``.pt`` file
+            written by ``python -m lcreg.weights.export``.
+        **overrides: Constructor arguments replacing the file's ``init_args`` or adding components, e.g.
+            ``eval_iterations=30``, ``refiner=ICP()``, ``voxel_grid=VoxelGrid()``. An override that builds a
+            training-only module (DVDs ``lambda_recon=0.5``) leaves it initialised, not loaded.
+
+    Returns:
+        The model (``register(points_src (B, N, 3), points_ref (B, M, 3))`` estimates ``(B, 4, 4)`` transforms);
+        move it with ``.to(device)``.
+
+    Raises:
+        PretrainedError: A subclass naming the name and file: :class:`UnknownPretrainedError`,
+            :class:`PretrainedNotFoundError`, :class:`PretrainedReadError`, :class:`PretrainedFormatError`,
+            :class:`PretrainedClassError`, :class:`PretrainedBuildError`, :class:`PretrainedMismatchError`.
+    """
+    weights = read_weights(name)
+    cls = resolve_class(weights.class_path, weights.source, weights.path)
+    try:
+        model = cls(**{**weights.init_args, **overrides})
+    except (TypeError, ValueError) as err:
+        message = f"{weights.class_path} refuses init_args + overrides {sorted(overrides)}: {err}"
+        raise PretrainedBuildError(weights.source, message, weights.path) from err
+    _load_state(model, weights)
+    return model.eval()
+
+
+def load_into(model: torch.nn.Module, weights: str | Path | PretrainedWeights) -> PretrainedWeights:
+    """Load pretrained weights into an already configured model (``lcreg <subcommand> --weights``).
+
+    Args:
+        model: A model of exactly the file's class (e.g. built from a config, with its decoder and loss terms).
+        weights: A registered name, the path of an exported ``.pt`` file, or weights already read.
+
+    Returns:
+        The weights loaded (provenance in ``metadata``).
+
+    Raises:
+        PretrainedError: As :func:`pretrained`; :class:`PretrainedClassError` when ``model`` is of another class.
+    """
+    if not isinstance(weights, PretrainedWeights):
+        weights = read_weights(weights)
+    if weights.class_path != class_path_of(model):
+        message = f"holds {weights.class_path} weights, the configured model is {class_path_of(model)}"
+        raise PretrainedClassError(weights.source, message, weights.path)
+    _load_state(model, weights)
+    return weights
+
+
+def _load_state(model: torch.nn.Module, weights: PretrainedWeights) -> None:
+    """Strict loading of the inference modules; ``model``'s training-only tensors absent from the file are kept.
+
+    Raises:
+        PretrainedMismatchError: A file tensor the model lacks or of another shape, or a missing inference tensor.
+    """
+    own = model.state_dict()
+    problems = []
+    unexpected = [k for k in weights.state_dict if k not in own]
+    missing = [k for k in own if k not in weights.state_dict]
+    if unexpected:
+        problems.append(f"tensors the model lacks: {_few(unexpected)}")
+    if inference_missing := [k for k in missing if not training_only(model, k)]:
+        problems.append(f"inference tensors missing from the file: {_few(inference_missing)}")
+    shapes = [
+        f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}"
+        for k, v in weights.state_dict.items()
+        if k in own and v.shape != own[k].shape
+    ]
+    if shapes:
+        problems.append(f"shapes (file vs model): {_few(shapes)}")
+    if problems:
+        message = f"does not fit {class_path_of(model)} (another architecture?): {'; '.join(problems)}"
+        raise PretrainedMismatchError(weights.source, message, weights.path)
+    model.load_state_dict(weights.state_dict, strict=not missing)
+
+
+def _few(items: list[str], limit: int = 5) -> str:
+    """The first ``limit`` items, comma-separated, with a count of the rest."""
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more

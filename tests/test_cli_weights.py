@@ -1,0 +1,166 @@
+"""`lcreg <subcommand> --weights NAME_OR_PATH`: pretrained weights loaded into the configured model.
+
+The weights come from a tiny real `lcreg fit` on the embedded shapes, exported by the test itself.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+import lcreg
+from lcreg.cli import build_cli, main
+from lcreg.metrics.functional import rotation_error_deg
+from lcreg.weights import (
+    PretrainedClassError,
+    PretrainedMismatchError,
+    PretrainedNotFoundError,
+    UnknownPretrainedError,
+    read_weights,
+)
+from lcreg.weights.export import export_weights
+
+from _cli_runs import config_args  # type: ignore[import-not-found]
+
+DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
+TINY = [
+    "--model.init_args.encoder_channels=[16,32]",
+    "--model.init_args.decoder_grid_size=8",
+    "--model.init_args.decoder_hidden=[32]",
+    "--model.init_args.normal_hidden=[16]",
+    "--data.init_args.num_points=128",
+    "--data.init_args.points_per_shape=256",
+    "--data.init_args.num_train=4",
+    "--data.init_args.num_val=2",
+    "--data.init_args.num_test=4",
+    "--data.init_args.batch_size=2",
+    "--trainer.max_epochs=1",
+    "--trainer.limit_train_batches=2",
+    "--trainer.enable_progress_bar=false",
+    "--trainer.enable_model_summary=false",
+]
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+
+@dataclass(frozen=True)
+class Trained:
+    checkpoint: Path
+    weights: Path
+
+
+def _outputs(root: Path) -> list[str]:
+    return [f"--trainer.default_root_dir={root / 'root'}", f"--trainer.logger.init_args.save_dir={root / 'runs'}"]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Trained:
+    """A tiny real `lcreg fit` of DVDs on the embedded shapes, exported as a weights file."""
+    root = tmp_path_factory.mktemp("fit")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WANDB_MODE", "disabled")
+        patch.setattr(sys, "argv", ["lcreg"])
+        patch.chdir(root)
+        main(["fit", *DVDS, *TINY, *_outputs(root)])
+    checkpoint = root / "runs" / "lcreg" / "version_0" / "checkpoints" / "last.ckpt"
+    return Trained(checkpoint, export_weights(checkpoint, "tiny-dvds", root / "weights"))
+
+
+def _per_pair_rotation_errors(run: Path) -> torch.Tensor:
+    rows = list(csv.DictReader((run / "test_per_pair.csv").open()))
+    return torch.tensor([float(row["rotation_error_deg"]) for row in rows])
+
+
+def test_test_with_weights_end_to_end(trained: Trained, tmp_path: Path) -> None:
+    """The logged per-pair errors are those of ``lcreg.pretrained(file)`` on the same pairs (the first of two batches;
+    ``limit_test_batches=1`` would be read as 1.0, every batch)."""
+    main(
+        [
+            "test",
+            *DVDS,
+            *TINY,
+            "--weights",
+            str(trained.weights),
+            "--trainer.limit_test_batches=0.5",
+            *_outputs(tmp_path),
+        ]
+    )
+    logged = _per_pair_rotation_errors(tmp_path / "runs" / "lcreg" / "version_0")
+    datamodule = build_cli([*DVDS, *TINY], run=False).datamodule
+    datamodule.setup("test")
+    batch = next(iter(datamodule.test_dataloader()))
+    model = lcreg.pretrained(trained.weights)
+    expected = rotation_error_deg(
+        model.register(batch.points_src, batch.points_ref).transform_ref_src, batch.transform_ref_src
+    )
+    assert logged.shape == (2,)
+    torch.testing.assert_close(logged, expected, atol=1e-4, rtol=0)
+
+
+def test_weights_load_strictly_into_the_inference_modules_of_the_configured_model(trained: Trained) -> None:
+    plain = build_cli([*DVDS, *TINY], run=False).model
+    loaded = build_cli([*DVDS, *TINY, "--weights", str(trained.weights)], run=False).model
+    stored = read_weights(trained.weights).state_dict
+    assert all(torch.equal(v, stored[f"encoder.{k}"]) for k, v in loaded.encoder.state_dict().items())
+    assert any(not torch.equal(v, stored[f"encoder.{k}"]) for k, v in plain.encoder.state_dict().items())
+    # the configured decoder and normal head are built (lambda_recon 0.5) and keep their seeded initialisation
+    for name in ("decoder", "normal_head"):
+        own, initial = getattr(loaded, name).state_dict(), getattr(plain, name).state_dict()
+        assert all(torch.equal(v, initial[k]) for k, v in own.items()), name
+
+
+def test_fit_starts_from_the_weights(trained: Trained, tmp_path: Path) -> None:
+    """Fine-tuning with lr 0: the checkpoint's encoder is exactly the file's (the run started from it)."""
+    frozen = "--model.init_args.optimizer.init_args.lr=0"
+    main(["fit", *DVDS, *TINY, "--weights", str(trained.weights), frozen, *_outputs(tmp_path)])
+    run = tmp_path / "runs" / "lcreg" / "version_0"
+    state = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]
+    stored = read_weights(trained.weights).state_dict
+    assert all(torch.equal(state[k], v) for k, v in stored.items())
+    assert yaml.safe_load((run / "config.yaml").read_text())["weights"] == str(trained.weights)
+
+
+def test_a_model_of_another_class_is_refused_in_one_line(trained: Trained) -> None:
+    with pytest.raises(PretrainedClassError) as info:
+        build_cli(
+            [*config_args("models/pointnetlk.yaml", "data/embedded.yaml"), "--weights", str(trained.weights)], run=False
+        )
+    message = str(info.value)
+    assert (
+        "holds lcreg.models.dvds.DVDs weights, the configured model is lcreg.baselines.pointnetlk.PointNetLK" in message
+    )
+    assert "\n" not in message and str(trained.weights) in message
+
+
+def test_another_architecture_is_refused_in_one_line(trained: Trained) -> None:
+    with pytest.raises(PretrainedMismatchError, match=r"shapes \(file vs model\)") as info:
+        main(["test", *DVDS, *TINY, "--model.init_args.encoder_channels=[16,48]", "--weights", str(trained.weights)])
+    assert "\n" not in str(info.value)
+
+
+def test_unknown_names_and_missing_files_are_refused() -> None:
+    with pytest.raises(UnknownPretrainedError, match="known: dvds-modelnet40"):
+        main(["test", *DVDS, *TINY, "--weights", "dvds-imagenet"])
+    with pytest.raises(PretrainedNotFoundError, match="no such file"):
+        main(["validate", *DVDS, *TINY, "--weights", "absent/weights.pt"])
+
+
+def test_a_checkpoint_path_replaces_the_weights(trained: Trained, tmp_path: Path) -> None:
+    """A saved config of a fine-tuning run names its --weights; testing a checkpoint of it does not read them."""
+    args = ["--weights", str(tmp_path / "gone.pt"), "--ckpt_path", str(trained.checkpoint)]
+    main(["test", *DVDS, *TINY, *args, "--trainer.limit_test_batches=0.5", *_outputs(tmp_path)])
+    assert (tmp_path / "runs" / "lcreg" / "version_0" / "test_per_pair.csv").is_file()
+
+
+def test_weights_is_an_argument_of_every_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+    for subcommand in ("fit", "validate", "test", "predict"):
+        with pytest.raises(SystemExit) as info:
+            main([subcommand, *DVDS, "--weights", "dvds-modelnet40", "--print_config"])
+        assert info.value.code in (0, None)
+        assert yaml.safe_load(capsys.readouterr().out)["weights"] == "dvds-modelnet40"

@@ -1,0 +1,337 @@
+"""lcreg.weights: pretrained weights by name or path, strict loading, typed one-line errors, the shipped files."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+import lcreg
+import lcreg.weights as weights_module
+from lcreg.baselines.pointnetlk import PointNetLK
+from lcreg.benchmarking import pair_batches
+from lcreg.metrics.functional import rotation_error_deg
+from lcreg.models.base import RegistrationModule
+from lcreg.models.dvds import DVDs
+from lcreg.weights import (
+    MAX_FILE_BYTES,
+    REGISTRY,
+    PretrainedBuildError,
+    PretrainedClassError,
+    PretrainedError,
+    PretrainedFormatError,
+    PretrainedMismatchError,
+    PretrainedNotFoundError,
+    PretrainedReadError,
+    UnknownPretrainedError,
+    load_into,
+    pretrained,
+    pretrained_names,
+    read_weights,
+    resolve_class,
+    shipped_names,
+    training_only,
+    weights_dir,
+)
+from lcreg.weights.export import CARD_BEGIN, CARD_END, CARD_HEADINGS
+
+from _shared_data import shared_data  # type: ignore[import-not-found]
+from _weights_files import exported, rewrite, tiny_model  # type: ignore[import-not-found]
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _clouds(seed: int = 1, n: int = 64) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    src = torch.rand(3, n, 3, generator=g) - 0.5
+    angle = torch.tensor(0.3)
+    rot = torch.tensor([[angle.cos(), -angle.sin(), 0.0], [angle.sin(), angle.cos(), 0.0], [0.0, 0.0, 1.0]])
+    return src, src @ rot.T + 0.05
+
+
+# --- round trip ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["dvds", "pointnetlk", "fmr"])
+def test_round_trip_gives_identical_outputs_and_only_inference_tensors(kind: str, tmp_path: Path) -> None:
+    source = tiny_model(kind, seed=3).eval()
+    path = exported(source, tmp_path)
+    model = lcreg.pretrained(path)
+    assert type(model) is type(source) and not model.training
+    assert not any(m.training for m in model.modules())
+    stored = read_weights(path).state_dict
+    assert not [k for k in stored if k.startswith(("decoder", "normal_head", "loss_terms"))]
+    inference = {k: v for k, v in source.state_dict().items() if k in stored}
+    assert set(stored) == set(inference) and all(torch.equal(stored[k], v) for k, v in inference.items())
+    src, ref = _clouds()
+    expected, got = source.register(src, ref), model.register(src, ref)
+    assert torch.equal(got.transform_ref_src, expected.transform_ref_src)
+    assert torch.equal(got.num_iters, expected.num_iters)
+
+
+def test_dvds_is_rebuilt_without_decoder_and_normal_head(tmp_path: Path) -> None:
+    source = tiny_model("dvds")
+    assert source.decoder is not None and source.normal_head is not None
+    model = pretrained(str(exported(source, tmp_path)))
+    assert isinstance(model, DVDs) and model.decoder is None and model.normal_head is None
+    assert len(model.loss_terms) == 0  # components are never saved
+    assert read_weights(tmp_path / "tiny.pt").init_args["lambda_recon"] == 0.0
+
+
+def test_overrides_replace_init_args_and_training_only_modules_stay_initialised(tmp_path: Path) -> None:
+    path = exported(tiny_model("dvds", seed=4), tmp_path)
+    model = pretrained(path, eval_iterations=7, lambda_recon=0.5)
+    assert model.eval_iterations == 7 and model.decoder is not None  # decoder built, left as initialised
+    plain = pretrained(path)
+    assert all(
+        torch.equal(a, b) for a, b in zip(plain.encoder.state_dict().values(), model.encoder.state_dict().values())
+    )
+    with pytest.raises(PretrainedBuildError, match=r"refuses init_args \+ overrides \['no_such_arg'\]"):
+        pretrained(path, no_such_arg=1)
+    with pytest.raises(PretrainedMismatchError, match="shapes"):
+        pretrained(path, encoder_channels=[16, 48])
+
+
+def test_load_into_a_configured_model_keeps_its_training_only_modules(tmp_path: Path) -> None:
+    path = exported(tiny_model("dvds", seed=5), tmp_path)
+    configured = tiny_model("dvds", seed=6)  # decoder, normal head and LC term, other weights
+    decoder_before = {k: v.clone() for k, v in configured.decoder.state_dict().items()}
+    info = load_into(configured, path)
+    assert info.path == path and info.metadata["global_step"] == 120
+    assert all(
+        torch.equal(v, read_weights(path).state_dict[f"encoder.{k}"])
+        for k, v in configured.encoder.state_dict().items()
+    )
+    assert all(torch.equal(v, decoder_before[k]) for k, v in configured.decoder.state_dict().items())
+    with pytest.raises(PretrainedClassError, match=r"holds lcreg\.models\.dvds\.DVDs weights, the configured model is"):
+        load_into(tiny_model("pointnetlk"), path)
+
+
+def test_loaded_weights_follow_the_model_to_its_device_and_dtype(tmp_path: Path) -> None:
+    path = exported(tiny_model("pointnetlk", seed=2), tmp_path)
+    model = tiny_model("pointnetlk", seed=9).double()
+    load_into(model, path)
+    assert all(p.dtype == torch.float64 for p in model.parameters())
+    assert torch.equal(
+        model.encoder.linears[0].weight.float(), read_weights(path).state_dict["encoder.linears.0.weight"]
+    )
+
+
+# --- strictness ----------------------------------------------------------------------------------------------------
+def test_strict_loading_refuses_extra_missing_and_reshaped_tensors(tmp_path: Path) -> None:
+    path = exported(tiny_model("pointnetlk"), tmp_path)
+    state = read_weights(path).state_dict
+    extra = rewrite(path, tmp_path / "extra.pt", state_dict={**state, "encoder.extra": torch.zeros(2)})
+    missing = rewrite(
+        path, tmp_path / "missing.pt", state_dict={k: v for k, v in state.items() if "linears.1" not in k}
+    )
+    reshaped = rewrite(path, tmp_path / "reshaped.pt", state_dict={**state, "encoder.linears.0.bias": torch.zeros(5)})
+    cases = [
+        (extra, "tensors the model lacks: encoder.extra"),
+        (missing, "inference tensors missing from the file: encoder.linears.1.weight, encoder.linears.1.bias"),
+        (reshaped, r"encoder\.linears\.0\.bias \(5,\) vs \(16,\)"),
+    ]
+    for file, message in cases:
+        with pytest.raises(PretrainedMismatchError, match=message) as info:
+            pretrained(file)
+        assert isinstance(info.value, RuntimeError) and str(file) in str(info.value)
+        assert "\n" not in str(info.value)
+
+
+def test_another_architecture_is_a_mismatch_naming_the_class(tmp_path: Path) -> None:
+    path = exported(tiny_model("pointnetlk"), tmp_path)
+    other = PointNetLK(encoder_channels=[16, 16, 32])
+    with pytest.raises(PretrainedMismatchError, match=r"does not fit lcreg\.baselines\.pointnetlk\.PointNetLK"):
+        load_into(other, path)
+
+
+# --- errors --------------------------------------------------------------------------------------------------------
+def test_unknown_name_lists_the_known_names() -> None:
+    with pytest.raises(UnknownPretrainedError) as info:
+        pretrained("dvds-imagenet")
+    message = str(info.value)
+    assert isinstance(info.value, KeyError) and isinstance(info.value, PretrainedError)
+    assert message.startswith("pretrained weights 'dvds-imagenet': unknown name; known: ")
+    assert all(name in message for name in REGISTRY) and "\n" not in message
+
+
+def test_registered_name_without_its_file_and_missing_paths(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(weights_module, "weights_dir", lambda: tmp_path)
+    with pytest.raises(PretrainedNotFoundError, match=r"'dvds-modelnet40': registered but not shipped .*none yet"):
+        pretrained("dvds-modelnet40")
+    for missing in (tmp_path / "absent.pt", str(tmp_path / "absent.pt"), "absent.pt"):
+        with pytest.raises(PretrainedNotFoundError, match=r"absent\.pt': no such file") as info:
+            pretrained(missing)
+        assert isinstance(info.value, FileNotFoundError)
+
+
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
+def test_damaged_files_are_read_errors_naming_the_file(tmp_path: Path) -> None:
+    good = exported(tiny_model("pointnetlk"), tmp_path)
+    data = good.read_bytes()
+    (tmp_path / "empty.pt").write_bytes(b"")
+    (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
+    (tmp_path / "garbage.pt").write_bytes(b"\x80not a torch file" * 8)
+    torch.save({"model": torch.nn.Linear(2, 2)}, tmp_path / "pickled.pt")  # needs full unpickling: refused
+    for name, reason in [("empty", "empty file"), ("truncated", "not a readable"), ("garbage", "not a readable"),
+                         ("pickled", "not a readable")]:  # fmt: skip
+        with pytest.raises(PretrainedReadError, match=reason) as info:
+            pretrained(tmp_path / f"{name}.pt")
+        assert isinstance(info.value, ValueError) and f"{name}.pt" in str(info.value)
+        assert "\n" not in str(info.value) and "\x1b" not in str(info.value)
+
+
+def test_wrong_format_or_keys_are_format_errors(tmp_path: Path) -> None:
+    good = exported(tiny_model("pointnetlk"), tmp_path)
+    torch.save(torch.zeros(3), tmp_path / "tensor.pt")
+    torch.save({"state_dict": {}}, tmp_path / "lightning.pt")
+    cases = {
+        "tensor": "holds a Tensor, not a dict",
+        "lightning": r"missing keys \['format', 'name', 'class_path'",
+        "format2": "format 2 is not supported",
+        "extra": r"unexpected keys \['optimizer_states'\]",
+        "objects": "'init_args' must be a dict of plain values",
+        "meta": "'metadata' must be a dict",
+        "tensors": "'state_dict' must be a dict of str keys and tensors",
+        "name": "'name' must be a string",
+    }
+    rewrite(good, tmp_path / "format2.pt", format=2)
+    rewrite(good, tmp_path / "extra.pt", optimizer_states=[])
+    rewrite(good, tmp_path / "objects.pt", init_args={"encoder_channels": torch.ones(2)})
+    rewrite(good, tmp_path / "meta.pt", metadata={"steps": [1, 2]})
+    rewrite(good, tmp_path / "tensors.pt", state_dict={"encoder.w": [1.0]})
+    rewrite(good, tmp_path / "name.pt", name=3)
+    for name, message in cases.items():
+        with pytest.raises(PretrainedFormatError, match=message) as info:
+            pretrained(tmp_path / f"{name}.pt")
+        assert isinstance(info.value, ValueError) and f"{name}.pt" in str(info.value)
+
+
+def test_class_path_must_be_an_lcreg_registration_module(tmp_path: Path) -> None:
+    good = exported(tiny_model("pointnetlk"), tmp_path)
+    cases = {
+        "this.Zen": "is not a class of lcreg",  # importing `this` would print: never imported
+        "lcreg.nn.pointnet.PointNetEncoder": "is not a RegistrationModule subclass",
+        "lcreg.models.no_such_module.Model": "cannot be imported",
+        "lcreg.models.dvds.NoSuchClass": "cannot be imported",
+    }
+    for index, (class_path, message) in enumerate(cases.items()):
+        file = rewrite(good, tmp_path / f"class{index}.pt", class_path=class_path)
+        with pytest.raises(PretrainedClassError, match=message) as info:
+            pretrained(file)
+        assert isinstance(info.value, TypeError) and f"class{index}.pt" in str(info.value)
+    assert "this" not in sys.modules
+
+
+def test_a_registered_name_must_hold_its_class_and_name(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(weights_module, "weights_dir", lambda: tmp_path)
+    exported(tiny_model("pointnetlk"), tmp_path, name="dvds-modelnet40")  # a PointNetLK under the DVDs name
+    with pytest.raises(PretrainedClassError, match=r"holds lcreg\.baselines\.pointnetlk\.PointNetLK, the registry"):
+        pretrained("dvds-modelnet40")
+    exported(tiny_model("pointnetlk"), tmp_path, name="other")
+    (tmp_path / "other.pt").replace(tmp_path / "pointnetlk-modelnet40.pt")
+    with pytest.raises(PretrainedFormatError, match="holds weights named 'other'"):
+        pretrained("pointnetlk-modelnet40")
+    assert shipped_names() == ["dvds-modelnet40", "pointnetlk-modelnet40"]
+
+
+def test_a_registered_file_loads_by_name(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(weights_module, "weights_dir", lambda: tmp_path)
+    source = tiny_model("pointnetlk", seed=8).eval()
+    exported(source, tmp_path, name="pointnetlk-modelnet40")
+    model = lcreg.pretrained("pointnetlk-modelnet40")
+    src, ref = _clouds()
+    assert torch.equal(model.register(src, ref).transform_ref_src, source.register(src, ref).transform_ref_src)
+
+
+# --- public names and the registry ---------------------------------------------------------------------------------
+def test_listing_names_stays_light() -> None:
+    script = "import sys, lcreg; lcreg.pretrained_names(); print(sorted(m for m in sys.modules if 'lightning' in m))"
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
+
+
+def test_lazy_exports_and_names() -> None:
+    assert lcreg.pretrained is pretrained and lcreg.pretrained_names is pretrained_names
+    assert pretrained_names() == sorted(REGISTRY) and {"dvds-modelnet40", "pointnetlk-modelnet40"} <= set(REGISTRY)
+    assert set(shipped_names()) <= set(REGISTRY)
+
+
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_registry_classes_resolve(name: str) -> None:
+    assert issubclass(resolve_class(REGISTRY[name].class_path), RegistrationModule)
+
+
+def test_every_file_in_the_package_folder_is_registered() -> None:
+    files = sorted(p.stem for p in weights_dir().glob("*.pt"))
+    assert set(files) <= set(REGISTRY), f"unregistered weights files in {weights_dir()}: {set(files) - set(REGISTRY)}"
+    cards = sorted(p.stem for p in weights_dir().glob("*.md"))
+    assert cards == files, "every shipped .pt has a model card <name>.md and every card a file"
+
+
+def test_the_wheel_ships_the_weights_and_cards() -> None:
+    """hatchling puts every file of src/lcreg in the wheel; ``artifacts`` keeps the weights if a rule ignores them."""
+    tomllib = pytest.importorskip("tomllib")
+    config = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())
+    wheel = config["tool"]["hatch"]["build"]["targets"]["wheel"]
+    assert wheel["packages"] == ["src/lcreg"]
+    assert {"src/lcreg/weights/*.pt", "src/lcreg/weights/*.md"} <= set(wheel["artifacts"])
+
+
+def test_model_card_template_has_the_sections_of_the_export() -> None:
+    text = (REPO_ROOT / "docs" / "model_card_template.md").read_text()
+    assert tuple(re.findall(r"^## (.+)$", text, flags=re.M)) == CARD_HEADINGS
+    assert CARD_BEGIN in text and CARD_END in text
+    for field in ("exact command", "data and split", "steps / epochs", "wall time", "machine", "file size", "sha256"):
+        assert f"| {field} |" in text, field
+
+
+# --- the shipped files (parametrised over the registry: a name runs once its file ships) --------------------------
+def _shipped(name: str) -> Path:
+    if name not in shipped_names():
+        pytest.skip(f"{name}: no weights shipped yet ({weights_dir() / f'{name}.pt'} absent)")
+    return weights_dir() / f"{name}.pt"
+
+
+@pytest.mark.parametrize("name", pretrained_names())
+def test_shipped_file_is_slim_strict_and_matches_its_card(name: str) -> None:
+    path = _shipped(name)
+    data = path.read_bytes()
+    assert len(data) <= MAX_FILE_BYTES
+    weights = read_weights(name)
+    assert weights.name == name and weights.class_path == REGISTRY[name].class_path
+    model = pretrained(name)  # strict: no tensor left over, none missing
+    assert {k for k in model.state_dict() if not training_only(model, k)} == set(weights.state_dict)
+    card = path.with_suffix(".md").read_text()
+    assert tuple(re.findall(r"^## (.+)$", card, flags=re.M)) == CARD_HEADINGS
+    assert hashlib.sha256(data).hexdigest() in card and f"{len(data)} bytes" in card, "refresh the card: --card"
+
+
+PAIRS = 32
+UNTRAINED_SEEDS = (0, 1, 2)
+
+
+def _median_rotation_error(model: RegistrationModule, batches: list) -> float:  # type: ignore[type-arg]
+    errors = [rotation_error_deg(model.register(b.points_src, b.points_ref).transform_ref_src, b.transform_ref_src)
+              for b in batches]  # fmt: skip
+    return float(torch.cat(errors).median())
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", pretrained_names())
+def test_shipped_weights_register_real_pairs_better_than_untrained(name: str) -> None:
+    """Median rotation error on real modelnet40_mini test pairs (1024 points) below the same network untrained, for
+    every seed (the median: one diverged pair moves the mean of an untrained network by degrees)."""
+    _shipped(name)
+    root = shared_data("modelnet40_mini")
+    batches, _ = pair_batches(str(root), "test", pairs=PAIRS, num_points=1024, batch_size=PAIRS)
+    trained = _median_rotation_error(pretrained(name), batches)
+    weights = read_weights(name)
+    cls = resolve_class(weights.class_path)
+    for seed in UNTRAINED_SEEDS:
+        torch.manual_seed(seed)
+        untrained = _median_rotation_error(cls(**weights.init_args), batches)
+        assert trained < untrained, f"{name}: {trained:.3f} deg trained vs {untrained:.3f} deg untrained (seed {seed})"
