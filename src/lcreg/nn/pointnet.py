@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from lcreg.checks import check_points
+from lcreg.reference import reference_active
 
 __all__ = ["PointNetEncoder"]
 
@@ -82,8 +83,10 @@ class PointNetEncoder(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Global descriptor ``(B, K)`` of ``points (B, N, 3)``."""
         check_points(points, "points")
-        if self.training:  # max (with indices) has a sparse backward, unlike amax
-            return self.point_features(points).max(dim=1).values
+        if self.training:
+            if reference_active() or not isinstance(self.norms[-1], nn.Identity):
+                return self._forward_train_reference(points)
+            return self._forward_train(points)
         h = points
         for i in range(len(self.linears) - 1):
             weight, bias = self._folded(i)
@@ -92,6 +95,44 @@ class PointNetEncoder(nn.Module):
         # max and ReLU commute and the bias is per channel: pool the wide last layer chunk by chunk (cache-friendly).
         pooled = torch.stack([nn.functional.linear(c, weight).amax(1) for c in h.split(self.chunk_size, dim=1)])
         return torch.relu(pooled.amax(0) + bias)
+
+    def _forward_train_reference(self, points: torch.Tensor) -> torch.Tensor:
+        """Training-mode descriptor ``(B, K)``: every layer on every point, then max (its backward is sparse)."""
+        return self.point_features(points).max(dim=1).values
+
+    def _forward_train(self, points: torch.Tensor) -> torch.Tensor:
+        """Training-mode descriptor ``(B, K)`` with the wide last layer differentiated at the arg-max points only.
+
+        Needs a plain last layer (no BatchNorm). Max and ReLU commute and the bias is per channel, so
+        ``max_i relu(w_k . h_i + b_k) = relu(w_k . h_a + b_k)`` with ``a`` the arg-max of ``w_k . h_i``; the max
+        routes the gradient to ``a`` alone, so the last layer only needs a graph at the ``K`` arg-max points. The
+        arg-max is found without autograd, chunk by chunk; values and gradients are those of
+        :meth:`_forward_train_reference` (up to float rounding).
+        """
+        h = points
+        last = len(self.linears) - 1
+        for i in range(last):
+            h = self._block(i, h)
+        lin = self._linear(last)
+        arg = self._pooled_argmax(h, lin.weight)
+        return torch.relu(_dot_at(h, arg, lin.weight, lin.bias))
+
+    def _pooled_argmax(self, h: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        """Arg-max over the points of ``h @ weight.T``, ``(B, K)``, for ``h (B, N, C)``; no autograd.
+
+        The same arg-max as with a per-channel bias. The full ``(B, N, K)`` product is never held: ``chunk_size``
+        points at a time, as ``(B, K, chunk)`` so that the max runs over contiguous memory; ties go to the first point.
+        """
+        size = self.chunk_size
+        weights = weight.detach().expand(h.shape[0], -1, -1)  # (B, K, C), a view
+        with torch.no_grad():
+            best_val, best_idx = torch.bmm(weights, h[:, :size].transpose(1, 2)).max(dim=-1)  # (B, K)
+            for start in range(size, h.shape[1], size):
+                val, idx = torch.bmm(weights, h[:, start : start + size].transpose(1, 2)).max(dim=-1)
+                better = val > best_val
+                best_val = torch.where(better, val, best_val)
+                best_idx = torch.where(better, idx + start, best_idx)
+        return best_idx
 
     def _affine(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Eval-mode norm of layer ``i`` as ``scale * z + shift`` (identity without BatchNorm)."""
@@ -110,6 +151,10 @@ class PointNetEncoder(nn.Module):
     def twist_jacobian(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Descriptor and its exact Jacobian w.r.t. a twist applied to the cloud, at identity.
 
+        The hidden layers carry the 3 coordinate derivatives of every point forward; the wide last layer is
+        evaluated without a graph, chunk by chunk, only to find each channel's arg-max point, and then differentiated
+        (and its value recomputed, differentiably) at those ``K`` points.
+
         Args:
             points: Clouds ``(B, N, 3)``.
 
@@ -117,6 +162,31 @@ class PointNetEncoder(nn.Module):
             ``(psi (B, K), jacobian (B, K, 6))`` with columns ordered ``[omega, v]``; eval-mode normalisation.
         """
         check_points(points, "points")
+        if reference_active():
+            return self._twist_jacobian_reference(points)
+        b, n, _ = points.shape
+        h, dh = points, None
+        last = len(self.linears) - 1
+        for i in range(last):
+            weight, bias = self._folded(i)
+            z = nn.functional.linear(h, weight, bias)
+            mask = (z > 0).to(z.dtype)
+            jac_in = weight.T.contiguous() if dh is None else dh @ weight.T  # (3, C) or (B, N, 3, C)
+            dh = jac_in * mask[:, :, None, :]  # (B, N, 3, C), contiguous
+            h = z * mask
+        if dh is None:  # a single-layer encoder: the points' own derivatives
+            dh = torch.eye(3, dtype=points.dtype, device=points.device).expand(b, n, 3, 3)
+        weight, bias = self._folded(last)
+        arg = self._pooled_argmax(h, weight)  # (B, K)
+        psi = torch.relu(_dot_at(h, arg, weight, bias))  # (B, K)
+        k = psi.shape[1]
+        dh_arg = torch.gather(dh, 1, arg[:, :, None, None].expand(b, k, 3, dh.shape[-1]))  # (B, K, 3, C)
+        grad = (dh_arg * weight[:, None, :]).sum(-1) * (psi > 0).to(psi.dtype)[..., None]  # (B, K, 3)
+        p_arg = torch.gather(points, 1, arg[..., None].expand(b, k, 3))  # (B, K, 3)
+        return psi, torch.cat([torch.cross(p_arg, grad, dim=-1), grad], dim=-1)
+
+    def _twist_jacobian_reference(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`twist_jacobian` with the full ``(B, N, K)`` last layer and its max (validated input)."""
         b, n, _ = points.shape
         h = points
         dh = torch.eye(3, dtype=points.dtype, device=points.device).expand(b, n, 3, 3)  # (B, N, dir, C)
@@ -136,3 +206,14 @@ class PointNetEncoder(nn.Module):
         grad = grad * (psi > 0).to(psi.dtype)[..., None]
         p_arg = torch.gather(points, 1, arg[..., None].expand(b, k, 3))  # (B, K, 3)
         return psi, torch.cat([torch.cross(p_arg, grad, dim=-1), grad], dim=-1)
+
+
+def _dot_at(h: torch.Tensor, idx: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """``z[b, k] = weight[k] . h[b, idx[b, k]] + bias[k]``, ``(B, K)``, for ``h (B, N, C)`` and ``idx (B, K)``.
+
+    One output channel of a linear layer, evaluated at one point per channel; differentiable in ``h`` (the gather's
+    backward scatters into the chosen points), ``weight`` and ``bias``.
+    """
+    h_at = torch.gather(h, 1, idx[..., None].expand(-1, -1, h.shape[-1]))  # (B, K, C)
+    z = (h_at * weight).sum(-1)
+    return z if bias is None else z + bias
