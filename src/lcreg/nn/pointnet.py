@@ -33,11 +33,14 @@ class PointNetEncoder(nn.Module):
     Args:
         channels: Output widths of the shared layers; the last one is the descriptor size ``K``.
         batch_norm: Use BatchNorm after each linear layer (PointNet/PointNetLK) or not.
-        chunk_size: Points per chunk of the eval-mode pooled last layer (memory/speed only, same result).
+        chunk_size: Points per chunk of the pooled wide last layer (eval-mode forward, arg-max searches of the
+            training forward and of the Jacobian). Memory/speed only, same result; with 128 a chunk's product stays
+            small enough for the cache at ``B = 16-48``, ``K = 1024`` (arg-max search at ``B = 48`` on a 2-core CPU:
+            1.2-1.4x faster than with 256 points).
     """
 
     def __init__(
-        self, channels: Sequence[int] = (64, 64, 64, 128, 1024), batch_norm: bool = True, chunk_size: int = 256
+        self, channels: Sequence[int] = (64, 64, 64, 128, 1024), batch_norm: bool = True, chunk_size: int = 128
     ) -> None:
         super().__init__()
         self.chunk_size = chunk_size
