@@ -13,9 +13,9 @@ solver runs the encoder.
 
 The training-mode forward uses the same fact for the backward pass: when the last layer has no BatchNorm, its
 arg-max points are found without autograd (chunk by chunk) and the graph holds the last layer at those ``K`` points
-only, instead of the ``(B, N, K)`` activations and their dense backward (3.5x faster for ``[X, Y, W(X)]`` at
-``B = 16``, ``N = 1024``, less than half the step's memory). The plain versions stay as ``_..._reference``
-methods (:mod:`lcreg.reference`).
+only, instead of the ``(B, N, K)`` activations and their dense backward (forward + backward over ``[X, Y, W(X)]``
+at ``B = 16``, ``N = 1024``: 3.5x faster, ``benchmarks/bench_dvds_step.py --breakdown``). The plain versions stay as
+``_..._reference`` methods (:mod:`lcreg.reference`).
 """
 
 from __future__ import annotations
