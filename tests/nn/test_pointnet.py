@@ -9,6 +9,7 @@ from torch import nn
 
 from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
 from lcreg.geometry import se3
+from lcreg.nn import pointnet
 from lcreg.nn.lk import twist_jacobian
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.reference import reference_mode
@@ -198,7 +199,8 @@ def test_fast_training_forward_matches_the_reference(dtype: torch.dtype, chunk_s
     """The last layer differentiated at the arg-max points only: same descriptor and gradients as the dense one."""
     enc = _encoder(batch_norm=False, dtype=dtype).train()
     enc.chunk_size = chunk_size
-    points = _points(dtype=dtype)
+    points = _points(n=160, dtype=dtype)
+    assert enc._pools_sparsely(160)
     ref, fast = _train_outputs(enc, points, True), _train_outputs(enc, points, False)
     assert len(fast) == len(ref) == 1 + 2 * len(CHANNELS)
     tol = 1e-12 if dtype == torch.float64 else 1e-5
@@ -209,9 +211,17 @@ def test_fast_training_forward_matches_the_reference(dtype: torch.dtype, chunk_s
 def test_training_forward_with_batch_norm_matches_the_reference() -> None:
     """A BatchNorm after the last layer needs every point's output (batch statistics): the dense path is used."""
     enc = _encoder(batch_norm=True).train()
-    points = _points()
+    points = _points(n=160)
+    assert not enc._pools_sparsely(160)
     for a, b in zip(_train_outputs(enc, points, False), _train_outputs(enc, points, True), strict=True):
         torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+
+
+def test_small_clouds_use_the_dense_training_backward() -> None:
+    """Below ``_SPARSE_MIN_POINTS`` points per cloud gathering ``K`` rows per cloud costs more than the dense pass."""
+    enc = _encoder(batch_norm=False).train()
+    assert not enc._pools_sparsely(pointnet._SPARSE_MIN_POINTS - 1)
+    assert enc._pools_sparsely(pointnet._SPARSE_MIN_POINTS)
 
 
 @pytest.mark.parametrize("batch_norm", [True, False])
