@@ -37,6 +37,7 @@ from lcreg.benchmarking import (
     method,
     output_path,
     pair_batches,
+    peak_rss_increase_mib,
     registration_speed,
     save_weights,
     synthetic_overrides,
@@ -226,6 +227,20 @@ class _Fixed(RegistrationModule):
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         b = points_src.shape[0]
         return RegistrationResult(torch.eye(4).expand(b, 4, 4), torch.ones(b, dtype=torch.bool), torch.full((b,), 4))
+
+
+def test_peak_rss_increase_sees_a_transient_allocation() -> None:
+    def allocate() -> float:
+        block = torch.ones(16 * 2**20 // 4)  # 16 MiB, freed on return
+        return float(block.sum())
+
+    result, mib = peak_rss_increase_mib(allocate)
+    assert result == 16 * 2**20 // 4
+    if mib is None:
+        pytest.skip("no resettable high-water mark on this system (Linux /proc/self/clear_refs)")
+    assert 15 <= mib < 200
+    _, idle = peak_rss_increase_mib(lambda: None)
+    assert idle is not None and idle < 15
 
 
 def test_registration_speed_is_the_median_pass_per_pair() -> None:

@@ -69,6 +69,23 @@ def test_check_finite(value: float) -> None:
         check_finite(x, "weights")
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("values", [[float("nan")], [float("inf")], [-float("inf")], [float("nan"), float("inf")]])
+def test_check_finite_finds_every_non_finite_kind_in_every_float_dtype(dtype: torch.dtype, values: list[float]) -> None:
+    x = torch.linspace(-2, 2, 40, dtype=dtype).reshape(2, 20)
+    check_finite(x, "x")
+    check_finite(x[:0], "empty")
+    for i, value in enumerate(values):
+        x[1, 3 * i + 1] = value
+    with pytest.raises(NonFiniteError, match=f"`x` contains {len(values)}"):
+        check_finite(x, "x")
+
+
+def test_check_finite_accepts_integer_and_bool_tensors() -> None:
+    check_finite(torch.arange(4), "i")
+    check_finite(torch.zeros(3, dtype=torch.bool), "b")
+
+
 def test_check_points() -> None:
     pts = torch.zeros(2, 5, 3)
     assert check_points(pts, "points_src") is pts

@@ -114,8 +114,17 @@ def check_shape(x: torch.Tensor, expected: Sequence[int | str], name: str) -> di
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:
-    """Raise :class:`NonFiniteError` if ``x`` has NaN or Inf entries."""
-    if not bool(torch.isfinite(x).all()):
+    """Raise :class:`NonFiniteError` if ``x`` has NaN or Inf entries.
+
+    Real floating tensors are checked in one pass: NaN propagates to the minimum and maximum, and an infinite entry
+    is one of them (``torch.isfinite(x).all()`` takes several passes over ``x``).
+    """
+    if x.is_floating_point() and x.numel() > 0:
+        low, high = torch.aminmax(x)
+        finite = bool(torch.isfinite(low) & torch.isfinite(high))
+    else:
+        finite = bool(torch.isfinite(x).all())
+    if not finite:
         bad = int((~torch.isfinite(x)).sum())
         raise NonFiniteError(f"`{name}` contains {bad} NaN/Inf value(s)")
 

@@ -17,6 +17,7 @@ BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 RUNS = {
     "bench_baselines": [],
     "bench_dvds": [],
+    "bench_dvds_step": [],
     "bench_runtime": [],
     "compare_methods": [],
     "eval_modelnet40_dvds": [],

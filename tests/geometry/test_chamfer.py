@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -10,6 +11,7 @@ from scipy.spatial.distance import cdist
 from lcreg.checks import NonFiniteError, ShapeError
 from lcreg.geometry import chamfer
 from lcreg.geometry.chamfer import chamfer_distance
+from lcreg.reference import reference_mode
 
 
 def brute_force(a: np.ndarray, b: np.ndarray, squared: bool) -> np.ndarray:
@@ -77,9 +79,36 @@ def test_gradcheck() -> None:
 def test_chunked_equals_unchunked(monkeypatch: pytest.MonkeyPatch) -> None:
     gen = torch.Generator().manual_seed(3)
     a, b = torch.randn(2, 53, 3, generator=gen), torch.randn(2, 31, 3, generator=gen)
-    full = chamfer_distance(a, b)
-    monkeypatch.setattr(chamfer, "_CHUNK_ELEMENTS", 2 * 31 * 5)  # chunks of 5 points of `a`
-    assert torch.equal(chamfer_distance(a, b), full)
+    with reference_mode():  # the distance-matrix search (the k-d trees do not chunk)
+        full = chamfer_distance(a, b)
+        monkeypatch.setattr(chamfer, "_CHUNK_ELEMENTS", 2 * 31 * 5)  # chunks of 5 points of `a`
+        assert torch.equal(chamfer_distance(a, b), full)
+
+
+@pytest.mark.parametrize("sizes", [(53, 31), (200, 200), (7, 64)])
+def test_kdtree_search_finds_the_distance_matrix_neighbours(dtype: torch.dtype, sizes: tuple[int, int]) -> None:
+    gen = torch.Generator().manual_seed(5)
+    a = torch.randn(3, sizes[0], 3, generator=gen, dtype=dtype)
+    b = torch.randn(3, sizes[1], 3, generator=gen, dtype=dtype) * 0.7 + 0.1
+    idx_ab, idx_ba = chamfer._nearest_both_ways_kdtree(a, b)
+    dense_ab, dense_ba = chamfer._nearest_both_ways_dense(a, b)
+    assert idx_ab.dtype == idx_ba.dtype == torch.int64
+    assert idx_ab.shape == (3, sizes[0]) and idx_ba.shape == (3, sizes[1])
+    assert torch.equal(idx_ab, dense_ab) and torch.equal(idx_ba, dense_ba)
+
+
+def test_kdtree_path_matches_the_reference_values_and_gradients(dtype: torch.dtype) -> None:
+    gen = torch.Generator().manual_seed(6)
+    a0, b0 = torch.randn(2, 40, 3, generator=gen, dtype=dtype), torch.randn(2, 25, 3, generator=gen, dtype=dtype)
+    results = []
+    for reference in (True, False):
+        a, b = a0.clone().requires_grad_(True), b0.clone().requires_grad_(True)
+        with reference_mode() if reference else contextlib.nullcontext():
+            value = chamfer_distance(a, b)
+        value.sum().backward()
+        results.append((value.detach(), a.grad, b.grad))
+    for ref, fast in zip(*results):
+        torch.testing.assert_close(fast, ref)
 
 
 def test_large_batch_forward_and_backward_is_fast() -> None:

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from lcreg.nn.folding import FoldingDecoder
+from lcreg.reference import reference_mode
 
 
 def test_output_shape_grid_and_dtype(dtype: torch.dtype) -> None:
@@ -40,6 +41,26 @@ def test_gradients_flow_to_code_and_parameters() -> None:
     for name, param in decoder.named_parameters():
         assert param.grad is not None and torch.isfinite(param.grad).all(), name
         assert param.grad.abs().sum() > 0, name
+
+
+def test_shared_grid_forward_matches_the_reference(dtype: torch.dtype) -> None:
+    """The grid term computed once for all codewords: same points and gradients as the per-codeword grid copies."""
+    torch.manual_seed(0)
+    decoder = FoldingDecoder(feature_dim=8, grid_size=4, hidden=(16, 16)).to(dtype)
+    code0 = torch.randn(3, 8, dtype=dtype)
+    outputs = []
+    for reference in (True, False):
+        decoder.zero_grad()
+        code = code0.clone().requires_grad_(True)
+        if reference:
+            with reference_mode():
+                out = decoder(code)
+        else:
+            out = decoder(code)
+        (out * torch.linspace(-1, 1, out.numel(), dtype=dtype).reshape(out.shape)).sum().backward()
+        outputs.append([out.detach(), code.grad, *(p.grad for p in decoder.parameters())])
+    for ref, fast in zip(*outputs, strict=True):
+        torch.testing.assert_close(fast, ref)
 
 
 def test_invalid_grid_size() -> None:

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pytest
@@ -8,8 +9,10 @@ from torch import nn
 
 from lcreg.checks import NonFiniteError, ShapeError, TooFewPointsError
 from lcreg.geometry import se3
+from lcreg.nn import pointnet
 from lcreg.nn.lk import twist_jacobian
 from lcreg.nn.pointnet import PointNetEncoder
+from lcreg.reference import reference_mode
 
 CHANNELS = (16, 32, 64)
 
@@ -175,6 +178,97 @@ def test_gradients_reach_all_parameters_in_train_mode() -> None:
     for name, param in enc.named_parameters():
         assert param.grad is not None and torch.isfinite(param.grad).all(), name
     assert enc.linears[0].weight.grad is not None and enc.linears[0].weight.grad.abs().sum() > 0
+
+
+def _mode(reference: bool) -> contextlib.AbstractContextManager[None]:
+    return reference_mode() if reference else contextlib.nullcontext()
+
+
+def _train_outputs(enc: PointNetEncoder, points: torch.Tensor, reference: bool) -> list[torch.Tensor]:
+    """Training-mode descriptor and the parameter gradients of a weighted sum of it."""
+    enc.zero_grad()
+    with _mode(reference):
+        out = enc(points)
+    weights = torch.linspace(-1, 2, out.shape[-1], dtype=out.dtype)
+    (out * weights).sum().backward()
+    return [out.detach(), *(p.grad for p in enc.parameters() if p.grad is not None)]
+
+
+@pytest.mark.parametrize("chunk_size", [1, 7, 96, 1000])
+def test_fast_training_forward_matches_the_reference(dtype: torch.dtype, chunk_size: int) -> None:
+    """The last layer differentiated at the arg-max points only: same descriptor and gradients as the dense one."""
+    enc = _encoder(batch_norm=False, dtype=dtype).train()
+    enc.chunk_size = chunk_size
+    points = _points(n=160, dtype=dtype)
+    assert enc._pools_sparsely(160)
+    ref, fast = _train_outputs(enc, points, True), _train_outputs(enc, points, False)
+    assert len(fast) == len(ref) == 1 + 2 * len(CHANNELS)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for a, b in zip(fast, ref, strict=True):
+        torch.testing.assert_close(a, b, atol=tol, rtol=tol)
+
+
+def test_training_forward_with_batch_norm_matches_the_reference() -> None:
+    """A BatchNorm after the last layer needs every point's output (batch statistics): the dense path is used."""
+    enc = _encoder(batch_norm=True).train()
+    points = _points(n=160)
+    assert not enc._pools_sparsely(160)
+    for a, b in zip(_train_outputs(enc, points, False), _train_outputs(enc, points, True), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+
+
+def test_small_clouds_use_the_dense_training_backward() -> None:
+    """Below ``_SPARSE_MIN_POINTS`` points per cloud gathering ``K`` rows per cloud costs more than the dense pass."""
+    enc = _encoder(batch_norm=False).train()
+    assert not enc._pools_sparsely(pointnet._SPARSE_MIN_POINTS - 1)
+    assert enc._pools_sparsely(pointnet._SPARSE_MIN_POINTS)
+
+
+@pytest.mark.parametrize("batch_norm", [True, False])
+@pytest.mark.parametrize("chunk_size", [1, 7, 1000])
+def test_fast_twist_jacobian_matches_the_reference(batch_norm: bool, chunk_size: int) -> None:
+    enc = _encoder(batch_norm)
+    enc.chunk_size = chunk_size
+    points = _points()
+    with reference_mode():
+        psi_ref, jac_ref = enc.twist_jacobian(points)
+    psi, jac = enc.twist_jacobian(points)
+    torch.testing.assert_close(psi, psi_ref, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(jac, jac_ref, atol=1e-12, rtol=1e-12)
+
+
+def test_fast_twist_jacobian_is_differentiable_like_the_reference() -> None:
+    """PointNetLK back-propagates through the Jacobian (differentiable solver): same parameter gradients."""
+    enc = _encoder()
+    points = _points()
+    grads = []
+    for reference in (True, False):
+        enc.zero_grad()
+        with _mode(reference):
+            psi, jac = enc.twist_jacobian(points)
+        (psi.sum() + jac.square().sum()).backward()
+        grads.append([p.grad.clone() for p in enc.parameters() if p.grad is not None])
+    assert len(grads[0]) == len(grads[1]) > 0
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
+
+
+def test_twist_jacobian_of_a_single_layer_encoder() -> None:
+    torch.manual_seed(0)
+    enc = PointNetEncoder((8,), batch_norm=False).double().eval()
+    points = _points()
+    psi, jac = enc.twist_jacobian(points)
+    psi_ad, jac_ad = twist_jacobian(enc, points, "autodiff")
+    torch.testing.assert_close(psi, psi_ad, atol=1e-12, rtol=0)
+    torch.testing.assert_close(jac, jac_ad, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("chunk_size", [1, 2])
+def test_pooled_argmax_ties_go_to_the_first_point(chunk_size: int) -> None:
+    enc = PointNetEncoder((4, 6), batch_norm=False)
+    enc.chunk_size = chunk_size
+    h = torch.tensor([[1.0, 2.0, 0.5, 0.0]]).expand(2, 5, 4)  # five identical points per cloud
+    assert torch.equal(enc._pooled_argmax(h, torch.randn(6, 4)), torch.zeros(2, 6, dtype=torch.long))
 
 
 @pytest.mark.parametrize(

@@ -120,3 +120,13 @@ def test_conditioned_mlp_equals_the_concatenated_input_mlp() -> None:
     torch.testing.assert_close(net(points, code), net.rest(h))
     with pytest.raises(ValueError, match="hidden"):
         ConditionedPointMLP(3, 5, (), 2)
+
+
+def test_conditioned_mlp_with_points_shared_by_every_code() -> None:
+    """``(N, D_p)`` points (a folding grid) give the result of the same points copied for every code."""
+    torch.manual_seed(0)
+    net = ConditionedPointMLP(point_dim=2, code_dim=5, hidden=(8, 6), out_dim=3).double()
+    grid, code = torch.randn(7, 2, dtype=torch.float64), torch.randn(4, 5, dtype=torch.float64)
+    shared = net(grid, code)
+    assert shared.shape == (4, 7, 3)
+    torch.testing.assert_close(shared, net(grid.expand(4, -1, -1), code))

@@ -6,6 +6,8 @@ Clocks are injectable (``clock``), so the bookkeeping is tested without sleeping
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import json
 import os
 import resource
@@ -30,6 +32,7 @@ __all__ = [
     "RegistrationSpeed",
     "Timing",
     "device_of",
+    "peak_rss_increase_mib",
     "peak_rss_mib",
     "registration_speed",
     "run_fresh_process",
@@ -181,6 +184,41 @@ def registration_speed(
 def peak_rss_mib() -> float:
     """Peak resident set size of this process so far, MiB (Linux reports ``ru_maxrss`` in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _status_mib(field: str) -> float:
+    """A ``/proc/self/status`` memory field (``VmRSS``, ``VmHWM``; reported in KiB), MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key == field:
+            return int(value.split()[0]) / 1024
+    raise OSError(f"/proc/self/status has no {field}")
+
+
+def peak_rss_increase_mib(fn: Callable[[], T]) -> tuple[T, float | None]:
+    """Call ``fn()`` once and measure how far this process's resident set rose above its level before the call.
+
+    Linux only: freed heap memory is first returned to the system (glibc ``malloc_trim``), the high-water mark is
+    reset to the current resident set (``/proc/self/clear_refs``), and the figure is ``VmHWM`` after the call minus
+    ``VmRSS`` before it. Unlike ``ru_maxrss`` (the peak over the process's whole life) it can be taken for several
+    functions in one process; it covers every allocation (tensors, autograd buffers, library workspaces) that was
+    resident at the peak.
+
+    Returns:
+        ``(fn's result, MiB)``; the MiB are ``None`` where the kernel offers no resettable high-water mark.
+    """
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        before = _status_mib("VmRSS")
+    except OSError:
+        return fn(), None
+    out = fn()
+    return out, _status_mib("VmHWM") - before
 
 
 def run_fresh_process(args: Sequence[str]) -> dict[str, Any]:

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from lcreg.nn.mlp import ConditionedPointMLP
+from lcreg.reference import reference_active
 
 __all__ = ["FoldingDecoder"]
 
@@ -42,6 +43,16 @@ class FoldingDecoder(nn.Module):
         return int(self.grid.shape[0])
 
     def forward(self, code: torch.Tensor) -> torch.Tensor:
-        """Decode ``(B, K)`` codewords into ``(B, grid_size**2, 3)`` points."""
+        """Decode ``(B, K)`` codewords into ``(B, grid_size**2, 3)`` points.
+
+        The grid is shared by every codeword, so the first fold's grid term is computed once (``(G, H)``) and
+        broadcast against the per-codeword term.
+        """
+        if reference_active():
+            return self._forward_reference(code)
+        return self.fold2(self.fold1(self.grid.to(code.dtype), code), code)
+
+    def _forward_reference(self, code: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` with the grid copied for every codeword (``(B, G, 2)``)."""
         grid = self.grid.to(code.dtype).expand(code.shape[0], -1, -1)
         return self.fold2(self.fold1(grid, code), code)

@@ -111,5 +111,9 @@ class ConditionedPointMLP(nn.Module):
         self.rest = nn.Sequential(*layers)
 
     def forward(self, points: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
-        """Map ``points (B, N, D_p)`` and ``code (B, D_c)`` to ``(B, N, out_dim)``."""
+        """Map ``points (B, N, D_p)`` and ``code (B, D_c)`` to ``(B, N, out_dim)``.
+
+        ``points`` may also be ``(N, D_p)``, the same points for every code (a folding grid): their part of the first
+        layer is then computed once, not once per code.
+        """
         return self.rest(self.point_in(points) + self.code_in(code)[:, None, :])
