@@ -39,7 +39,6 @@ from lcreg.models.lucas_kanade import LucasKanadeModule
 from lcreg.nn.folding import FoldingDecoder
 from lcreg.nn.heads import NormalHead
 from lcreg.nn.lk import JacobianMode
-from lcreg.reference import reference_active
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["DVDs"]
@@ -118,46 +117,14 @@ class DVDs(LucasKanadeModule):
         self.global_loss = global_loss
         self.diagnostics_every_n_steps = diagnostics_every_n_steps
 
-    def _normal_errors(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
-        """``1 - mean_i cos(pred_i, n_i)`` per cloud, ``(B,)`` (``|cos|`` for PCA-estimated, unoriented normals)."""
+    def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
+        """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""
         if self.normal_head is None:
             raise RuntimeError("normal loss requested but lambda_normal == 0")
         oriented = normals is not None
         target = normals if normals is not None else estimate_normals(points.detach())
         cos = torch.nn.functional.cosine_similarity(self.normal_head(points, code), target, dim=-1, eps=1e-8)
-        return 1 - (cos if oriented else cos.abs()).mean(dim=1)
-
-    def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
-        """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""
-        return self._normal_errors(points, normals, code).mean()
-
-    def _reconstruction_term(
-        self, x: torch.Tensor, y: torch.Tensor, f_x: torch.Tensor, f_y: torch.Tensor
-    ) -> torch.Tensor:
-        """``L_CD = CD(xi(psi(X)), X) + CD(xi(psi(Y)), Y)`` (batch means) for clouds ``(B, N, 3)`` and codes ``(B, K)``.
-
-        One decoder and one Chamfer pass over the ``2B`` clouds when ``X`` and ``Y`` have the same size (the
-        reference runs them per set).
-        """
-        if self.decoder is None:
-            raise RuntimeError("reconstruction loss requested but lambda_recon == 0")
-        if reference_active() or x.shape != y.shape:
-            return chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()
-        per_cloud = chamfer_distance(self.decoder(torch.cat([f_x, f_y])), torch.cat([x, y]))  # (2B,)
-        return per_cloud.view(2, -1).mean(dim=1).sum()
-
-    def _normal_term(self, batch: RegistrationBatch, f_x: torch.Tensor, f_y: torch.Tensor) -> torch.Tensor:
-        """``L_n`` summed over the source and reference sets (batch means), for codes ``(B, K)``.
-
-        One normal-head pass over the ``2B`` clouds when both sets have the same size and kind of normals (the
-        reference runs them per set).
-        """
-        x, y, n_x, n_y = batch.points_src, batch.points_ref, batch.normals_src, batch.normals_ref
-        if reference_active() or x.shape != y.shape or (n_x is None) != (n_y is None):
-            return self._normal_loss(x, n_x, f_x) + self._normal_loss(y, n_y, f_y)
-        normals = None if n_x is None or n_y is None else torch.cat([n_x, n_y])
-        per_cloud = self._normal_errors(torch.cat([x, y]), normals, torch.cat([f_x, f_y]))  # (2B,)
-        return per_cloud.view(2, -1).mean(dim=1).sum()
+        return (1 - (cos if oriented else cos.abs()).mean(dim=1)).mean()
 
     def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """``L = L_p + lambda1 L_CD + lambda2 L_n``; no ground-truth transform is used."""
@@ -176,11 +143,11 @@ class DVDs(LucasKanadeModule):
         losses = {"global": residual.mean()}
         losses["loss"] = self.lambda_global * losses["global"]
         if self.decoder is not None:
-            recon = self._reconstruction_term(x, y, f_x, f_y)
+            recon = chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()
             losses["recon"] = recon
             losses["loss"] = losses["loss"] + self.lambda_recon * recon
         if self.normal_head is not None:
-            normal = self._normal_term(batch, f_x, f_y)
+            normal = self._normal_loss(x, batch.normals_src, f_x) + self._normal_loss(y, batch.normals_ref, f_y)
             losses["normal"] = normal
             losses["loss"] = losses["loss"] + self.lambda_normal * normal
         return losses

@@ -186,19 +186,9 @@ class PointNetEncoder(nn.Module):
         check_points(points, "points")
         if reference_active():
             return self._twist_jacobian_reference(points)
-        b, n, _ = points.shape
-        h, dh = points, None
-        last = len(self.linears) - 1
-        for i in range(last):
-            weight, bias = self._folded(i)
-            z = nn.functional.linear(h, weight, bias)
-            mask = (z > 0).to(z.dtype)
-            jac_in = weight.T.contiguous() if dh is None else dh @ weight.T  # (3, C) or (B, N, 3, C)
-            dh = jac_in * mask[:, :, None, :]  # (B, N, 3, C), contiguous
-            h = z * mask
-        if dh is None:  # a single-layer encoder: the points' own derivatives
-            dh = torch.eye(3, dtype=points.dtype, device=points.device).expand(b, n, 3, 3)
-        weight, bias = self._folded(last)
+        b = points.shape[0]
+        h, dh = self._hidden_forward_mode(points)
+        weight, bias = self._folded(len(self.linears) - 1)
         arg = self._pooled_argmax(h, weight)  # (B, K)
         psi = torch.relu(_dot_at(h, arg, weight, bias))  # (B, K)
         k = psi.shape[1]
@@ -206,6 +196,25 @@ class PointNetEncoder(nn.Module):
         grad = (dh_arg * weight[:, None, :]).sum(-1) * (psi > 0).to(psi.dtype)[..., None]  # (B, K, 3)
         p_arg = torch.gather(points, 1, arg[..., None].expand(b, k, 3))  # (B, K, 3)
         return psi, torch.cat([torch.cross(p_arg, grad, dim=-1), grad], dim=-1)
+
+    def _hidden_forward_mode(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hidden layers (eval-mode norms) on ``points (B, N, 3)`` with their derivatives along the 3 coordinates.
+
+        Returns:
+            ``(h (B, N, C), dh (B, N, 3, C))``: the input of the last layer and ``dh[b, i, d] = d h[b, i] / d p_id``.
+        """
+        h, dh = points, None
+        for i in range(len(self.linears) - 1):
+            weight, bias = self._folded(i)
+            z = nn.functional.linear(h, weight, bias)
+            mask = (z > 0).to(z.dtype)
+            jac_in = weight.T.contiguous() if dh is None else dh @ weight.T  # (3, C) or (B, N, 3, C)
+            dh = jac_in * mask[:, :, None, :]  # (B, N, 3, C), contiguous
+            h = z * mask
+        if dh is None:  # a single-layer encoder: the points' own derivatives
+            b, n, _ = points.shape
+            dh = torch.eye(3, dtype=points.dtype, device=points.device).expand(b, n, 3, 3)
+        return h, dh
 
     def _twist_jacobian_reference(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`twist_jacobian` with the full ``(B, N, K)`` last layer and its max (validated input)."""
