@@ -22,6 +22,7 @@ gradient clipping 1, as in issue 12's table).
 from __future__ import annotations
 
 import argparse
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -54,10 +55,10 @@ class Variant(NamedTuple):
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
-    "selfsup": Variant("dvds", ("self_motion.yaml",)),  # = configs/dvds_selfsup_modelnet40.yaml
+    "selfsup": Variant("dvds_selfsup"),
     "self_motion_only": Variant(
         "dvds",
-        ("self_motion.yaml",),
+        (),
         (
             '--model.init_args.loss_terms=[{"class_path": "lcreg.models.loss_terms.SelfMotionLoss"}]',
             "--model.init_args.lambda_global=0",
@@ -119,8 +120,6 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
-        import tempfile
-
         args.run_dir = tempfile.mkdtemp(prefix="lcreg-smoke-")
     return args
 

@@ -20,6 +20,23 @@ TINY_RUN = [
     "--data.init_args.num_points=96",
     "--data.init_args.batch_size=2",
 ]
+# A tiny DVDs on the embedded shapes: one epoch of two batches (tests of fit/test end to end).
+TINY_DVDS = [
+    "--model.init_args.encoder_channels=[16,32]",
+    "--model.init_args.decoder_grid_size=8",
+    "--model.init_args.decoder_hidden=[32]",
+    "--model.init_args.normal_hidden=[16]",
+    "--data.init_args.num_points=128",
+    "--data.init_args.points_per_shape=256",
+    "--data.init_args.num_train=4",
+    "--data.init_args.num_val=2",
+    "--data.init_args.num_test=2",
+    "--data.init_args.batch_size=2",
+    "--trainer.max_epochs=1",
+    "--trainer.limit_train_batches=2",
+    "--trainer.enable_progress_bar=false",
+    "--trainer.enable_model_summary=false",
+]
 SYNTHETIC = ["--data.init_args.num_train=2", "--data.init_args.num_val=2", "--data.init_args.num_test=2"]
 
 # The hosts of the LC + X table train under the DCP-family protocol (data/dcp_protocol.yaml after the data file).

@@ -10,27 +10,14 @@ import yaml
 
 from lcreg.cli import build_cli, expand_configs, main
 
+from _cli_runs import TINY_DVDS  # type: ignore[import-not-found]
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = REPO_ROOT / "configs"
 DVDS = CONFIGS / "dvds.yaml"
 ALL_CONFIGS = sorted(CONFIGS.rglob("*.yaml"))
 
-TINY = [
-    "--model.init_args.encoder_channels=[16,32]",
-    "--model.init_args.decoder_grid_size=8",
-    "--model.init_args.decoder_hidden=[32]",
-    "--model.init_args.normal_hidden=[16]",
-    "--data.init_args.num_points=128",
-    "--data.init_args.points_per_shape=256",
-    "--data.init_args.num_train=4",
-    "--data.init_args.num_val=2",
-    "--data.init_args.num_test=2",
-    "--data.init_args.batch_size=2",
-    "--trainer.max_epochs=1",
-    "--trainer.limit_train_batches=2",
-    "--trainer.enable_progress_bar=false",
-    "--trainer.enable_model_summary=false",
-]
+TINY = TINY_DVDS
 
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")

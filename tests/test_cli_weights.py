@@ -26,25 +26,10 @@ from lcreg.weights import (
 )
 from lcreg.weights.export import export_weights
 
-from _cli_runs import config_args  # type: ignore[import-not-found]
+from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
 
 DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
-TINY = [
-    "--model.init_args.encoder_channels=[16,32]",
-    "--model.init_args.decoder_grid_size=8",
-    "--model.init_args.decoder_hidden=[32]",
-    "--model.init_args.normal_hidden=[16]",
-    "--data.init_args.num_points=128",
-    "--data.init_args.points_per_shape=256",
-    "--data.init_args.num_train=4",
-    "--data.init_args.num_val=2",
-    "--data.init_args.num_test=4",
-    "--data.init_args.batch_size=2",
-    "--trainer.max_epochs=1",
-    "--trainer.limit_train_batches=2",
-    "--trainer.enable_progress_bar=false",
-    "--trainer.enable_model_summary=false",
-]
+TINY = [*TINY_DVDS, "--data.init_args.num_test=4"]  # later arguments win
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 

@@ -94,6 +94,7 @@ def _classical(label: str, model: str, refine: str | None = None) -> MethodSpec:
 # Batch sizes are the originals' (DCP 32, PRNet 36, IDAM 16, DeepGMR 32, PointNetLK 32, PCRNet 20, FMR-Net 8).
 METHODS: dict[str, MethodSpec] = {
     "dvds": MethodSpec("DVDs", ("dvds_modelnet40.yaml",), True),
+    "dvds_selfsup": MethodSpec("DVDs, self-motion recipe", ("dvds_selfsup_modelnet40.yaml",), True),
     "dvds_voxel": MethodSpec("DVDs voxelised (27 voxels)", ("dvds_modelnet40.yaml", VOXELIZE_CONFIG), True),
     "dvds_icp": MethodSpec("DVDs + ICP", ("dvds_modelnet40.yaml",), True, refine=REFINE_CONFIG, weights_from="dvds"),
     "pointnetlk": _learned("PointNetLK", "pointnetlk", 32),
