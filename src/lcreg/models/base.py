@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import inspect
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -32,6 +33,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from lcreg.checks import check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.loss_terms import LossTerm
+from lcreg.nn.dtypes import module_dtype, to_module_dtype
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["COMPONENT_ARGS", "RegistrationModule"]
@@ -50,6 +52,11 @@ COMPONENT_ARGS = ("optimizer", "lr_scheduler", "loss_terms", "refiner", "voxel_g
 
 class RegistrationModule(LightningModule):
     """Base LightningModule for registration methods.
+
+    Dtypes: ``forward``/``register`` accept float32 and float64 clouds (numpy's default). They compute in the
+    model's dtype (:func:`lcreg.nn.dtypes.module_dtype`; float32 unless converted with ``.double()``): a forward
+    pre-hook casts the inputs, a forward hook returns ``transform_ref_src`` in the caller's dtype. Training batches
+    are cast to the model's dtype in the shared step.
 
     Class attribute ``has_loss``: ``False`` for methods with nothing to train (classical baselines); their
     validation then only updates metrics.
@@ -104,6 +111,9 @@ class RegistrationModule(LightningModule):
         self.test_metrics = registration_metrics("test/")
         self.test_pairs = PerPairErrors()
         self._test_indices: list[torch.Tensor] = []
+        self._input_dtypes: list[torch.dtype] = []
+        self.register_forward_pre_hook(_inputs_to_model_dtype, with_kwargs=True)
+        self.register_forward_hook(_transform_to_input_dtype, always_call=True)
 
     # --- interface -------------------------------------------------------------------------------------------
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
@@ -257,6 +267,7 @@ class RegistrationModule(LightningModule):
 
     def _common_step(self, batch: RegistrationBatch, stage: Stage) -> torch.Tensor | None:
         self.validate_inputs(batch.points_src, batch.points_ref)
+        batch = replace(batch, **to_module_dtype(self, vars(batch)))  # float64 data, float32 model (or the reverse)
         result = self.training_forward(batch) if stage == "train" else self.estimate(batch.points_src, batch.points_ref)
         bs = len(batch)
         loss = None
@@ -355,6 +366,23 @@ class RegistrationModule(LightningModule):
             # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
         return {"optimizer": optimizer, "lr_scheduler": scheduler}
+
+
+def _inputs_to_model_dtype(
+    module: RegistrationModule, args: tuple[Any, ...], kwargs: dict[str, Any]
+) -> tuple[tuple[Any, ...], dict[str, Any]]:
+    """Forward pre-hook: float clouds in the model's dtype; remembers the caller's dtype for the result."""
+    first = next((a for a in (*args, *kwargs.values()) if isinstance(a, torch.Tensor) and a.is_floating_point()), None)
+    module._input_dtypes.append(first.dtype if first is not None else module_dtype(module) or torch.float32)
+    return to_module_dtype(module, args), to_module_dtype(module, kwargs)
+
+
+def _transform_to_input_dtype(module: RegistrationModule, args: Any, output: Any) -> Any:
+    """Forward hook: ``transform_ref_src`` back in the caller's dtype (float64 in, float64 out)."""
+    dtype = module._input_dtypes.pop() if module._input_dtypes else None
+    if isinstance(output, RegistrationResult) and dtype is not None and output.transform_ref_src.dtype != dtype:
+        output.transform_ref_src = output.transform_ref_src.to(dtype)
+    return output
 
 
 def _checked_terms(terms: Sequence[LossTerm] | None) -> list[LossTerm]:

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from lcreg.checks import check_points
+from lcreg.nn.dtypes import to_module_dtype
 from lcreg.reference import reference_active
 
 __all__ = ["PointNetEncoder"]
@@ -94,8 +95,8 @@ class PointNetEncoder(nn.Module):
         return h
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        """Global descriptor ``(B, K)`` of ``points (B, N, 3)``."""
-        check_points(points, "points")
+        """Global descriptor ``(B, K)`` of ``points (B, N, 3)`` (float32 or float64: computed in the weights' dtype)."""
+        points = to_module_dtype(self, check_points(points, "points"))
         if self.training:
             if reference_active() or not self._pools_sparsely(points.shape[1]):
                 return self._forward_train_reference(points)
@@ -183,7 +184,7 @@ class PointNetEncoder(nn.Module):
         Returns:
             ``(psi (B, K), jacobian (B, K, 6))`` with columns ordered ``[omega, v]``; eval-mode normalisation.
         """
-        check_points(points, "points")
+        points = to_module_dtype(self, check_points(points, "points"))
         if reference_active():
             return self._twist_jacobian_reference(points)
         b = points.shape[0]
