@@ -123,3 +123,14 @@ def test_check_same_batch() -> None:
         check_same_batch(a=torch.zeros(2, 3), b=torch.zeros(3, 3))
     with pytest.raises(TypeError, match=r"`b`.*`a`"):
         check_same_batch(a=torch.zeros(2, 3), b=torch.zeros(2, 3, dtype=torch.float64))
+
+
+def test_check_extent_names_the_cloud_whose_points_coincide() -> None:
+    from lcreg.checks import DegenerateCloudError, TooFewPointsError, check_extent
+
+    clouds = torch.rand(3, 10, 3)
+    check_extent(clouds, "points")
+    clouds[1] = torch.tensor([1.0, 2.0, 3.0])
+    with pytest.raises(DegenerateCloudError, match=r"`points`.*\[1\]") as info:
+        check_extent(clouds, "points")
+    assert isinstance(info.value, TooFewPointsError)

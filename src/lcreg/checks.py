@@ -5,7 +5,8 @@ All checks raise typed errors that name the offending argument, never ``assert``
 * :class:`ShapeError` (a ``ValueError``) for a wrong shape, with ``expected`` and ``actual`` attributes;
 * ``TypeError`` for a non-tensor or an unsupported dtype (float32 and float64 are supported);
 * :class:`NonFiniteError` (a ``ValueError``) for NaN or Inf values;
-* :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs;
+* :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs, and its
+  subclass :class:`DegenerateCloudError` for a cloud whose points all coincide (no rotation can be recovered);
 * :class:`PointCloudFileError` (a ``ValueError``) for a point-cloud file that exists but cannot be used;
 * :class:`DatasetLayoutError` (a ``ValueError``) for a dataset folder whose files do not follow the expected layout.
 """
@@ -18,11 +19,13 @@ import torch
 
 __all__ = [
     "DatasetLayoutError",
+    "DegenerateCloudError",
     "NonFiniteError",
     "PointCloudFileError",
     "ShapeError",
     "TooFewPointsError",
     "check_finite",
+    "check_extent",
     "check_float",
     "check_points",
     "check_same_batch",
@@ -56,6 +59,10 @@ class NonFiniteError(ValueError):
 
 class TooFewPointsError(ValueError):
     """A point cloud has fewer points than an operation needs (including empty clouds)."""
+
+
+class DegenerateCloudError(TooFewPointsError):
+    """Every point of a cloud is at one location (zero extent): a rigid motion cannot be recovered from it."""
 
 
 class PointCloudFileError(ValueError):
@@ -148,6 +155,21 @@ def check_points(x: object, name: str, min_points: int = 1) -> torch.Tensor:
         raise TooFewPointsError(f"`{name}` has {t.shape[1]} points; at least {min_points} are needed")
     check_finite(t, name)
     return t
+
+
+def check_extent(x: torch.Tensor, name: str) -> None:
+    """Raise :class:`DegenerateCloudError` if a cloud of ``x (B, N, 3)`` has all its points at one location.
+
+    Args:
+        x: Validated clouds (:func:`check_points`).
+        name: Argument name for messages.
+    """
+    low, high = x.amin(dim=1), x.amax(dim=1)  # (B, 3)
+    flat = ((high - low).amax(dim=-1) == 0).nonzero().flatten().tolist()
+    if flat:
+        raise DegenerateCloudError(
+            f"`{name}`: every point of cloud(s) {flat} is at one location; registration needs distinct points"
+        )
 
 
 def check_transform(x: object, name: str) -> torch.Tensor:

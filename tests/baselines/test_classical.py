@@ -309,3 +309,33 @@ BAD_ARGS: list[tuple[type[ClassicalRegistration], str, object]] = [
 def test_bad_constructor_arguments_are_named(cls: type[ClassicalRegistration], name: str, value: object) -> None:
     with pytest.raises(ValueError, match=f"`{name}`"):
         cls(**{name: value})
+
+
+# --- forward validates like register (issue 14, defect 7) ------------------------------------------------------
+def _bad_forward_cases() -> list[tuple[str, Any, type[Exception], str]]:
+    gen = torch.Generator().manual_seed(0)
+    src = torch.rand(2, 64, 3, generator=gen, dtype=torch.float64)
+    nan = src.clone()
+    nan[0, 3, 1] = float("nan")
+    return [
+        ("nan_src", (nan, src), NonFiniteError, "points_src"),
+        ("nan_ref", (src, nan), NonFiniteError, "points_ref"),
+        ("batch_mismatch", (src, src[:1]), ShapeError, "points_ref"),
+        ("unbatched", (src[0], src[0]), ShapeError, "points_src"),
+        ("two_columns", (src[..., :2], src[..., :2]), ShapeError, "points_src"),
+        ("one_location", (torch.ones(1, 64, 3), torch.ones(1, 64, 3)), TooFewPointsError, "points_src"),
+    ]
+
+
+@pytest.mark.parametrize("cls", CLASSES, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("case", _bad_forward_cases(), ids=lambda c: c[0])
+def test_forward_and_register_raise_typed_errors_naming_the_argument(
+    cls: type[ClassicalRegistration], case: tuple[str, Any, type[Exception], str]
+) -> None:
+    # Before: ICP/RANSAC with NaN reported converged=True, a smaller reference batch silently dropped clouds, wrong
+    # shapes raised RuntimeError(''), FGR on coinciding points failed inside Open3D ("Invalid scale_global: 0").
+    _, (src, ref), error, name = case
+    model = cls()
+    for call in (model, model.register):
+        with pytest.raises(error, match=name):
+            call(src, ref)

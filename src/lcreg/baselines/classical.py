@@ -98,7 +98,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from lcreg.checks import ShapeError, TooFewPointsError, check_transform
+from lcreg.checks import ShapeError, TooFewPointsError, check_extent, check_transform
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -252,7 +252,18 @@ class ClassicalRegistration(RegistrationModule):
         """Register one prepared pair of Open3D clouds (``init (4, 4)`` or ``None``)."""
         raise NotImplementedError
 
+    def validate_inputs(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> None:
+        """The shared checks (type, shape, size, NaN/Inf, one batch size) and no cloud with all points at one spot.
+
+        Raises:
+            DegenerateCloudError: A cloud's points all coincide (FGR's scale would be 0, ICP's fit is arbitrary).
+        """
+        super().validate_inputs(points_src, points_ref)
+        check_extent(points_src, "points_src")
+        check_extent(points_ref, "points_ref")
+
     def _run(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor | None) -> RegistrationResult:
+        self.validate_inputs(points_src, points_ref)  # forward validates too: it is public (and the refiner's entry)
         src = points_src.detach().cpu().double().numpy()
         ref = points_ref.detach().cpu().double().numpy()
         inits: list[np.ndarray | None] = [None] * len(src)
@@ -285,6 +296,10 @@ class ClassicalRegistration(RegistrationModule):
 
         Returns:
             ``transform_ref_src (B, 4, 4)`` on the input's device/dtype; ``aux`` has ``fitness``/``inlier_rmse``.
+
+        Raises:
+            TypeError, ShapeError, NonFiniteError, TooFewPointsError, DegenerateCloudError: Bad clouds (the message
+                names the argument); batches of different sizes.
         """
         return self._run(points_src, points_ref, None)
 
@@ -397,6 +412,8 @@ class ICP(ClassicalRegistration):
             ``transform_ref_src (B, 4, 4)`` on the input's device/dtype.
 
         Raises:
+            TypeError, ShapeError, NonFiniteError, TooFewPointsError, DegenerateCloudError: Bad clouds (the message
+                names the argument); batches of different sizes.
             ShapeError: If ``init`` is not ``(B, 4, 4)``.
             NonFiniteError: If ``init`` has NaN/Inf values.
         """
