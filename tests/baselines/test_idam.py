@@ -367,3 +367,49 @@ def test_config_follows_the_original() -> None:
     assert args["optimizer"]["init_args"] == {"lr": 0.0001, "weight_decay": 0.001}
     assert args["lr_scheduler"]["init_args"] == {"milestones": [30], "gamma": 0.1}
     assert plain["trainer"]["max_epochs"] == 40  # batch 16: tests/test_method_configs.py::test_original_batch_sizes
+
+
+# --- unit invariance (issue 14, defect 8) ------------------------------------------------------------------------
+def _unit_pair() -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(0)
+    # float64: an untrained IDAM turns float32 rounding (1e-7) into other arg-max matches; the scaling is exact here.
+    src = torch.rand(2, 128, 3, generator=gen, dtype=torch.float64) - 0.5
+    angles = torch.tensor([[0.3, 0.2, 0.1], [0.1, -0.2, 0.4]], dtype=torch.float64)
+    from lcreg.geometry.euler import euler_zyx_to_matrix
+
+    return src, src @ euler_zyx_to_matrix(angles).transpose(1, 2) + 0.05
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e-1, 1e2, 1e4, 1e6])
+def test_register_does_not_depend_on_the_unit(scale: float) -> None:
+    # Before: ValueError "`weights` must have a positive sum" at 1e6 (an argument the caller never passed), and a
+    # different rotation at every scale.
+    torch.manual_seed(0)
+    model = IDAM().eval()
+    src, ref = _unit_pair()
+    base = model.register(src, ref).transform_ref_src
+    scaled = model.register(src * scale, ref * scale).transform_ref_src
+    torch.testing.assert_close(scaled[:, :3, :3], base[:, :3, :3], atol=1e-4, rtol=0.0)
+    torch.testing.assert_close(scaled[:, :3, 3] / scale, base[:, :3, 3], atol=1e-4, rtol=0.0)
+
+
+def test_raw_coordinates_at_1e6_do_not_underflow_the_weights() -> None:
+    torch.manual_seed(0)
+    src, ref = _unit_pair()
+    out = IDAM(unit_scale=None).eval().register(src * 1e6, ref * 1e6).transform_ref_src
+    assert torch.isfinite(out).all()
+
+
+def test_hybrid_weights_are_unchanged_and_never_all_zero() -> None:
+    logits = torch.randn(3, 40, generator=torch.Generator().manual_seed(0)) * 5
+    plain = torch.sigmoid(logits)
+    plain = plain * (plain >= plain.median(dim=1, keepdim=True).values)
+    torch.testing.assert_close(hybrid_weights(logits), plain / plain.sum(dim=1, keepdim=True))
+    huge = hybrid_weights(logits * 1e4 - 1e6)  # every sigmoid underflows to 0 in float32
+    assert torch.isfinite(huge).all() and torch.allclose(huge.sum(dim=1), torch.ones(3))
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, float("inf"), float("nan"), "1"])
+def test_unit_scale_is_checked(value: object) -> None:
+    with pytest.raises(ValueError, match="unit_scale"):
+        IDAM(unit_scale=value)  # type: ignore[arg-type]

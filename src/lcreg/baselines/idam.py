@@ -192,8 +192,12 @@ def hybrid_weights(logits: torch.Tensor) -> torch.Tensor:
 
     Returns:
         Weights ``(B, N)``, ``>= 0``, each row summing to 1 (up to ``1e-8`` in the denominator).
+
+    The sigmoids are divided by the row's largest one first (in log space): the normalised weights are the same,
+    and logits below about -100 (huge coordinates) no longer underflow every weight to 0.
     """
-    weights = torch.sigmoid(logits)
+    log_sigmoid = F.logsigmoid(logits)
+    weights = torch.exp(log_sigmoid - log_sigmoid.amax(dim=1, keepdim=True))
     median = weights.median(dim=1, keepdim=True).values  # (B, 1), the lower median for even N
     weights = weights * (weights >= median).to(weights.dtype)
     return weights / (weights.sum(dim=1, keepdim=True) + _EPS)
@@ -293,6 +297,9 @@ class IDAM(RegistrationModule):
         num_iters: Similarity-convolution iterations (3), separate weights each.
         num_kept: Points kept per cloud by hard elimination; ``None``: ``N // 6`` (original). Clipped to ``N, M``.
         positive_threshold: Ground-truth neighbour distance of a positive source point (0.05).
+        unit_scale: ``register`` scales each pair so the reference's largest distance from its centroid is this
+            (1.0: the unit-sphere objects IDAM is trained on), then maps the translation back: its distance-aware
+            features are tied to the unit of the coordinates (see :class:`~lcreg.models.base.RegistrationModule`).
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (original: Adam, lr
             1e-4, weight decay 1e-3), ``lr_scheduler`` (original: MultiStepLR [30], gamma 0.1), ``loss_terms``
             (e.g. local consistency), ``refiner``.
@@ -307,9 +314,10 @@ class IDAM(RegistrationModule):
         num_iters: int = 3,
         num_kept: int | None = None,
         positive_threshold: float = 0.05,
+        unit_scale: float | None = 1.0,
         **kwargs: Any,
     ) -> None:
-        super().__init__(**kwargs)
+        super().__init__(unit_scale=unit_scale, **kwargs)
         if num_iters < 1:
             raise ValueError(f"`num_iters` must be >= 1, got {num_iters}")
         if num_kept is not None and num_kept < 1:

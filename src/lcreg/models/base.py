@@ -30,7 +30,7 @@ import torch
 from lightning.pytorch import LightningModule
 from lightning.pytorch.utilities import rank_zero_info
 
-from lcreg.checks import check_points, check_same_batch
+from lcreg.checks import check_extent, check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.loss_terms import LossTerm
 from lcreg.nn.dtypes import module_dtype, to_module_dtype
@@ -78,6 +78,10 @@ class RegistrationModule(LightningModule):
         refiner: A registration method run after ``forward`` at validation/test/predict/``register``, starting
             from the model's estimate (e.g. :class:`lcreg.baselines.classical.ICP`); never used in training, not a
             submodule, not saved in checkpoints (``configs/refine/icp.yaml``).
+        unit_scale: ``register`` only: scale each pair about the origin so that the reference cloud's largest
+            distance from its centroid is ``unit_scale`` (the scale the model was trained at: 1.0 for unit-sphere
+            ModelNet40), register, and map the translation back, so the result does not depend on the unit of the
+            clouds (mm, m, km). ``None`` (default for most models): the clouds are used as given.
 
     Raises:
         TypeError: If a loss term is not a ``LossTerm`` or the refiner is not a ``RegistrationModule``.
@@ -97,8 +101,12 @@ class RegistrationModule(LightningModule):
         lr_scheduler: SchedulerFactory | None = None,
         loss_terms: Sequence[LossTerm] = (),
         refiner: RegistrationModule | None = None,
+        unit_scale: float | None = None,
     ) -> None:
         super().__init__()
+        if unit_scale is not None and not (isinstance(unit_scale, (int, float)) and 0 < unit_scale < float("inf")):
+            raise ValueError(f"`unit_scale` must be a finite number > 0 or None, got {unit_scale!r}")
+        self.unit_scale = None if unit_scale is None else float(unit_scale)
         self.optimizer_factory = optimizer
         self.scheduler_factory = lr_scheduler
         self.loss_terms = torch.nn.ModuleList(_checked_terms(loss_terms))
@@ -248,14 +256,30 @@ class RegistrationModule(LightningModule):
 
     @torch.no_grad()
     def register(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
-        """Validated inference in eval mode (restores the previous mode)."""
+        """Validated inference in eval mode (restores the previous mode), at ``unit_scale`` when it is set.
+
+        Raises:
+            TypeError, ShapeError, NonFiniteError, TooFewPointsError: Bad clouds (the message names the argument).
+            DegenerateCloudError: ``unit_scale`` is set and a reference cloud's points all coincide.
+        """
         self.validate_inputs(points_src, points_ref)
+        factor = None
+        if self.unit_scale is not None:
+            check_extent(points_ref, "points_ref")
+            centred = points_ref - points_ref.mean(dim=1, keepdim=True)
+            factor = self.unit_scale / centred.norm(dim=-1).amax(dim=1)  # (B,)
+            points_src, points_ref = points_src * factor[:, None, None], points_ref * factor[:, None, None]
         was_training = self.training
         self.eval()
         try:
-            return self.estimate(points_src, points_ref)
+            result = self.estimate(points_src, points_ref)
         finally:
             self.train(was_training)
+        if factor is not None:  # p_ref = R p_src + t holds at any scale k with t' = k t
+            transform = result.transform_ref_src.clone()
+            transform[:, :3, 3] /= factor[:, None].to(transform.dtype)
+            result.transform_ref_src = transform
+        return result
 
     def refine(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor) -> RegistrationResult:
         """Improve the estimates ``init (B, 4, 4)``; only local methods (ICP) implement it.
