@@ -26,7 +26,8 @@ def _pair(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
 @pytest.mark.parametrize("name", [*NEURAL, "ICP"])
 def test_float64_input_gives_float32_result_in_float64(name: str) -> None:
     torch.manual_seed(0)
-    model = getattr(lcreg, name)()
+    # IDAM's unit_scale would scale in each dtype first: an untrained IDAM turns that rounding into other matches.
+    model = getattr(lcreg, name)(**({"unit_scale": None} if name == "IDAM" else {}))
     src64, ref64 = _pair(torch.float64)
     torch.manual_seed(1)  # PRNet samples (Gumbel) in eval mode
     out64 = model.register(src64, ref64).transform_ref_src

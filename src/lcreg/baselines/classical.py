@@ -263,7 +263,6 @@ class ClassicalRegistration(RegistrationModule):
         check_extent(points_ref, "points_ref")
 
     def _run(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor | None) -> RegistrationResult:
-        self.validate_inputs(points_src, points_ref)  # forward validates too: it is public (and the refiner's entry)
         src = points_src.detach().cpu().double().numpy()
         ref = points_ref.detach().cpu().double().numpy()
         inits: list[np.ndarray | None] = [None] * len(src)

@@ -53,10 +53,11 @@ COMPONENT_ARGS = ("optimizer", "lr_scheduler", "loss_terms", "refiner", "voxel_g
 class RegistrationModule(LightningModule):
     """Base LightningModule for registration methods.
 
-    Dtypes: ``forward``/``register`` accept float32 and float64 clouds (numpy's default). They compute in the
-    model's dtype (:func:`lcreg.nn.dtypes.module_dtype`; float32 unless converted with ``.double()``): a forward
-    pre-hook casts the inputs, a forward hook returns ``transform_ref_src`` in the caller's dtype. Training batches
-    are cast to the model's dtype in the shared step.
+    Inputs: ``forward`` and ``register`` validate both clouds first (:meth:`validate_inputs`, a forward pre-hook:
+    typed errors that name ``points_src`` or ``points_ref``, before any layer runs). They accept float32 and float64
+    clouds (numpy's default) and compute in the model's dtype (:func:`lcreg.nn.dtypes.module_dtype`; float32 unless
+    converted with ``.double()``): the pre-hook casts the inputs, a forward hook returns ``transform_ref_src`` in the
+    caller's dtype. Training batches are cast to the model's dtype in the shared step.
 
     Class attribute ``has_loss``: ``False`` for methods with nothing to train (classical baselines); their
     validation then only updates metrics.
@@ -395,7 +396,13 @@ class RegistrationModule(LightningModule):
 def _inputs_to_model_dtype(
     module: RegistrationModule, args: tuple[Any, ...], kwargs: dict[str, Any]
 ) -> tuple[tuple[Any, ...], dict[str, Any]]:
-    """Forward pre-hook: float clouds in the model's dtype; remembers the caller's dtype for the result."""
+    """Forward pre-hook: validates the two clouds (errors name them), casts them to the model's dtype.
+
+    Remembers the caller's dtype for :func:`_transform_to_input_dtype`.
+    """
+    clouds = [*args[:2], *(kwargs[k] for k in ("points_src", "points_ref") if k in kwargs)]
+    if len(clouds) == 2:
+        module.validate_inputs(*clouds)
     first = next((a for a in (*args, *kwargs.values()) if isinstance(a, torch.Tensor) and a.is_floating_point()), None)
     module._input_dtypes.append(first.dtype if first is not None else module_dtype(module) or torch.float32)
     return to_module_dtype(module, args), to_module_dtype(module, kwargs)
