@@ -28,6 +28,7 @@ __all__ = [
     "check_finite",
     "check_float",
     "check_points",
+    "check_rigid",
     "check_same_batch",
     "check_shape",
     "check_transform",
@@ -178,6 +179,31 @@ def check_transform(x: object, name: str) -> torch.Tensor:
     check_shape(t, ("B", 4, 4), name)
     check_finite(t, name)
     return t
+
+
+def check_rigid(x: torch.Tensor, name: str, atol: float = 1e-3) -> None:
+    """Raise ``ValueError`` unless every ``x[b]`` of ``(B, 4, 4)`` is a rigid motion ``[R t; 0 0 0 1]``.
+
+    ``R`` must be a rotation: ``R^T R = I`` and ``det R = +1`` (no scaling, shear or reflection), each within
+    ``atol`` (float32 products of rotations drift by about 1e-6); the last row must be ``[0, 0, 0, 1]``.
+
+    Args:
+        x: Finite transforms ``(B, 4, 4)`` (:func:`check_transform`).
+        name: Argument name for messages.
+        atol: Absolute tolerance of each test.
+    """
+    rot = x[:, :3, :3].double()
+    eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
+    orth = (rot.transpose(1, 2) @ rot - eye).abs().amax(dim=(1, 2))
+    det = (torch.linalg.det(rot) - 1).abs()
+    row = (x[:, 3].double() - eye.new_tensor([0.0, 0.0, 0.0, 1.0])).abs().amax(dim=1)
+    bad = ((orth > atol) | (det > atol) | (row > atol)).nonzero().flatten().tolist()
+    if bad:
+        raise ValueError(
+            f"`{name}` must hold rigid motions [R t; 0 0 0 1] with R a rotation (R^T R = I, det R = +1); "
+            f"item(s) {bad[:10]} are not (largest |R^T R - I| {float(orth.max()):.3g}, |det R - 1| "
+            f"{float(det.max()):.3g}, last-row error {float(row.max()):.3g})"
+        )
 
 
 def check_same_batch(**tensors: torch.Tensor) -> None:

@@ -339,3 +339,12 @@ def test_forward_and_register_raise_typed_errors_naming_the_argument(
     for call in (model, model.register):
         with pytest.raises(error, match=name):
             call(src, ref)
+
+
+def test_icp_refuses_an_initial_guess_that_is_not_a_rigid_motion() -> None:
+    # Before: a scaled "rotation" was used as the start and ICP returned a transform scaled by 2.
+    src = torch.rand(1, 64, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    init = torch.eye(4, dtype=torch.float64)[None].clone()
+    init[0, 0, 0] = 2.0
+    with pytest.raises(ValueError, match="`init` must hold rigid motions"):
+        ICP()(src, src, init=init)

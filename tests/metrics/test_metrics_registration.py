@@ -155,11 +155,37 @@ def test_forward_reset_and_float64(hand_made: tuple[torch.Tensor, torch.Tensor])
     assert float(metric.compute()) == pytest.approx(20.0)
 
 
-def test_compute_before_update_is_nan() -> None:
+def test_compute_over_zero_pairs_raises_instead_of_nan() -> None:
+    # Before (issue 14, defect 9): every summary metric returned NaN over zero pairs.
+    from lcreg.metrics.registration import NoPairsError, PerPairErrors, registration_metrics
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torchmetrics warns about compute() before update()
         for metric in (EulerRotationRMSE(), RotationErrorMedian(), RegistrationRecall(), TranslationMAE()):
-            assert math.isnan(float(metric.compute())), type(metric).__name__
+            with pytest.raises(NoPairsError, match=type(metric).__name__):
+                metric.compute()
+        with pytest.raises(NoPairsError):
+            registration_metrics("test/").compute()
+        rot, trans = PerPairErrors().compute()
+        assert rot.numel() == 0 and trans.numel() == 0
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        torch.diag(torch.tensor([2.0, 1.0, 1.0, 1.0])),  # scaling
+        torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0])),  # reflection
+        torch.tensor([[1.0, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),  # shear
+        torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.5, 0, 0, 1]]),  # last row
+    ],
+)
+def test_ground_truth_must_be_a_rigid_motion(bad: torch.Tensor) -> None:
+    metric = RotationErrorMean()
+    good, _ = random_euler_transform(3, generator=torch.Generator().manual_seed(0))
+    metric.update(good, good)  # rotations pass (float32 drift is tolerated)
+    batch = torch.cat([good, bad[None]])
+    with pytest.raises(ValueError, match=r"`transform_gt` must hold rigid motions.*item\(s\) \[3\]"):
+        metric.update(batch, batch)
 
 
 def test_bad_inputs() -> None:

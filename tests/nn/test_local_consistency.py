@@ -279,3 +279,12 @@ def test_metric_initialisation_is_seeded_and_leaves_the_global_rng_alone() -> No
     bound = 1 / 16**0.5
     assert a.metric.weight.abs().max() <= bound and a.metric.bias.abs().max() <= bound
     assert a.metric.weight.std() > 0.5 * bound / 3**0.5  # uniform(-b, b) has std b/sqrt(3)
+
+
+def test_estimate_pairing_refuses_a_transform_that_is_not_rigid() -> None:
+    from lcreg.nn.pointnet import PointNetEncoder
+
+    bad = torch.eye(4)[None].clone()
+    bad[0, :3, :3] *= 3.0
+    with pytest.raises(ValueError, match="`transform_ref_src` must hold rigid motions"):
+        LocalConsistency(pairing="estimate")(PointNetEncoder(), torch.rand(1, 256, 3), transform_ref_src=bad)

@@ -98,7 +98,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from lcreg.checks import ShapeError, TooFewPointsError, check_extent, check_transform
+from lcreg.checks import ShapeError, TooFewPointsError, check_extent, check_rigid, check_transform
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -268,6 +268,7 @@ class ClassicalRegistration(RegistrationModule):
         inits: list[np.ndarray | None] = [None] * len(src)
         if init is not None:
             check_transform(init, "init")
+            check_rigid(init, "init")
             if init.shape[0] != len(src):
                 raise ShapeError("init", (len(src), 4, 4), init.shape)
             inits = list(init.detach().cpu().double().numpy())
@@ -415,6 +416,7 @@ class ICP(ClassicalRegistration):
                 names the argument); batches of different sizes.
             ShapeError: If ``init`` is not ``(B, 4, 4)``.
             NonFiniteError: If ``init`` has NaN/Inf values.
+            ValueError: If ``init`` is not a batch of rigid motions.
         """
         return self._run(points_src, points_ref, init)
 

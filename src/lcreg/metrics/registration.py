@@ -14,8 +14,9 @@ Failure policy (a diverged estimate with NaN/Inf entries, or any pair whose func
   translation-component error -> ``|t_gt|`` (the error of predicting the identity);
 * :class:`NumFailed` counts such pairs and :class:`PerPairErrors` returns the raw errors with their NaNs.
 
-Ground-truth transforms must be finite (:class:`lcreg.checks.NonFiniteError` otherwise). ``compute`` before any
-``update`` returns NaN.
+Ground-truth transforms must be finite rigid motions (:class:`lcreg.checks.NonFiniteError`, ``ValueError``
+otherwise). A summary metric's ``compute`` over zero pairs raises :class:`NoPairsError` (it used to return NaN);
+:class:`PerPairErrors` returns empty tensors.
 """
 
 from __future__ import annotations
@@ -26,12 +27,13 @@ import torch
 from torchmetrics import Metric, MetricCollection
 from torchmetrics.utilities import dim_zero_cat
 
-from lcreg.checks import check_finite
+from lcreg.checks import check_finite, check_rigid
 from lcreg.metrics import functional
 
 __all__ = [
     "EulerRotationMAE",
     "EulerRotationRMSE",
+    "NoPairsError",
     "NumFailed",
     "PerPairErrors",
     "RegistrationRecall",
@@ -45,6 +47,10 @@ __all__ = [
 
 WORST_ROTATION_DEG = 180.0
 _STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt")
+
+
+class NoPairsError(ValueError):
+    """A summary metric was computed over zero pairs (no batch with a ground truth was seen)."""
 
 
 class _PairErrorMetric(Metric):
@@ -70,6 +76,7 @@ class _PairErrorMetric(Metric):
             transform_gt: Ground-truth ``transform_ref_src`` ``(B, 4, 4)``, finite.
         """
         check_finite(transform_gt, "transform_gt")
+        check_rigid(transform_gt, "transform_gt")
         values = {
             "rot_err_deg": functional.rotation_error_deg(transform_pred, transform_gt),
             "trans_err": functional.translation_error(transform_pred, transform_gt),
@@ -80,10 +87,19 @@ class _PairErrorMetric(Metric):
         for name, value in values.items():
             getattr(self, name).append(value.detach())
 
+    allow_empty: bool = False
+    """``compute`` over zero pairs: ``True`` gives empty tensors, ``False`` raises :class:`NoPairsError`."""
+
     def _state(self, name: str) -> torch.Tensor:
-        """Concatenated state ``name`` (an empty tensor before any update)."""
+        """Concatenated state ``name`` (an empty tensor before any update).
+
+        Raises:
+            NoPairsError: No pair was added and the metric is a summary (``allow_empty`` false).
+        """
         value = getattr(self, name)
         if isinstance(value, list) and not value:
+            if not self.allow_empty:
+                raise NoPairsError(f"{type(self).__name__}: no pairs to summarise (update() was never called)")
             return torch.empty(0, device=self.device, dtype=self.dtype)
         return dim_zero_cat(value)
 
@@ -169,8 +185,7 @@ class RotationErrorMedian(_PairErrorMetric):
 
     def compute(self) -> torch.Tensor:
         """Return the scalar median in degrees."""
-        err = self._rotation()
-        return torch.quantile(err, 0.5) if err.numel() else err.new_tensor(float("nan"))
+        return torch.quantile(self._rotation(), 0.5)
 
 
 class TranslationErrorMean(_PairErrorMetric):
@@ -221,8 +236,11 @@ class NumFailed(_PairErrorMetric):
 class PerPairErrors(_PairErrorMetric):
     """Raw per-pair errors for curves and tables (failed pairs keep their NaN).
 
-    ``compute`` returns ``(rot_err_deg (P,), trans_err (P,))`` concatenated over all updates (and processes).
+    ``compute`` returns ``(rot_err_deg (P,), trans_err (P,))`` concatenated over all updates (and processes), empty
+    before any update.
     """
+
+    allow_empty = True
 
     def compute(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Return ``(rotation errors in degrees, translation errors)``, each ``(P,)``."""

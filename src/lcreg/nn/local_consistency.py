@@ -33,7 +33,7 @@ from typing import Literal
 import torch
 from torch import nn
 
-from lcreg.checks import check_points, check_same_batch, check_transform
+from lcreg.checks import check_points, check_rigid, check_same_batch, check_transform
 from lcreg.geometry import se3
 from lcreg.geometry.neighbors import gather_points, knn
 
@@ -211,6 +211,7 @@ class LocalConsistency(nn.Module):
             if transform_ref_src is None:
                 raise ValueError("pairing='estimate' needs `transform_ref_src` (the current estimate)")
             transform = check_transform(transform_ref_src, "transform_ref_src").detach()
+            check_rigid(transform, "transform_ref_src")
             w1, w2 = se3.transform_points(transform, x1), se3.transform_points(transform, x2)
         return x1, x2, w1, w2
 
@@ -234,6 +235,7 @@ class LocalConsistency(nn.Module):
 
         Raises:
             TooFewPointsError: A cloud has fewer than ``num_local_points`` points.
+            ValueError: ``transform_ref_src`` is not a batch of rigid motions.
         """
         check_points(points_src, "points_src", min_points=self.num_local_points)
         x1, x2, w1, w2 = self._paired_subsets(points_src, points_ref, transform_ref_src)
