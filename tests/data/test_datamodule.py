@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from pathlib import Path
+
 import lightning as L
 import numpy as np
 import pytest
@@ -203,3 +205,30 @@ def test_trainer_fast_dev_run() -> None:
     trainer = L.Trainer(fast_dev_run=True, accelerator="cpu", logger=False, enable_progress_bar=False)
     trainer.fit(_TranslationModel(), datamodule=dm)
     trainer.test(_TranslationModel(), datamodule=dm, verbose=False)
+
+
+@pytest.mark.parametrize("name", ["num_train", "num_val", "num_test"])
+def test_synthetic_split_sizes_must_be_positive(name: str) -> None:
+    # Before (issue 14, defect 9): num_val=0 built an empty validation set and training ran without validation.
+    with pytest.raises(ValueError, match=f"`{name}` must be an int >= 1"):
+        SyntheticDataModule(**{name: 0})
+
+
+def test_clouds_smaller_than_local_consistency_fail_before_the_first_step(tmp_path: Path) -> None:
+    # Before (issue 14, defect 9): num_points below LC's num_local_points failed inside the first training step.
+    from lightning.pytorch import Trainer
+
+    from lcreg.checks import TooFewPointsError
+    from lcreg.models.dvds import DVDs
+    from lcreg.models.loss_terms import LocalConsistencyLoss
+
+    model = DVDs(loss_terms=[LocalConsistencyLoss()])
+    dm = SyntheticDataModule(num_train=4, num_val=2, num_test=2, points_per_shape=64, num_points=32, batch_size=2)
+    trainer = Trainer(
+        max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False, default_root_dir=tmp_path
+    )
+    before = [p.detach().clone() for p in model.parameters()]
+    with pytest.raises(TooFewPointsError, match=r"clouds of 32 points.*at least 64.*'lc' 64"):
+        trainer.fit(model, datamodule=dm)
+    assert trainer.global_step == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))

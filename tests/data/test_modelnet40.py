@@ -121,6 +121,33 @@ def test_datamodule_on_a_written_layout(tmp_path: Path) -> None:
     assert batch.normals_src is not None and batch.normals_src.shape == (4, 32, 3)
 
 
+@pytest.mark.parametrize(
+    ("labels", "stage", "match"),
+    [
+        ({"train": np.array([3, 45, 7]), "test": np.arange(4)}, "fit", "1 label.*outside 0-39"),
+        ({"train": np.zeros(0, dtype=int), "test": np.arange(4)}, "fit", "holds no objects"),
+        ({"train": np.arange(20, 40), "test": np.arange(4)}, "fit", "train split has no objects"),
+        ({"train": np.arange(40) % 20, "test": np.arange(20, 30)}, "test", "test split has no objects"),
+    ],
+    ids=["label_out_of_range", "zero_objects", "no_seen_category", "no_test_object"],
+)
+def test_empty_or_mislabelled_data_raises_instead_of_training_on_nothing(
+    tmp_path: Path, labels: dict[str, np.ndarray], stage: str, match: str
+) -> None:
+    # Before (issue 14, defect 9): these gave empty or wrong splits and a run that trained/tested on nothing.
+    _write_layout(tmp_path, labels)
+    dm = ModelNet40DataModule(root=str(tmp_path), num_points=32, batch_size=4, val_fraction=0.25)
+    with pytest.raises(DatasetLayoutError, match=match):
+        dm.setup(stage)
+
+
+def test_val_fraction_zero_is_refused_at_setup(tmp_path: Path) -> None:
+    _write_layout(tmp_path, {"train": np.arange(40) % 20, "test": np.arange(10)})
+    dm = ModelNet40DataModule(root=str(tmp_path), num_points=32, val_fraction=0.0)
+    with pytest.raises(DatasetLayoutError, match=r"validation split has no objects \(val_fraction=0.0"):
+        dm.setup("fit")
+
+
 # ------------------------------------------------------------------------------------------------ real data
 
 

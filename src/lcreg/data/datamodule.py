@@ -20,7 +20,7 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
-from lcreg.checks import ShapeError
+from lcreg.checks import DatasetLayoutError, ShapeError
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
@@ -128,6 +128,7 @@ class PairDataModule(LightningDataModule):
 
     Raises:
         ValueError: On invalid protocol options or ``val_fraction``/``batch_size``/``num_workers``.
+        DatasetLayoutError: In :meth:`setup`, when a split it builds has no objects.
     """
 
     def __init__(
@@ -201,11 +202,27 @@ class PairDataModule(LightningDataModule):
                 train, val = objects["train"], objects["val"]
             else:
                 train, val = self.split_train_val(objects["train"])
+            self._check_not_empty(train, "train")
+            self._check_not_empty(val, "validation")
             self.train_set = PairDataset.from_objects(train, self.pair_protocol, deterministic=False, seed=self.seed)
             self.val_set = PairDataset.from_objects(val, self.pair_protocol, deterministic=True, seed=self.seed)
         if stage in (None, "test", "predict") and self.test_set is None:
             test = self._load_objects("test")["test"]
+            self._check_not_empty(test, "test")
             self.test_set = PairDataset.from_objects(test, self.pair_protocol, deterministic=True, seed=self.seed)
+
+    def _check_not_empty(self, objects: ObjectSet, split: str) -> None:
+        """Raise ``DatasetLayoutError`` for a split without objects (training would silently do nothing)."""
+        if len(objects) == 0:
+            raise DatasetLayoutError(
+                f"{type(self).__name__}: the {split} split has no objects (val_fraction={self.val_fraction}; "
+                "check the dataset's files, labels and the split options)"
+            )
+
+    @property
+    def points_per_cloud(self) -> int:
+        """Points in every cloud this module yields (``num_points``, or the crop's ``partial_keep``)."""
+        return self.pair_protocol.num_kept
 
     def _loader(self, dataset: PairDataset | None, name: str, shuffle: bool) -> DataLoader[Any]:
         """A DataLoader over ``dataset`` with :func:`~lcreg.data.collate.collate_pairs`.
@@ -306,8 +323,8 @@ class SyntheticDataModule(PairDataModule):
     ) -> None:
         super().__init__(**kwargs)
         for name, value in (("num_train", num_train), ("num_val", num_val), ("num_test", num_test)):
-            if value < 0:
-                raise ValueError(f"`{name}` must be >= 0, got {value}")
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"`{name}` must be an int >= 1 (an empty split trains or checks nothing), got {value}")
         if points_per_shape < self.pair_protocol.num_points:
             raise ValueError(
                 f"`points_per_shape` ({points_per_shape}) must be >= `num_points` ({self.pair_protocol.num_points})"

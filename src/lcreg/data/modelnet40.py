@@ -43,6 +43,8 @@ UnseenCategoriesTest = Literal["test_split", "all"]
 
 NUM_SEEN_CLASSES = 20
 """Labels ``0 .. NUM_SEEN_CLASSES - 1`` are the seen (training) categories of both protocols."""
+NUM_CLASSES = 40
+"""ModelNet40 labels are 0-39 (the line index in ``shape_names.txt``); a file with others is refused."""
 
 EXPECTED_LAYOUT = (
     "expected the official modelnet40_ply_hdf5_2048 layout: <root>/train_files.txt and <root>/test_files.txt "
@@ -93,6 +95,13 @@ def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         )
     if normals is not None and normals.shape != points.shape:
         raise DatasetLayoutError(f"{str(path)!r}: 'normal' has shape {normals.shape}, expected {points.shape}")
+    if len(points) == 0:
+        raise DatasetLayoutError(f"{str(path)!r} holds no objects ('data' has shape {points.shape})")
+    if labels.min() < 0 or labels.max() >= NUM_CLASSES:
+        bad = int(((labels < 0) | (labels >= NUM_CLASSES)).sum())
+        raise DatasetLayoutError(
+            f"{str(path)!r}: {bad} label(s) outside 0-{NUM_CLASSES - 1} (found {labels.min()}..{labels.max()})"
+        )
     return points, normals, labels.astype(np.int64)
 
 

@@ -30,7 +30,7 @@ import torch
 from lightning.pytorch import LightningModule
 from lightning.pytorch.utilities import rank_zero_info
 
-from lcreg.checks import check_extent, check_points, check_same_batch
+from lcreg.checks import TooFewPointsError, check_extent, check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.loss_terms import LossTerm
 from lcreg.nn.dtypes import module_dtype, to_module_dtype
@@ -378,6 +378,27 @@ class RegistrationModule(LightningModule):
                 writer.writerow(["index", "rotation_error_deg", "translation_error"])
                 writer.writerows(zip(index, rot.tolist(), trans.tolist()))
             rank_zero_info(f"per-pair test errors written to {path}")
+
+    def setup(self, stage: str) -> None:
+        """Before any step: refuse data whose clouds are smaller than the model (and its loss terms) accept.
+
+        Lightning calls this after the DataModule's ``setup``; a DataModule exposing ``points_per_cloud`` (the
+        :class:`~lcreg.data.datamodule.PairDataModule` family) is checked, so ``num_points`` below LC's
+        ``num_local_points`` fails here, not at the first training step.
+
+        Raises:
+            TooFewPointsError: The data yields clouds of fewer than :attr:`min_points` points.
+        """
+        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        points = getattr(datamodule, "points_per_cloud", None)
+        if isinstance(points, int) and points < self.min_points:
+            needs = [f"{type(self).__name__} {self._min_points}"]
+            needs += [f"loss term {t.name!r} {t.min_points}" for t in self.injected_terms]
+            raise TooFewPointsError(
+                f"{type(datamodule).__name__} yields clouds of {points} points (data `num_points`/`partial_keep`), "
+                f"but the model needs at least {self.min_points} ({', '.join(needs)}): raise `num_points` or lower "
+                "the model's requirement (e.g. LC's `num_local_points`)"
+            )
 
     def configure_optimizers(self) -> Any:
         """Build the injected optimiser (trainable parameters only) and optional scheduler."""
