@@ -113,7 +113,7 @@ def test_failure_policy(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
     for metric in (num_failed, per_pair):
         metric.update(pred, gt)
     assert float(num_failed.compute()) == 1.0
-    rot_err, trans_err = per_pair.compute()
+    rot_err, trans_err, _ = per_pair.compute()
     assert rot_err.shape == trans_err.shape == (4,)
     assert torch.isnan(rot_err[3]) and torch.isnan(trans_err[3]) and torch.isfinite(rot_err[:3]).all()
 
@@ -166,8 +166,8 @@ def test_compute_over_zero_pairs_raises_instead_of_nan() -> None:
                 metric.compute()
         with pytest.raises(NoPairsError):
             registration_metrics("test/").compute()
-        rot, trans = PerPairErrors().compute()
-        assert rot.numel() == 0 and trans.numel() == 0
+        rot, trans, index = PerPairErrors().compute()
+        assert rot.numel() == 0 and trans.numel() == 0 and index.numel() == 0
 
 
 @pytest.mark.parametrize(
@@ -211,3 +211,25 @@ def test_compute_groups_share_state_without_changing_values(rng: torch.Generator
     out_grouped, out_separate = grouped.compute(), separate.compute()
     for key in KEYS:
         torch.testing.assert_close(out_grouped[key], out_separate[key], msg=key)
+
+
+def test_a_pair_seen_twice_counts_once_by_index() -> None:
+    # DDP's DistributedSampler pads the evaluation set with repeats (5 pairs on 2 processes: pair 0 twice).
+    transforms, _ = random_euler_transform(5, generator=torch.Generator().manual_seed(0))
+    preds, _ = random_euler_transform(5, generator=torch.Generator().manual_seed(1))
+    single, padded = registration_metrics(), registration_metrics()
+    single.update(transform_pred=preds, transform_gt=transforms, index=torch.arange(5))
+    rank0, rank1 = torch.tensor([0, 2, 4]), torch.tensor([1, 3, 0])
+    for idx in (rank0, rank1):
+        padded.update(transform_pred=preds[idx], transform_gt=transforms[idx], index=idx)
+    want = {k: float(v) for k, v in single.compute().items()}
+    assert {k: float(v) for k, v in padded.compute().items()} == pytest.approx(want, rel=1e-6)
+    per_pair = PerPairErrors()
+    for idx in (rank0, rank1):
+        per_pair.update(transform_pred=preds[idx], transform_gt=transforms[idx], index=idx)
+    rot, _, index = per_pair.compute()
+    assert index.tolist() == [0, 2, 4, 1, 3] and len(rot) == 5
+    unindexed = registration_metrics()
+    for idx in (rank0, rank1):
+        unindexed.update(transform_pred=preds[idx], transform_gt=transforms[idx])
+    assert float(unindexed.compute()["rre_mean_deg"]) != pytest.approx(want["rre_mean_deg"], rel=1e-6)  # 6 pairs

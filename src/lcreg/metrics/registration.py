@@ -2,8 +2,10 @@
 
 Every metric keeps the per-pair errors of all updates in list states (``dist_reduce_fx="cat"``, so DDP gathers the
 pairs themselves and medians/recalls stay exact) and reduces them in ``compute``. ``update`` takes the keyword
-arguments ``transform_pred (B, 4, 4)`` and ``transform_gt (B, 4, 4)``, so one
-``MetricCollection.update(transform_pred=..., transform_gt=...)`` feeds them all.
+arguments ``transform_pred (B, 4, 4)``, ``transform_gt (B, 4, 4)`` and optionally ``index (B,)`` (the pairs'
+dataset indices), so one ``MetricCollection.update(transform_pred=..., transform_gt=..., index=...)`` feeds them
+all. With indices, a pair seen twice counts once: DDP's ``DistributedSampler`` pads the evaluation set with repeated
+pairs so that every process gets as many batches, and those repeats are dropped in ``compute``.
 
 Failure policy (a diverged estimate with NaN/Inf entries, or any pair whose functional error is NaN):
 
@@ -46,7 +48,7 @@ __all__ = [
 ]
 
 WORST_ROTATION_DEG = 180.0
-_STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt")
+_STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt", "index")
 
 
 class NoPairsError(ValueError):
@@ -68,12 +70,16 @@ class _PairErrorMetric(Metric):
         for name in _STATES:
             self.add_state(name, default=[], dist_reduce_fx="cat")
 
-    def update(self, transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> None:
+    def update(
+        self, transform_pred: torch.Tensor, transform_gt: torch.Tensor, index: torch.Tensor | None = None
+    ) -> None:
         """Add a batch of pairs.
 
         Args:
             transform_pred: Estimated ``transform_ref_src`` ``(B, 4, 4)``; NaN/Inf entries mark a failed pair.
             transform_gt: Ground-truth ``transform_ref_src`` ``(B, 4, 4)``, finite.
+            index: Dataset indices of the pairs ``(B,)`` (int); a repeated index counts once. ``None``: every pair
+                counts (no repeat can be detected).
         """
         check_finite(transform_gt, "transform_gt")
         check_rigid(transform_gt, "transform_gt")
@@ -83,6 +89,7 @@ class _PairErrorMetric(Metric):
             "euler_err_deg": functional.euler_errors_deg(transform_pred, transform_gt),
             "trans_errs": functional.translation_errors(transform_pred, transform_gt),
             "trans_gt": transform_gt[:, :3, 3],
+            "index": torch.full((len(transform_gt),), -1) if index is None else index.reshape(-1).long(),
         }
         for name, value in values.items():
             getattr(self, name).append(value.detach())
@@ -100,8 +107,18 @@ class _PairErrorMetric(Metric):
         if isinstance(value, list) and not value:
             if not self.allow_empty:
                 raise NoPairsError(f"{type(self).__name__}: no pairs to summarise (update() was never called)")
-            return torch.empty(0, device=self.device, dtype=self.dtype)
-        return dim_zero_cat(value)
+            return torch.empty(0, device=self.device, dtype=torch.int64 if name == "index" else self.dtype)
+        return dim_zero_cat(value)[self._first_occurrences()]
+
+    def _first_occurrences(self) -> torch.Tensor:
+        """Positions ``(P,)`` of the pairs that count: the first of each dataset index (all when any is unknown)."""
+        index = dim_zero_cat(getattr(self, "index")).reshape(-1)  # noqa: B009 (a list state, not Module.index)
+        if (index < 0).any():
+            return torch.arange(len(index), device=index.device)
+        order = torch.sort(index, stable=True).indices  # equal indices stay in update order
+        first = torch.ones_like(index, dtype=torch.bool)
+        first[1:] = index[order][1:] != index[order][:-1]
+        return torch.sort(order[first]).values
 
     def _failed(self) -> torch.Tensor:
         """Per-pair failure flags ``(P,)``: any raw error of the pair is NaN/Inf."""
@@ -236,15 +253,18 @@ class NumFailed(_PairErrorMetric):
 class PerPairErrors(_PairErrorMetric):
     """Raw per-pair errors for curves and tables (failed pairs keep their NaN).
 
-    ``compute`` returns ``(rot_err_deg (P,), trans_err (P,))`` concatenated over all updates (and processes), empty
-    before any update.
+    ``compute`` returns ``(rot_err_deg (P,), trans_err (P,), index (P,))`` concatenated over all updates (and
+    processes), empty before any update.
     """
 
     allow_empty = True
 
-    def compute(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Return ``(rotation errors in degrees, translation errors)``, each ``(P,)``."""
-        return self._state("rot_err_deg"), self._state("trans_err")
+    def compute(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Return ``(rotation errors in degrees, translation errors, dataset indices)``, each ``(P,)``.
+
+        Indices are ``-1`` where ``update`` got none. Under DDP they cover every process's pairs, each once.
+        """
+        return self._state("rot_err_deg"), self._state("trans_err"), self._state("index")
 
 
 def registration_metrics(prefix: str = "") -> MetricCollection:

@@ -119,7 +119,6 @@ class RegistrationModule(LightningModule):
         self.val_metrics = registration_metrics("val/")
         self.test_metrics = registration_metrics("test/")
         self.test_pairs = PerPairErrors()
-        self._test_indices: list[torch.Tensor] = []
         self._input_dtypes: list[torch.dtype] = []
         self.register_forward_pre_hook(_inputs_to_model_dtype, with_kwargs=True)
         self.register_forward_hook(_transform_to_input_dtype, always_call=True)
@@ -307,17 +306,17 @@ class RegistrationModule(LightningModule):
                     prog_bar=name == "loss",
                     on_step=stage == "train",
                     on_epoch=True,
+                    sync_dist=stage != "train",  # epoch means over every process's pairs (DDP)
                 )
         if stage != "train" and batch.transform_ref_src is not None:
             metrics = self.val_metrics if stage == "val" else self.test_metrics
-            kwargs = {"transform_pred": result.transform_ref_src.detach(), "transform_gt": batch.transform_ref_src}
-            metrics.update(**kwargs)
+            pred, gt = result.transform_ref_src.detach(), batch.transform_ref_src
+            # DDP pads evaluation sets with repeated pairs: the metrics count each dataset index once.
+            metrics.update(transform_pred=pred, transform_gt=gt, index=batch.index)
             self.log_dict(metrics, batch_size=bs)
-            self.log(f"{stage}/iterations", result.num_iters.float().mean(), batch_size=bs)
+            self.log(f"{stage}/iterations", result.num_iters.float().mean(), batch_size=bs, sync_dist=True)
             if stage == "test":
-                self.test_pairs.update(**kwargs)
-                if batch.index is not None:
-                    self._test_indices.append(batch.index.detach().cpu())
+                self.test_pairs.update(transform_pred=pred, transform_gt=gt, index=batch.index)
         return loss
 
     def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor:
@@ -360,23 +359,26 @@ class RegistrationModule(LightningModule):
     def on_test_epoch_start(self) -> None:
         """Reset the per-pair error buffer."""
         self.test_pairs.reset()
-        self._test_indices = []
 
     def on_test_epoch_end(self) -> None:
         """Summary line and ``test_per_pair.csv`` (index, rotation error deg, translation error)."""
         self._summary("test")
         if self.test_pairs.update_count == 0:
             return
-        rot, trans = (t.reshape(-1) for t in self.test_pairs.compute())  # torchmetrics squeezes a single pair to 0-d
+        # Every process's pairs (gathered), each once; torchmetrics squeezes a single pair to 0-d.
+        rot, trans, index = (t.reshape(-1) for t in self.test_pairs.compute())
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
-            index = torch.cat(self._test_indices).tolist() if self._test_indices else list(range(len(rot)))
+            if (index < 0).any():  # batches without indices: number the pairs in order
+                index = torch.arange(len(rot))
+            order = torch.argsort(index)
+            index, rot, trans = index[order], rot[order], trans[order]
             path = Path(log_dir) / "test_per_pair.csv"
             path.parent.mkdir(parents=True, exist_ok=True)
             with path.open("w", newline="") as fh:
                 writer = csv.writer(fh)
                 writer.writerow(["index", "rotation_error_deg", "translation_error"])
-                writer.writerows(zip(index, rot.tolist(), trans.tolist()))
+                writer.writerows(zip(index.tolist(), rot.tolist(), trans.tolist()))
             rank_zero_info(f"per-pair test errors written to {path}")
 
     def setup(self, stage: str) -> None:
@@ -421,6 +423,9 @@ def _inputs_to_model_dtype(
 
     Remembers the caller's dtype for :func:`_transform_to_input_dtype`.
     """
+    if args and isinstance(args[0], RegistrationBatch):  # Lightning's DDP redirects training_step through forward
+        module._input_dtypes.append(module_dtype(module) or torch.float32)
+        return args, kwargs
     clouds = [*args[:2], *(kwargs[k] for k in ("points_src", "points_ref") if k in kwargs)]
     if len(clouds) == 2:
         module.validate_inputs(*clouds)

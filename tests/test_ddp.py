@@ -1,0 +1,68 @@
+"""Distributed training on the CPU: Lightning DDP with the gloo backend, two processes (issue 14, "Also").
+
+A short ``lcreg fit`` under DDP, then ``lcreg test`` of its checkpoint with one process and with two: the metrics
+and the per-pair errors must be equal, every test pair counted once (``DistributedSampler`` pads 5 pairs to 6 on two
+processes; the metrics drop the repeat by dataset index).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+TINY = [
+    "--config",
+    str(CONFIGS / "models" / "pointnetlk.yaml"),
+    "--config",
+    str(CONFIGS / "data" / "embedded.yaml"),
+    "--model.init_args.encoder_channels=[16,32]",
+    "--data.init_args.num_points=64",
+    "--data.init_args.points_per_shape=128",
+    "--data.init_args.num_train=8",
+    "--data.init_args.num_val=3",
+    "--data.init_args.num_test=5",
+    "--data.init_args.batch_size=2",
+    "--trainer.enable_progress_bar=false",
+    "--trainer.enable_model_summary=false",
+    "--seed_everything=0",
+]
+DDP = ["--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu"]
+
+
+def _lcreg(tmp_path: Path, *args: str) -> None:
+    env = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "lcreg.cli", *args]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def _test_rows(tmp_path: Path, name: str) -> tuple[dict[str, float], list[list[str]]]:
+    run = tmp_path / "runs" / name / "version_0"
+    with (run / "metrics.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    metrics = {k: float(v) for row in rows for k, v in row.items() if k.startswith("test/") and v}
+    with (run / "test_per_pair.csv").open() as fh:
+        pairs = list(csv.reader(fh))[1:]
+    return metrics, pairs
+
+
+@pytest.mark.timeout(900)
+def test_ddp_fit_then_test_equals_one_process(tmp_path: Path) -> None:
+    _lcreg(tmp_path, "fit", *TINY, *DDP, "--trainer.max_steps=2", "--trainer.logger.init_args.name=fit")
+    ckpt = tmp_path / "runs" / "fit" / "version_0" / "checkpoints" / "last.ckpt"
+    assert ckpt.is_file()
+    for name, extra in (("single", []), ("ddp", DDP)):
+        _lcreg(tmp_path, "test", *TINY, *extra, f"--ckpt_path={ckpt}", f"--trainer.logger.init_args.name={name}")
+    single, single_pairs = _test_rows(tmp_path, "single")
+    ddp, ddp_pairs = _test_rows(tmp_path, "ddp")
+    assert [row[0] for row in ddp_pairs] == ["0", "1", "2", "3", "4"]  # every pair once, none dropped
+    flat = [[float(v) for row in rows for v in row] for rows in (ddp_pairs, single_pairs)]
+    assert flat[0] == pytest.approx(flat[1], rel=1e-5)
+    assert set(ddp) == set(single) and "test/rre_mean_deg" in ddp
+    assert ddp == pytest.approx(single, rel=1e-5)
