@@ -11,6 +11,7 @@ import pytest
 from lcreg.checks import NonFiniteError, PointCloudFileError, ShapeError
 from lcreg.data.io import read_points, voxel_downsample
 
+from _pointfiles import ply_bytes  # type: ignore[import-not-found]
 from _shared_data import shared_data  # type: ignore[import-not-found]
 
 POINTS = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
@@ -105,42 +106,16 @@ CLOUD = RNG.normal(size=(64, 3)).astype(np.float32)
 NORMALS = RNG.normal(size=(64, 3))
 COLOURS = RNG.integers(0, 256, size=(64, 3)).astype(np.uint8)
 FACES = RNG.integers(0, 64, size=(10, 3)).astype(np.int32)
-ORDERS = {"binary_little_endian": "<", "binary_big_endian": ">"}
 
 
 def _ply(
     points: np.ndarray, fmt: str = "binary_little_endian", rich: bool = False, declared: int | None = None
 ) -> bytes:
-    """A PLY file of ``points`` (float x, y, z), with double normals, uchar colours and a face element if ``rich``."""
-    props = [("x", "f4"), ("y", "f4"), ("z", "f4")]
-    if rich:
-        props += [("nx", "f8"), ("ny", "f8"), ("nz", "f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    names = {"f4": "float", "f8": "double", "u1": "uchar"}
-    header = [f"ply\nformat {fmt} 1.0\ncomment test\nelement vertex {len(points) if declared is None else declared}\n"]
-    header += [f"property {names[code]} {name}\n" for name, code in props]
-    if rich:
-        header.append(f"element face {len(FACES)}\nproperty list uchar int vertex_indices\n")
-    columns = [points[:, 0], points[:, 1], points[:, 2]]
-    if rich:
-        columns += [*NORMALS[: len(points)].T, *COLOURS[: len(points)].T]
-    head = "".join([*header, "end_header\n"]).encode()
-    if fmt == "ascii":
-        body = "".join(
-            " ".join(repr(float(v)) if isinstance(v, np.floating) else str(v) for v in row) + "\n"
-            for row in zip(*columns)
-        )
-        if rich:
-            body += "".join("3 " + " ".join(map(str, face)) + "\n" for face in FACES)
-        return head + body.encode()
-    order = ORDERS[fmt]
-    vertices = np.zeros(len(points), [(name, order + code) for name, code in props])
-    for (name, _), column in zip(props, columns):
-        vertices[name] = column
-    body = vertices.tobytes()
-    if rich:
-        face_dtype = np.dtype([("n", "u1"), ("i", order + "i4", (3,))])
-        body += np.array([(3, face) for face in FACES], face_dtype).tobytes()
-    return head + body
+    """A PLY file of ``points``, with double normals, uchar colours and a face element if ``rich``."""
+    n = len(points)
+    names = ("nx", "ny", "nz", "red", "green", "blue")
+    extra = dict(zip(names, [*NORMALS[:n].T, *COLOURS[:n].T])) if rich else None
+    return ply_bytes(points, fmt, extra, FACES if rich else None, declared)
 
 
 def _pcd_header(points: int, data: str) -> bytes:
