@@ -158,6 +158,8 @@ def test_lying_vertex_count_is_refused_without_allocating(tmp_path: Path) -> Non
         _refused(tmp_path / "liar.ply", _ply(CLOUD, declared=10_000_000), "10000000 records")
         _refused(tmp_path / "liar_ascii.ply", _ply(CLOUD, "ascii", declared=10_000_000), "declares 10000000")
         _refused(tmp_path / "liar.pcd", _pcd_header(10_000_000, "binary") + CLOUD.tobytes(), "POINTS 10000000")
+        faces = _ply(CLOUD, rich=True).replace(b"face 10\n", b"face 10000000\n")  # refused before walking faces
+        _refused(tmp_path / "liar_faces.ply", faces, "'face' \\(10000000 records\\) needs at least")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()

@@ -215,6 +215,11 @@ def _first_record(element: _PlyElement, data: bytes, offset: int, order: str) ->
     return position, lengths
 
 
+def _min_record_size(element: _PlyElement) -> int:
+    """Bytes of a record of ``element`` whose lists are all empty."""
+    return sum(np.dtype(p.dtype if p.count_dtype is None else p.count_dtype).itemsize for p in element.properties)
+
+
 def _list_length(data: bytes, offset: int, code: str, order: str) -> int:
     fmt = order + STRUCT_CODES[code]
     if offset + struct.calcsize(fmt) > len(data):
@@ -261,12 +266,11 @@ def _binary_element_offsets(elements: list[_PlyElement], data: bytes, start: int
     offset = start
     for element in elements:
         offsets.append(offset)
-        record = element.fixed_size()
-        if record is not None:
-            offset += element.count * record
-        elif element.count:
-            size = _uniform_list_size(element, data, offset, order)
-            offset += _walk_list_element(element, data, offset, order) if size is None else size
+        size = element.count * _min_record_size(element)  # exact without lists, else a lower bound (empty lists)
+        if element.fixed_size() is None and size and offset + size <= len(data):
+            uniform = _uniform_list_size(element, data, offset, order)
+            size = _walk_list_element(element, data, offset, order) if uniform is None else uniform
+        offset += size
         if offset > len(data):
             raise FileFormatError(
                 f"the file is cut short: {len(data)} bytes, PLY element {element.name!r} ({element.count} records) "
@@ -446,8 +450,11 @@ def lzf_decompress(data: bytes, size: int) -> bytes:
             length += 2
             if ref < 0 or dst + length > size:
                 raise FileFormatError("the LZF stream is corrupt (a back-reference points outside the output)")
-            pattern = out[ref:dst]  # the copy may overlap its output: repeat the period
-            out[dst : dst + length] = (pattern * (length // len(pattern) + 1))[:length]
+            if dst - ref >= length:
+                out[dst : dst + length] = out[ref : ref + length]
+            else:  # the copy overlaps its own output: repeat the period
+                period = out[ref:dst]
+                out[dst : dst + length] = (period * (length // len(period) + 1))[:length]
         dst += length
     if dst != size:
         raise FileFormatError(f"the LZF stream expands to {dst} bytes, its header says {size}")
