@@ -192,6 +192,7 @@ def test_bad_ply_headers_are_refused(tmp_path: Path) -> None:
         "no_x.ply": (good.replace(b"float x", b"float w"), "no x, y, z"),
         "twice.ply": (good.replace(b"float x", b"float y"), "declared twice"),
         "count.ply": (good.replace(b"vertex 64", b"vertex -4"), "non-negative integer"),
+        "digits.ply": (good.replace(b"vertex 64", b"vertex " + b"9" * 5000), "at most 19 digits"),
         "word.ply": (good.replace(b"comment", b"commant"), "unexpected PLY header line"),
         "zero.ply": (_ply(CLOUD[:0]), "0 vertices"),
     }
