@@ -1,16 +1,33 @@
-"""Read point clouds from files (``.ply``, ``.pcd``, ``.xyz``/``.xyzn``/``.pts``, ``.npy``, KITTI ``.bin``); downsample.
+"""Read point clouds from ``.ply``, ``.pcd``, ``.xyz``/``.xyzn``/``.xyzrgb``/``.pts``, ``.npy``, KITTI ``.bin`` files.
 
-Every reader returns ``(N, 3)`` float32 points and raises a typed error naming the file:
+Every reader returns ``(N, 3)`` float32 points, ``N >= 1``, all finite, and raises a typed error naming the file:
 
 * :class:`FileNotFoundError` when the path does not exist or is not a file;
 * :class:`ValueError` for an extension no reader handles;
-* :class:`~lcreg.checks.PointCloudFileError` when the file exists but is unreadable, corrupt, empty, or holds
-  NaN/Inf coordinates.
+* :class:`~lcreg.checks.PointCloudFileError` when the file exists but is unreadable, empty, not exactly what its
+  header claims, or holds NaN/Inf coordinates or coordinates beyond the float32 range.
 
-Open3D formats go through ``open3d.io.read_point_cloud`` (imported lazily). Open3D does not raise on a missing or
-corrupt file: it prints a warning and returns an empty cloud, so an empty result is turned into an error here.
-KITTI velodyne scans are raw little-endian float32 records ``(x, y, z, reflectance)``; ``.npy`` files hold an
-``(N, 3)`` array or an ``(N, C >= 3)`` array whose first three columns are ``x, y, z``.
+Files are validated before any array is built, so a corrupt file never yields invented points and a lying header
+never makes the reader allocate what it claims:
+
+* PLY (``ascii``, ``binary_little_endian``, ``binary_big_endian``): the header is parsed (elements, scalar and list
+  properties); a binary file must end exactly after its last element (list elements such as faces are walked), an
+  ASCII file must hold exactly one non-blank line per declared record and end with a newline. The ``vertex``
+  element needs scalar ``x, y, z`` properties; other properties and elements are skipped.
+* PCD (``DATA ascii``, ``binary``, ``binary_compressed``): ``FIELDS/SIZE/TYPE/COUNT`` must agree and hold scalar
+  ``x, y, z``, ``POINTS == WIDTH * HEIGHT``; a binary payload must be exactly ``POINTS`` records, an ASCII one exactly
+  ``POINTS`` lines (ending with a newline); a compressed payload's size fields must match the file and ``POINTS``
+  records, and be a possible LZF expansion, before it is decompressed (and it must expand to exactly that size).
+* ``.xyz`` (>= 3 numbers a line), ``.xyzn``/``.xyzrgb`` (6), ``.pts`` (a first line with the point count, then
+  >= 3 numbers a line): every non-blank line must be a row of as many numbers as the others.
+* ``.npy``: an ``(N, C >= 3)`` integer or float array (``x, y, z`` in the first 3 columns; complex, boolean,
+  object and structured dtypes are refused); the header is read with numpy's format helpers and the declared
+  ``shape x itemsize`` must equal the payload size before anything is loaded.
+* KITTI velodyne ``.bin``: raw little-endian float32 records ``(x, y, z, reflectance)``; the size must be a
+  multiple of 16 bytes.
+
+Coordinates are cast to float32 first and checked for finiteness after the cast, so a float64 ``1e39`` is refused.
+None of the readers uses Open3D (it does not validate files: it invents points for truncated or lying files).
 
 :func:`voxel_downsample` is the package's one voxel downsampler of point arrays (scene datasets, KITTI ground-truth
 ICP): Open3D's ``voxel_down_sample``, whose grid starts half a voxel below the cloud's minimum corner (a grid at the
@@ -19,52 +36,40 @@ origin keeps other voxels: 5,170 instead of Open3D's 4,910 points on 7-scenes-re
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from lcreg.checks import NonFiniteError, PointCloudFileError, ShapeError
+from lcreg.data import _pointfiles as formats
 
-__all__ = ["OPEN3D_SUFFIXES", "SUFFIXES", "read_points", "voxel_downsample"]
+__all__ = ["SUFFIXES", "read_points", "voxel_downsample"]
 
-OPEN3D_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
-SUFFIXES = (*OPEN3D_SUFFIXES, ".npy", ".bin")
+READERS: dict[str, Callable[[Path], np.ndarray]] = {
+    ".ply": formats.read_ply,
+    ".pcd": formats.read_pcd,
+    **dict.fromkeys((".xyz", ".xyzn", ".xyzrgb", ".pts"), formats.read_text),
+    ".npy": formats.read_npy,
+    ".bin": formats.read_kitti_bin,
+}
+SUFFIXES = tuple(READERS)
 
 
-def _read_open3d(path: Path) -> np.ndarray:
-    import open3d as o3d
-
-    try:
-        cloud = o3d.io.read_point_cloud(path, format="auto", print_progress=False)
-    except (RuntimeError, ValueError, UnicodeDecodeError) as err:  # pragma: no cover - Open3D usually returns empty
-        raise PointCloudFileError(path, f"Open3D could not read it ({err})") from err
-    points = np.asarray(cloud.points)
-    if points.size == 0:
-        raise PointCloudFileError(path, "Open3D read no points (the file is empty, corrupt or not a point cloud)")
+def _to_float32(path: Path, columns: np.ndarray) -> np.ndarray:
+    """Cast ``(N, 3)`` coordinates to contiguous float32, then refuse non-finite ones (overflow gives Inf)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        points = np.ascontiguousarray(columns, dtype=np.float32)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        raise PointCloudFileError(
+            path, f"{int((~finite).sum())} point(s) have NaN/Inf coordinates or coordinates beyond the float32 range"
+        )
     return points
 
 
-def _read_npy(path: Path) -> np.ndarray:
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as err:
-        raise PointCloudFileError(path, f"not a readable .npy array ({err})") from err
-    if array.ndim != 2 or array.shape[1] < 3:
-        raise PointCloudFileError(path, f"expected an (N, 3) or (N, C>=3) array, got shape {array.shape}")
-    if not np.issubdtype(array.dtype, np.number):
-        raise PointCloudFileError(path, f"expected a numeric array, got dtype {array.dtype}")
-    return array[:, :3]
-
-
-def _read_kitti_bin(path: Path) -> np.ndarray:
-    size = path.stat().st_size
-    if size % 16:
-        raise PointCloudFileError(path, f"a KITTI .bin holds float32 (x, y, z, r) records of 16 bytes; size {size}")
-    return np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
-
-
 def read_points(path: str | Path) -> np.ndarray:
-    """Read the points of one file.
+    """Read the points of one file, validated against its format (see the module docstring).
 
     Args:
         path: A ``.ply``, ``.pcd``, ``.xyz``/``.xyzn``/``.xyzrgb``/``.pts``, ``.npy`` or KITTI ``.bin`` file.
@@ -75,28 +80,26 @@ def read_points(path: str | Path) -> np.ndarray:
     Raises:
         FileNotFoundError: The path does not exist or is not a file.
         ValueError: Unsupported extension.
-        PointCloudFileError: Unreadable, corrupt or empty file, or non-finite coordinates.
+        PointCloudFileError: Unreadable or empty file, a file that is not exactly what its header claims, or
+            coordinates that are NaN/Inf or beyond the float32 range.
     """
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"point-cloud file {str(path)!r} does not exist or is not a file")
     suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
+    if suffix not in READERS:
         raise ValueError(
             f"point-cloud file {str(path)!r}: unsupported extension {suffix!r}; expected one of {SUFFIXES}"
         )
-    if suffix == ".npy":
-        points = _read_npy(path)
-    elif suffix == ".bin":
-        points = _read_kitti_bin(path)
-    else:
-        points = _read_open3d(path)
-    if len(points) == 0:
+    try:
+        columns = READERS[suffix](path)
+    except formats.FileFormatError as err:
+        raise PointCloudFileError(path, str(err)) from err
+    except OSError as err:
+        raise PointCloudFileError(path, f"could not be read ({err})") from err
+    if len(columns) == 0:
         raise PointCloudFileError(path, "the file holds no points")
-    if not np.isfinite(points).all():
-        bad = int((~np.isfinite(points).all(axis=1)).sum())
-        raise PointCloudFileError(path, f"{bad} point(s) have NaN/Inf coordinates")
-    return np.ascontiguousarray(points, dtype=np.float32)
+    return _to_float32(path, columns)
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
