@@ -15,6 +15,7 @@ import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 RUNS = {
+    "bad_input_matrix": [],
     "bench_baselines": [],
     "bench_dvds": [],
     "bench_dvds_step": [],
@@ -54,3 +55,10 @@ def test_smoke(run: str, tmp_path: Path) -> None:
     out = tmp_path / "out" / "report.md"
     load(run.split()[0]).main(["--smoke", "--out", str(out), *RUNS[run]])
     assert out.is_file() and "|---" in out.read_text()
+
+
+def test_bad_input_matrix_smoke_has_no_cryptic_or_silent_case(tmp_path: Path) -> None:
+    # Issue 14: before the fixes the full matrix had 133 cryptic and 56 silent cases out of 438.
+    out = tmp_path / "matrix.md"
+    load("bad_input_matrix").main(["--smoke", "--out", str(out)])
+    assert "cryptic 0, silent 0" in out.read_text().splitlines()[0]

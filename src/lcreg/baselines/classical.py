@@ -98,7 +98,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from lcreg.checks import ShapeError, TooFewPointsError, check_extent, check_rigid, check_transform
+from lcreg.checks import ShapeError, TooFewPointsError, check_rigid, check_transform
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -251,16 +251,6 @@ class ClassicalRegistration(RegistrationModule):
     def register_pair(self, source: Any, target: Any, init: np.ndarray | None) -> PairResult:
         """Register one prepared pair of Open3D clouds (``init (4, 4)`` or ``None``)."""
         raise NotImplementedError
-
-    def validate_inputs(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> None:
-        """The shared checks (type, shape, size, NaN/Inf, one batch size) and no cloud with all points at one spot.
-
-        Raises:
-            DegenerateCloudError: A cloud's points all coincide (FGR's scale would be 0, ICP's fit is arbitrary).
-        """
-        super().validate_inputs(points_src, points_ref)
-        check_extent(points_src, "points_src")
-        check_extent(points_ref, "points_ref")
 
     def _run(self, points_src: torch.Tensor, points_ref: torch.Tensor, init: torch.Tensor | None) -> RegistrationResult:
         src = points_src.detach().cpu().double().numpy()

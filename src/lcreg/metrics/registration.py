@@ -29,7 +29,7 @@ import torch
 from torchmetrics import Metric, MetricCollection
 from torchmetrics.utilities import dim_zero_cat
 
-from lcreg.checks import check_finite, check_rigid
+from lcreg.checks import check_float, check_rigid, check_shape, check_transform
 from lcreg.metrics import functional
 
 __all__ = [
@@ -81,8 +81,9 @@ class _PairErrorMetric(Metric):
             index: Dataset indices of the pairs ``(B,)`` (int); a repeated index counts once. ``None``: every pair
                 counts (no repeat can be detected).
         """
-        check_finite(transform_gt, "transform_gt")
+        check_transform(transform_gt, "transform_gt")  # dtype, (B, 4, 4), finite
         check_rigid(transform_gt, "transform_gt")
+        check_shape(check_float(transform_pred, "transform_pred"), (len(transform_gt), 4, 4), "transform_pred")
         values = {
             "rot_err_deg": functional.rotation_error_deg(transform_pred, transform_gt),
             "trans_err": functional.translation_error(transform_pred, transform_gt),

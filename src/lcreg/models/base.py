@@ -249,10 +249,16 @@ class RegistrationModule(LightningModule):
         return batch.transform_ref_src
 
     def validate_inputs(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> None:
-        """Raise a typed error (naming the argument) for bad clouds: type, dtype, shape, size, NaN/Inf."""
+        """Raise a typed error (naming the argument) for bad clouds.
+
+        Checks type, dtype, shape, size, NaN/Inf, one batch size, and clouds whose points all coincide
+        (:class:`~lcreg.checks.DegenerateCloudError`: no motion to recover).
+        """
         check_points(points_src, "points_src", self.min_points)
         check_points(points_ref, "points_ref", self.min_points)
         check_same_batch(points_src=points_src, points_ref=points_ref)
+        check_extent(points_src, "points_src")
+        check_extent(points_ref, "points_ref")
 
     @torch.no_grad()
     def register(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
@@ -260,12 +266,10 @@ class RegistrationModule(LightningModule):
 
         Raises:
             TypeError, ShapeError, NonFiniteError, TooFewPointsError: Bad clouds (the message names the argument).
-            DegenerateCloudError: ``unit_scale`` is set and a reference cloud's points all coincide.
         """
         self.validate_inputs(points_src, points_ref)
         factor = None
         if self.unit_scale is not None:
-            check_extent(points_ref, "points_ref")
             centred = points_ref - points_ref.mean(dim=1, keepdim=True)
             factor = self.unit_scale / centred.norm(dim=-1).amax(dim=1)  # (B,)
             points_src, points_ref = points_src * factor[:, None, None], points_ref * factor[:, None, None]
