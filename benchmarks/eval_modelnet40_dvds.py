@@ -1,14 +1,20 @@
-"""DVDs (trained) vs DVDs (untrained weights) vs Open3D ICP on the same deterministic ModelNet40 test pairs.
+"""A trained LK model (several seeds) vs the same network untrained vs baselines, on the same ModelNet40 test pairs.
 
     python benchmarks/eval_modelnet40_dvds.py --ckpt runs/.../checkpoints/<best>.ckpt \
         --root ../shared/data/modelnet40_mini --out docs/results/modelnet40_dvds.md
+    python benchmarks/eval_modelnet40_dvds.py --method dvds_selfsup --ckpt s0.ckpt s1.ckpt s2.ckpt \
+        --extra "paper D=dvds=d.ckpt" "PointNetLK=pointnetlk=p.ckpt" --classical ransac_icp --refine \
+        --noise-sigma 0 0.01 --out docs/results/test_table.md      # issue 12's test table
     python benchmarks/eval_modelnet40_dvds.py --smoke    # seconds, synthetic pairs, untrained weights saved as --ckpt
 
-Models: ``configs/dvds_modelnet40.yaml`` with the checkpoint's weights, and with the config's initialisation for each
-``--init-seeds`` seed; Open3D point-to-point ICP (``configs/icp.yaml`` with the gate set to each ``--icp-distances``
-value, 50 iterations).
+Models: registry method ``--method`` (default ``dvds``: ``configs/dvds_modelnet40.yaml``) with each ``--ckpt``'s
+weights (the seeds of one recipe, each chosen on validation: reported one by one and as mean ± std), and with the
+config's initialisation for each ``--init-seeds`` seed (mean ± std); ``--extra`` rows (any registry method with a
+checkpoint); Open3D point-to-point ICP (``configs/icp.yaml`` with the gate set to each ``--icp-distances`` value, 50
+iterations) and any ``--classical`` registry method (e.g. ``ransac_icp``: FPFH + RANSAC + ICP). ``--refine`` adds
+every learned row again with ICP refinement (``configs/refine/icp.yaml``).
 Pairs: ModelNet40DataModule(protocol) test split, seed 1234 (the configs' default), 1024 points, Euler U[0, 45°],
-t U[-0.5, 0.5], independent samplings; optional Gaussian noise (--noise-sigma, clip 0.05).
+t U[-0.5, 0.5], independent samplings; one table per ``--noise-sigma`` (Gaussian, clip 0.05).
 """
 
 from __future__ import annotations
@@ -29,10 +35,11 @@ from lcreg.benchmarking import (
     save_weights,
     write_text,
 )
+from lcreg.benchmarking.registry import REFINE_CONFIG
 from lcreg.evaluation import EvaluationReport, evaluate
 from lcreg.models.base import RegistrationModule
 
-SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2]}
+SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2], "refine": True}
 
 
 def icp(distance: float) -> RegistrationModule:
@@ -44,11 +51,20 @@ def icp(distance: float) -> RegistrationModule:
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--ckpt", default=None, help="trained DVDs checkpoint (chosen on validation); required")
+    parser.add_argument(
+        "--ckpt",
+        nargs="+",
+        default=None,
+        help="trained checkpoints of --method (one per seed, each chosen on validation); required",
+    )
+    parser.add_argument("--method", default="dvds", help="registry method the checkpoints and untrained rows build")
+    parser.add_argument("--extra", nargs="*", default=[], help="more rows: LABEL=METHOD=CHECKPOINT")
+    parser.add_argument("--classical", nargs="*", default=[], help="registry methods without weights (ransac_icp)")
+    parser.add_argument("--refine", action="store_true", help="every learned row also with ICP refinement")
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
     parser.add_argument("--num-points", type=int, default=1024)
-    parser.add_argument("--noise-sigma", type=float, default=0.0)
+    parser.add_argument("--noise-sigma", type=float, nargs="+", default=[0.0], help="one table per sigma")
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument(
         "--icp-distances",
@@ -75,39 +91,66 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         args.root = None  # the embedded synthetic shapes
     args.out = output_path(args.out, "modelnet40_dvds.md", args.smoke)
     if args.smoke and not args.ckpt:
-        args.ckpt = str(save_weights(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".ckpt")))
+        args.ckpt = [
+            str(save_weights(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".ckpt")))
+        ]
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    args = parse(argv)
-    options = {"protocol": args.protocol, "noise_sigma": args.noise_sigma, "seed": args.seed}
+def learned(method: str, checkpoint: str | None, seed: int | None, refine: bool) -> RegistrationModule:
+    """``method`` with a checkpoint's weights (or seeded untrained), optionally with ICP refinement."""
+    configs = [REFINE_CONFIG] if refine else []
+    overrides = [] if seed is None else [f"--seed_everything={seed}"]
+    return build(method, checkpoint, configs=configs, overrides=overrides)
+
+
+def table(args: argparse.Namespace, sigma: float) -> str:
+    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``."""
+    options = {"protocol": args.protocol, "noise_sigma": sigma, "seed": args.seed}
     batches, source = pair_batches(
         args.root, pairs=args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
     )
-    untrained = [
-        evaluate(build("dvds", overrides=[f"--seed_everything={s}"]), batches, f"DVDs (untrained weights, seed {s})")
-        for s in args.init_seeds
+    reports: list[EvaluationReport] = []
+    groups: list[tuple[list[EvaluationReport], str]] = []
+    for refine in (False, True) if args.refine else (False,):
+        tag = " + ICP" if refine else ""
+        trained = [
+            evaluate(learned(args.method, c, None, refine), batches, f"{args.method} (trained, {Path(c).name}){tag}")
+            for c in args.ckpt
+        ]
+        untrained = [
+            evaluate(learned(args.method, None, s, refine), batches, f"{args.method} (untrained, seed {s}){tag}")
+            for s in args.init_seeds
+        ]
+        for spec in args.extra:
+            label, method, ckpt = spec.split("=", 2)
+            reports.append(evaluate(learned(method, ckpt, None, refine), batches, f"{label}{tag}"))
+        reports += [*trained, *untrained]
+        seeds = ", ".join(str(s) for s in args.init_seeds)
+        groups += [(trained, f"{args.method} trained{tag}, mean ± std over {len(trained)} checkpoint(s)")]
+        groups += [(untrained, f"{args.method} untrained{tag}, mean ± std over seeds {seeds}")]
+    reports += [
+        evaluate(icp(d), batches, f"Open3D ICP p2p (identity init, dist {d}, 50 it.)") for d in args.icp_distances
     ]
-    reports: list[EvaluationReport] = [
-        evaluate(build("dvds", args.ckpt), batches, f"DVDs (trained, {Path(args.ckpt).name})"),
-        *untrained,
-        *(evaluate(icp(d), batches, f"Open3D ICP p2p (identity init, dist {d}, 50 it.)") for d in args.icp_distances),
-    ]
-    seeds = ", ".join(str(s) for s in args.init_seeds)
-    table = report_table(reports) + "\n" + mean_std_row(untrained, f"DVDs untrained, mean ± std over seeds {seeds}")
+    reports += [evaluate(build(name), batches, name) for name in args.classical]
+    for r in reports:
+        print(f"{r.name}: mean IC-LK/ICP iterations {r.extra['mean_iterations']:.2f}", flush=True)
     header = (
-        f"{source}, {reports[0].num_pairs} test pairs, {args.num_points} points, noise sigma {args.noise_sigma}, "
+        f"{source}, {reports[0].num_pairs} test pairs, {args.num_points} points, noise sigma {sigma}, "
         f"batch {args.batch_size}, {machine_line()}\n"
     )
-    for r in reports:
-        print(f"{r.name}: mean IC-LK/ICP iterations {r.extra['mean_iterations']:.2f}")
-    print(header)
-    print(table)
+    rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups)
+    return header + "\n" + rows + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    text = "\n".join(table(args, sigma) for sigma in args.noise_sigma)
+    print(text)
     if args.out:
-        write_text(args.out, header + "\n" + table + "\n")
+        write_text(args.out, text)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ REPORT_COLUMNS = (
     ("mae_r_deg", "MAE(R) °"),
     ("rmse_t", "RMSE(t)"),
     ("mae_t", "MAE(t)"),
+    ("rre_mean_deg", "mean RRE °"),
     ("rre_median_deg", "median RRE °"),
     ("recall_r2_t0p01", "recall (2°, 0.01)"),
     ("recall_r5_t0p05", "recall (5°, 0.05)"),
