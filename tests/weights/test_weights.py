@@ -310,28 +310,30 @@ def test_shipped_file_is_slim_strict_and_matches_its_card(name: str) -> None:
     assert hashlib.sha256(data).hexdigest() in card and f"{len(data)} bytes" in card, "refresh the card: --card"
 
 
-PAIRS = 32
-UNTRAINED_SEEDS = (0, 1, 2)
+PAIRS = 64
+UNTRAINED_SEEDS = (0, 1, 2, 3, 4)
 
 
-def _median_rotation_error(model: RegistrationModule, batches: list) -> float:  # type: ignore[type-arg]
+def _rotation_errors(model: RegistrationModule, batches: list) -> torch.Tensor:  # type: ignore[type-arg]
     errors = [rotation_error_deg(model.register(b.points_src, b.points_ref).transform_ref_src, b.transform_ref_src)
               for b in batches]  # fmt: skip
-    return float(torch.cat(errors).median())
+    return torch.cat(errors)
 
 
 @pytest.mark.data
 @pytest.mark.parametrize("name", pretrained_names())
 def test_shipped_weights_register_real_pairs_better_than_untrained(name: str) -> None:
-    """Median rotation error on real modelnet40_mini test pairs (1024 points) below the same network untrained, for
-    every seed (the median: one diverged pair moves the mean of an untrained network by degrees)."""
+    """Mean and median rotation error on the first 64 real modelnet40_mini test pairs (1024 points) below those of
+    the same network untrained, for each of 5 seeds: fewer failures (the mean) and more precision (the median)."""
     _shipped(name)
     root = shared_data("modelnet40_mini")
-    batches, _ = pair_batches(str(root), "test", pairs=PAIRS, num_points=1024, batch_size=PAIRS)
-    trained = _median_rotation_error(pretrained(name), batches)
+    batches, _ = pair_batches(str(root), "test", pairs=PAIRS, num_points=1024, batch_size=32)
+    trained = _rotation_errors(pretrained(name), batches)
     weights = read_weights(name)
     cls = resolve_class(weights.class_path)
     for seed in UNTRAINED_SEEDS:
         torch.manual_seed(seed)
-        untrained = _median_rotation_error(cls(**weights.init_args), batches)
-        assert trained < untrained, f"{name}: {trained:.3f} deg trained vs {untrained:.3f} deg untrained (seed {seed})"
+        untrained = _rotation_errors(cls(**weights.init_args), batches)
+        for stat in (torch.mean, torch.median):
+            mine, theirs = float(stat(trained)), float(stat(untrained))
+            assert mine < theirs, f"{name} {stat.__name__}: {mine:.3f} deg trained, {theirs:.3f} untrained seed {seed}"
