@@ -160,11 +160,16 @@ class LcregCLI(LightningCLI):
             self.config = parser.parse_args(args)  # type: ignore[arg-type]  # a list of strings here
 
     def _parse_ckpt_path(self) -> None:
-        """Resolve ``--ckpt_path last``, read the file weights-only and check its class, then take its hyper-parameters.
+        """Check the files named on the command line before anything is built (or seeded).
+
+        ``--weights`` must name known weights; ``--ckpt_path last`` is resolved, the checkpoint is read weights-only
+        and its model class checked against the config's, then its hyper-parameters override the config's model
+        arguments (LightningCLI's behaviour).
 
         Raises:
             lcreg.checkpoints.CheckpointError: One line naming the file: nothing to resume, missing, unreadable,
                 not a Lightning checkpoint, or a checkpoint of another model class.
+            lcreg.weights.PretrainedError: Unknown weights name or missing weights file.
         """
         subcommand = self.config.get("subcommand")
         if not subcommand:
@@ -173,6 +178,10 @@ class LcregCLI(LightningCLI):
         if config.get("weights_only") is False:
             raise ConfigValueError("lcreg reads checkpoints weights-only: `--weights_only false` is not supported")
         path = config.get("ckpt_path")
+        if config.get("weights") and not path:
+            from lcreg.weights import resolve
+
+            resolve(config["weights"])
         if not path or path in ("best", "hpc", "registry") or str(path).startswith("registry:"):
             return
         if path == "last":

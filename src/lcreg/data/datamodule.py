@@ -33,6 +33,7 @@ __all__ = [
     "ModelNet40DataModule",
     "PairDataModule",
     "PairDataset",
+    "ResumableLoader",
     "SyntheticDataModule",
 ]
 
@@ -112,6 +113,22 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         pair = make_pair(self.points[index], normals, self.protocol, generator)
         pair["index"] = torch.tensor(index, dtype=torch.int64)
         return pair
+
+
+class ResumableLoader(DataLoader[Any]):
+    """A training DataLoader that Lightning treats as resumable mid-epoch (no "not resumable" warning).
+
+    Its position lives in the DataModule's ``state_dict`` (:func:`~lcreg.data.sampling.resume_position`), which
+    Lightning restores on every resume, also at an epoch boundary where it skips loader states; these methods keep
+    nothing.
+    """
+
+    def state_dict(self) -> dict[str, Any]:
+        """Nothing: the DataModule checkpoints the sampler's position."""
+        return {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Nothing to restore here (see the class docstring)."""
 
 
 class PairDataModule(LightningDataModule):
@@ -235,7 +252,7 @@ class PairDataModule(LightningDataModule):
             if self._resume_state is not None:
                 sampler.load_state_dict(self._resume_state)
                 self._resume_state = None
-        return DataLoader(
+        return (ResumableLoader if shuffle else DataLoader)(
             dataset,
             batch_size=self.batch_size,
             sampler=sampler,
