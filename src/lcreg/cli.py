@@ -46,6 +46,7 @@ A WandbLogger config works without an account: when one is requested, ``WANDB_MO
 
 from __future__ import annotations
 
+import importlib
 import os
 import re
 import sys
@@ -177,6 +178,10 @@ class LcregCLI(LightningCLI):
         config = self.config[subcommand]
         if config.get("weights_only") is False:
             raise ConfigValueError("lcreg reads checkpoints weights-only: `--weights_only false` is not supported")
+        model = config.get("model")
+        class_path = model.get("class_path") if model is not None else None
+        if subcommand == "fit" and isinstance(class_path, str):
+            _refuse_nothing_to_train(class_path)
         path = config.get("ckpt_path")
         if config.get("weights") and not path:
             from lcreg.weights import resolve
@@ -188,8 +193,6 @@ class LcregCLI(LightningCLI):
             path = self._resolve_last(subcommand)
             config["ckpt_path"] = path
         checkpoint = read_checkpoint(path)
-        model = config.get("model")
-        class_path = model.get("class_path") if model is not None else None
         if isinstance(class_path, str):
             check_class(path, checkpoint, class_path)
         self._checkpoint_keys = list(checkpoint["state_dict"])
@@ -248,10 +251,7 @@ class LcregCLI(LightningCLI):
         """Build model, data and trainer; refuse ``fit`` without a loss; check the checkpoint's keys; load weights."""
         super().instantiate_classes()
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
-            raise NothingToTrainError(
-                f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
-                "apply, evaluate it with `lcreg test` (or `lcreg validate`)"
-            )
+            _refuse_nothing_to_train(type(self.model).__name__)
         if self._checkpoint_keys is not None and getattr(self.model, "strict_loading", True):
             check_keys(self._get(self.config, "ckpt_path"), self._checkpoint_keys, self.model)
         self._load_pretrained_weights()
@@ -304,6 +304,24 @@ class LcregCLI(LightningCLI):
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TQDMProgressBar(refresh_rate=20))
         return super()._instantiate_trainer(config, callbacks)
+
+
+def _refuse_nothing_to_train(class_path: str) -> None:
+    """Refuse ``lcreg fit`` for a model class without a training loss (``has_loss = False``).
+
+    Raises:
+        NothingToTrainError: Naming the class and what to run instead.
+    """
+    module, _, name = class_path.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name) if module else None
+    except (ImportError, AttributeError):  # jsonargparse reports unknown classes itself
+        return
+    if cls is not None and not getattr(cls, "has_loss", True):
+        raise NothingToTrainError(
+            f"{name} is a classical method with nothing to train: `lcreg fit` does not apply, evaluate it with "
+            "`lcreg test` (or `lcreg validate`)"
+        )
 
 
 def _wandb_offline_if_no_account(argv: list[str]) -> None:
