@@ -45,7 +45,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> Trained:
         patch.setenv("WANDB_MODE", "disabled")
         patch.setattr(sys, "argv", ["lcreg"])
         patch.chdir(root)
-        pointnetlk = [*config_args("models/pointnetlk.yaml", "data/embedded.yaml"), "--model.init_args.batch_norm=false"]
+        pointnetlk = config_args("models/pointnetlk.yaml", "data/embedded.yaml")
         return Trained(
             dvds=_fit(root, "dvds", [*DVDS, *PLAIN]),
             dvds_lc=_fit(root, "dvds_lc", [*config_args("dvds.yaml"), *PLAIN]),

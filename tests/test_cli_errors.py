@@ -27,7 +27,8 @@ pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
 def _lcreg(*args: str, cwd: Path, debug: bool = False) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([SRC, os.environ.get("PYTHONPATH", "")]), "WANDB_MODE": "disabled"}
+    path = os.pathsep.join([SRC, os.environ.get("PYTHONPATH", "")])
+    env = {**os.environ, "PYTHONPATH": path, "WANDB_MODE": "disabled"}
     env.pop("LCREG_DEBUG", None)
     env.pop("JSONARGPARSE_DEBUG", None)
     if debug:
