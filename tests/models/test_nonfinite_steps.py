@@ -91,6 +91,7 @@ def test_a_step_with_a_nan_loss_is_skipped_and_names_the_batch(config: list[str]
     """Before: no warning, the update made the parameters non-finite."""
     model, (good, other) = _model_and_batches(config=config)
     bad = corrupt(other)
+    assert bad.index is not None
     snapshots = _Snapshots()
     indices = re.escape(str(bad.index.tolist()))
     with pytest.warns(UserWarning, match=rf"skipped: non-finite loss .* batch indices {indices}"):
@@ -106,11 +107,12 @@ def test_a_step_with_a_nan_loss_is_skipped_and_names_the_batch(config: list[str]
 def test_a_step_with_a_non_finite_gradient_is_skipped(monkeypatch: pytest.MonkeyPatch) -> None:
     """A finite loss whose gradient is NaN (``0 * d sqrt(x) / dx`` at 0): the update is dropped as well."""
     model, (good, bad) = _model_and_batches()
+    assert bad.index is not None
     losses = model.training_losses
 
     def nan_gradient_on_bad(result: Any, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         out = losses(result, batch)
-        if torch.equal(batch.index, bad.index):
+        if batch.index is not None and torch.equal(batch.index, bad.index):
             weight = next(p for p in model.parameters() if p.requires_grad)
             out["loss"] = out["loss"] + 0.0 * (weight - weight.detach()).abs().sqrt().sum()
         return out
