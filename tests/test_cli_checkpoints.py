@@ -86,7 +86,8 @@ def _damaged(kind: str, trained: Trained, directory: Path) -> Path:
         data = trained.dvds.read_bytes()
         path.write_bytes(data[: len(data) // 2])
     elif kind == "random":
-        path.write_bytes(torch.randint(0, 256, (4096,), generator=torch.Generator().manual_seed(0)).byte().numpy().tobytes())
+        noise = torch.randint(0, 256, (4096,), generator=torch.Generator().manual_seed(0))
+        path.write_bytes(noise.byte().numpy().tobytes())
     elif kind == "empty":
         path.write_bytes(b"")
     elif kind == "no_state_dict":
