@@ -26,14 +26,13 @@ from lcreg.checks import ShapeError
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
-from lcreg.data.sampling import EpochSampler, resume_position
+from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
 from lcreg.data.synthetic import synthetic_shapes
 
 __all__ = [
     "ModelNet40DataModule",
     "PairDataModule",
     "PairDataset",
-    "ResumableLoader",
     "SyntheticDataModule",
 ]
 
@@ -115,23 +114,7 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         return pair
 
 
-class ResumableLoader(DataLoader[Any]):
-    """A training DataLoader that Lightning treats as resumable mid-epoch (no "not resumable" warning).
-
-    Its position lives in the DataModule's ``state_dict`` (:func:`~lcreg.data.sampling.resume_position`), which
-    Lightning restores on every resume, also at an epoch boundary where it skips loader states; these methods keep
-    nothing.
-    """
-
-    def state_dict(self) -> dict[str, Any]:
-        """Nothing: the DataModule checkpoints the sampler's position."""
-        return {}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Nothing to restore here (see the class docstring)."""
-
-
-class PairDataModule(LightningDataModule):
+class PairDataModule(ResumableTrainingOrder, LightningDataModule):
     """Base DataModule: pair protocol options, validation carving and loaders.
 
     Subclasses implement :meth:`_load_objects`. Validation and test pairs are deterministic per index (generator
@@ -199,8 +182,6 @@ class PairDataModule(LightningDataModule):
         self.train_set: PairDataset | None = None
         self.val_set: PairDataset | None = None
         self.test_set: PairDataset | None = None
-        self._train_sampler: EpochSampler | None = None
-        self._resume_state: dict[str, int] | None = None
 
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
         """Objects of a stage: ``{"train": ..., "val": ... (optional)}`` for ``"fit"``, ``{"test": ...}`` else.
@@ -246,12 +227,7 @@ class PairDataModule(LightningDataModule):
         """
         if dataset is None:
             raise RuntimeError(f"the {name} set is not built; call `setup()` with the matching stage first")
-        sampler = None
-        if shuffle:
-            sampler = self._train_sampler = EpochSampler(len(dataset))
-            if self._resume_state is not None:
-                sampler.load_state_dict(self._resume_state)
-                self._resume_state = None
+        sampler = self.training_sampler(len(dataset), pair_seeds=True) if shuffle else None
         return (ResumableLoader if shuffle else DataLoader)(
             dataset,
             batch_size=self.batch_size,
@@ -262,16 +238,6 @@ class PairDataModule(LightningDataModule):
             collate_fn=collate_pairs,
             generator=torch.Generator(),
         )
-
-    def state_dict(self) -> dict[str, Any]:
-        """The training stream's position (:func:`~lcreg.data.sampling.resume_position`), saved in checkpoints."""
-        if self._train_sampler is None or self.trainer is None:
-            return {}
-        return {"train_sampler": resume_position(self.trainer, self._train_sampler, self.batch_size)}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Continue the training stream of a checkpoint (read when the training loader is built)."""
-        self._resume_state = state_dict.get("train_sampler")
 
     def train_dataloader(self) -> DataLoader[Any]:
         """Shuffled training pairs (new pairs every epoch; order and pairs fixed by the seed and the epoch)."""

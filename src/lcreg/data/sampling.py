@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Sampler
+from torch.utils.data import DataLoader, Sampler
 
-__all__ = ["EpochSampler", "resume_position"]
+__all__ = ["EpochSampler", "ResumableLoader", "ResumableTrainingOrder", "resume_position"]
 
 _SEED_HIGH = 2**62
 
@@ -89,3 +89,49 @@ def resume_position(trainer: Any, sampler: EpochSampler, batch_size: int) -> dic
     if done >= trainer.num_training_batches:
         return {"seed": sampler.seed, "epoch": epoch + 1, "start": 0}
     return {"seed": sampler.seed, "epoch": epoch, "start": done * batch_size}
+
+
+class ResumableLoader(DataLoader[Any]):
+    """A training DataLoader that Lightning treats as resumable mid-epoch (no "not resumable" warning).
+
+    Its position lives in the DataModule's ``state_dict`` (:class:`ResumableTrainingOrder`), which Lightning restores
+    on every resume, also at an epoch boundary where it skips loader states; these methods keep nothing.
+    """
+
+    def state_dict(self) -> dict[str, Any]:
+        """Nothing: the DataModule checkpoints the sampler's position."""
+        return {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Nothing to restore here (see the class docstring)."""
+
+
+class ResumableTrainingOrder:
+    """DataModule mixin: the training loader's :class:`EpochSampler`, its position saved in checkpoints.
+
+    ``LightningDataModule.state_dict``/``load_state_dict`` are the hooks Lightning calls when it saves and restores
+    a checkpoint (restored before the loaders are built); the position is applied to the next training sampler.
+    """
+
+    trainer: Any
+    batch_size: int
+    _train_sampler: EpochSampler | None = None
+    _resume_state: dict[str, int] | None = None
+
+    def training_sampler(self, size: int, pair_seeds: bool) -> EpochSampler:
+        """A new training sampler over ``size`` items, continuing a restored checkpoint's position if any."""
+        sampler = self._train_sampler = EpochSampler(size, pair_seeds=pair_seeds)
+        if self._resume_state is not None:
+            sampler.load_state_dict(self._resume_state)
+            self._resume_state = None
+        return sampler
+
+    def state_dict(self) -> dict[str, Any]:
+        """The training stream's position (:func:`resume_position`), saved in checkpoints."""
+        if self._train_sampler is None or self.trainer is None:
+            return {}
+        return {"train_sampler": resume_position(self.trainer, self._train_sampler, self.batch_size)}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Continue the training stream of a checkpoint (applied when the training loader is built)."""
+        self._resume_state = state_dict.get("train_sampler")
