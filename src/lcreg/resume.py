@@ -3,8 +3,9 @@
 A run logs under ``<save_dir>/<name>/version_<k>/`` (CSV or TensorBoard logger) and keeps its latest state in
 ``version_<k>/checkpoints/last.ckpt`` (:class:`lcreg.callbacks.LatestCheckpoint`). ``last`` is the ``last.ckpt`` of
 the highest-numbered version that has one (``lcreg test``/``predict`` runs log to versions without checkpoints);
-``fit`` then logs to that same version (:class:`lcreg.cli.LcregCLI` sets the logger's ``version``). Without a logger, ``last`` is
-``<default_root_dir>/checkpoints/last.ckpt``; a ``ModelCheckpoint`` with its own ``dirpath`` is searched there.
+``fit`` then logs to that same version (:class:`lcreg.cli.LcregCLI` sets the logger's ``version``). Without a
+logger, ``last`` is ``<default_root_dir>/checkpoints/last.ckpt``; a ``ModelCheckpoint`` with its own ``dirpath`` is
+searched there.
 """
 
 from __future__ import annotations
