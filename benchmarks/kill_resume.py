@@ -1,7 +1,8 @@
 """A run killed with ``kill -9`` at a random step and resumed with ``lcreg fit --ckpt_path last`` against an
 uninterrupted run with the same seed: final weights, validation and test metrics.
 
-    python benchmarks/kill_resume.py [--out runs/kill_resume] [--seed N] [--epochs 3] [--train 48] [--points 256]
+    python benchmarks/kill_resume.py [--out runs/kill_resume/report.md] [--seed N] [--epochs 3] [--train 48]
+                                     [--points 256]
     python benchmarks/kill_resume.py --smoke     # a tiny run (seconds of training; checks the script runs)
 
 Three ``lcreg fit`` processes of ``configs/dvds.yaml`` (DVDs + LC on the embedded shapes, reduced sizes) with
@@ -13,9 +14,10 @@ Three ``lcreg fit`` processes of ``configs/dvds.yaml`` (DVDs + LC on the embedde
   last checkpoint are lost), then resumed by ``lcreg fit --config ... --ckpt_path last`` (one command);
 * each final ``last.ckpt`` is tested with ``lcreg test --ckpt_path``.
 
-Printed: the step of the kill and of the checkpoint resumed, the largest absolute difference of the final weights,
-``val/rre_mean_deg`` per epoch and the test metrics of both runs. Exit code 1 when they differ (beyond 1e-6 for the
-metrics; the weights are expected to be bitwise equal on one machine).
+Printed and written to ``--out`` (a Markdown table; the runs go to ``<out folder>/runs``): the step of the kill and of
+the checkpoint resumed, the largest absolute difference of the final weights, ``val/rre_mean_deg`` per epoch and the
+test metrics of both runs. Exit code 1 when they differ (beyond 1e-6 for the metrics; the weights are expected to be
+bitwise equal on one machine).
 """
 
 from __future__ import annotations
@@ -117,7 +119,7 @@ def _largest_weight_difference(a: Path, b: Path) -> float:
 def main(argv: list[str] | None = None) -> int:
     """Run the comparison; 0 when the resumed run ends like the uninterrupted one."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("runs/kill_resume"))
+    parser.add_argument("--out", type=Path, default=Path("runs/kill_resume/report.md"), help="Markdown report")
     parser.add_argument("--seed", type=int, default=None, help="seed of the kill step (default: random)")
     parser.add_argument("--epochs", type=int, default=3)
     parser.add_argument("--train", type=int, default=48, help="training shapes (batches of 4)")
@@ -129,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _args(options)
     total = options.epochs * (options.train // 4)
     kill_step = random.Random(options.seed).randint(1, total - 1)
-    out = options.out.resolve()
+    out = options.out.resolve().parent / "runs"
 
     start = time.perf_counter()
     _lcreg("fit", args, out / "whole")
@@ -143,16 +145,33 @@ def main(argv: list[str] | None = None) -> int:
 
     weights = _largest_weight_difference(whole_last, last)
     vals = {"whole": _val_errors(whole_run), "resumed": _val_errors(resumed_run)}
-    print(f"kill -9 once step {kill_step} of {total} was checkpointed; last.ckpt held step {held} when killed")
-    print(f"final steps: whole {_checkpoint_step(whole_last)}, resumed {_checkpoint_step(last)}")
-    print(f"largest |weight difference|: {weights:.3g}")
-    for epoch in sorted(vals["whole"]):
-        print(f"val/rre_mean_deg epoch {epoch}: whole {vals['whole'][epoch]:.6f}  resumed {vals['resumed'].get(epoch)}")
-    for key in TEST_KEYS:
-        print(f"{key}: whole {tests['whole'].get(key)}  resumed {tests['resumed'].get(key)}")
-    print(f"wall time {time.perf_counter() - start:.0f} s")
+    rows = [
+        ("kill -9 once checkpointed (step)", str(kill_step), f"killed holding step {held} of {total}"),
+        ("final step", str(_checkpoint_step(whole_last)), str(_checkpoint_step(last))),
+        ("largest abs weight difference", "", f"{weights:.3g}"),
+        *(
+            (f"val/rre_mean_deg epoch {e}", f"{v:.6f}", f"{vals['resumed'].get(e, float('nan')):.6f}")
+            for e, v in sorted(vals["whole"].items())
+        ),
+        *(
+            (key, f"{tests['whole'].get(key, float('nan')):.6g}", f"{tests['resumed'].get(key, float('nan')):.6g}")
+            for key in TEST_KEYS
+        ),
+    ]
     same = weights == 0 and _close(vals["whole"], vals["resumed"]) and _close(tests["whole"], tests["resumed"])
-    print("SAME" if same else "DIFFERENT")
+    report = "\n".join(
+        [
+            f"# kill -9 and resume ({'SAME' if same else 'DIFFERENT'}; {time.perf_counter() - start:.0f} s)",
+            "",
+            "| | uninterrupted | killed + resumed |",
+            "|---|---|---|",
+            *(f"| {a} | {b} | {c} |" for a, b, c in rows),
+            "",
+        ]
+    )
+    options.out.parent.mkdir(parents=True, exist_ok=True)
+    options.out.write_text(report)
+    print(report)
     return 0 if same else 1
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import random
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,9 @@ RUN = [
     "--trainer.limit_train_batches=1.0",
     "--trainer.max_epochs=2",
 ]
-STOP_AT = 4  # the first step of the second epoch: a mid-epoch stop (last.ckpt is written at max_steps)
+# A stop at the first step of the second epoch (mid-epoch; last.ckpt written at max_steps), and at the end of the first
+# epoch (last.ckpt written after its validation).
+STOPS = [4, 3]
 
 
 def _fit(save_dir: Path, *extra: str) -> Path:
@@ -46,12 +49,25 @@ def _val_errors(run: Path) -> list[tuple[int, float]]:
     return sorted({(int(r["epoch"]), float(r["val/rre_mean_deg"])) for r in rows if r.get("val/rre_mean_deg")})
 
 
-def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_run(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The uninterrupted run."""
+    root = tmp_path_factory.mktemp("whole")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WANDB_MODE", "disabled")
+        patch.setattr(sys, "argv", ["lcreg"])
+        patch.chdir(root)
+        return _fit(root)
+
+
+@pytest.mark.parametrize("stop", STOPS, ids=["mid-epoch", "epoch-end"])
+def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_run(
+    whole: Path, tmp_path: Path, stop: int
+) -> None:
     """Before: `--ckpt_path last` started a new version_1, found no checkpoint there, warned and trained from step 0."""
-    whole = _fit(tmp_path / "whole")
-    stopped = _fit(tmp_path / "stopped", f"--trainer.max_steps={STOP_AT}")
+    stopped = _fit(tmp_path / "stopped", f"--trainer.max_steps={stop}")
     last = stopped / "checkpoints" / "last.ckpt"
-    assert torch.load(last, weights_only=True)["global_step"] == STOP_AT  # the latest state, not the best
+    assert torch.load(last, weights_only=True)["global_step"] == stop  # the latest state, not the best
     _fit(tmp_path / "stopped", "--ckpt_path", "last")
 
     assert not (tmp_path / "stopped" / "lcreg" / "version_1").exists()  # the resumed run logs in its own folder

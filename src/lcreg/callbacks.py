@@ -25,7 +25,7 @@ class LatestCheckpoint(Callback):
     Lightning's ``ModelCheckpoint(save_last=True)`` rewrites ``last.ckpt`` only when it also saves a top-k
     checkpoint, so ``last.ckpt`` trails the run. This callback writes it every ``every_n_train_steps`` optimiser
     steps, at the last step (``max_steps``), after every validation and at the end of every complete training epoch
-    (at most once per step), through
+    (at most once per step; a step followed by a validation is saved after it), through
     ``Trainer.save_checkpoint`` (an atomic write: a killed run leaves the previous file whole). The file goes to
     the directory of the trainer's first ``ModelCheckpoint`` (``<log_dir>/checkpoints`` by default).
 
@@ -73,11 +73,12 @@ class LatestCheckpoint(Callback):
     ) -> None:
         """Save every ``every_n_train_steps`` optimiser steps."""
         step, n = trainer.global_step, self.every_n_train_steps
-        if (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps:
+        due = (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps
+        if due and not _validation_follows(trainer):
             self._save(trainer)
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Save after every validation during ``fit``."""
+        """Save after every validation during ``fit`` (also the step-cadence save of the batch before it)."""
         self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
@@ -88,6 +89,16 @@ class LatestCheckpoint(Callback):
         """
         if trainer.fit_loop.epoch_loop.batch_progress.current.ready >= trainer.num_training_batches:
             self._save(trainer)
+
+
+def _validation_follows(trainer: Trainer) -> bool:
+    """Whether Lightning validates right after the current training batch.
+
+    A checkpoint taken at that batch's end would resume after the validation (Lightning fast-forwards it), so the
+    save waits for ``on_validation_end``. Uses the training loop's own decision (a private method of Lightning 2.6).
+    """
+    fetcher = trainer.fit_loop._data_fetcher
+    return fetcher is not None and bool(trainer.fit_loop.epoch_loop._should_check_val_fx(fetcher))
 
 
 class RngState(Callback):
