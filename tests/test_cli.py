@@ -144,9 +144,11 @@ def test_a_listed_checkpoint_replaces_the_default(tmp_path: Path) -> None:
 
 
 def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
-    """Seed, CSV logger under runs/, log interval, val/rre_mean_deg + last.ckpt checkpoints, progress bar."""
+    """Seed, CSV logger under runs/, log interval, val/rre_mean_deg + latest last.ckpt, RNG states, progress bar."""
     from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
     from lightning.pytorch.loggers import CSVLogger
+
+    from lcreg.callbacks import LatestCheckpoint, RngState
 
     model_only = CONFIGS / "models" / "pcrnet.yaml"
     cli = build_cli(["--config", str(model_only), "--config", str(CONFIGS / "data" / "embedded.yaml")], run=False)
@@ -154,7 +156,9 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     assert isinstance(cli.trainer.logger, CSVLogger) and Path(cli.trainer.logger.save_dir).name == "runs"
     assert cli.trainer.log_every_n_steps == 10
     (checkpoint,) = [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
-    assert (checkpoint.monitor, checkpoint.mode, checkpoint.save_last) == ("val/rre_mean_deg", "min", True)
+    assert (checkpoint.monitor, checkpoint.mode, checkpoint.save_last) == ("val/rre_mean_deg", "min", None)
+    (latest,) = [c for c in cli.trainer.callbacks if isinstance(c, LatestCheckpoint)]
+    assert latest.every_n_train_steps == 50 and any(isinstance(c, RngState) for c in cli.trainer.callbacks)
     assert any(isinstance(c, TQDMProgressBar) for c in cli.trainer.callbacks)
     raw = yaml.safe_load(model_only.read_text())
     assert "seed_everything" not in raw and set(raw["trainer"]) == {"max_epochs"}  # no file repeats the defaults

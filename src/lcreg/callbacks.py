@@ -1,7 +1,8 @@
-"""Lightning callbacks used by the CLI."""
+"""Lightning callbacks used by the CLI: the latest-state checkpoint, the RNG state in checkpoints, predictions."""
 
 from __future__ import annotations
 
+import random
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -9,12 +10,143 @@ from typing import Any
 import numpy as np
 import torch
 from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.callbacks import BasePredictionWriter, Callback
+from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.types import RegistrationResult
 
-__all__ = ["TransformWriter"]
+__all__ = ["LatestCheckpoint", "RngState", "TransformWriter"]
+
+
+class LatestCheckpoint(Callback):
+    """Keep ``last.ckpt`` the latest training state (model, optimiser, scheduler, loops, callbacks, data position).
+
+    Lightning's ``ModelCheckpoint(save_last=True)`` rewrites ``last.ckpt`` only when it also saves a top-k
+    checkpoint, so ``last.ckpt`` trails the run. This callback writes it every ``every_n_train_steps`` optimiser
+    steps, at the last step (``max_steps``), after every validation and at the end of every complete training epoch
+    (at most once per step; a step followed by a validation is saved after it), through
+    ``Trainer.save_checkpoint`` (an atomic write: a killed run leaves the previous file whole). The file goes to
+    the directory of the trainer's first ``ModelCheckpoint`` (``<log_dir>/checkpoints`` by default).
+
+    Args:
+        every_n_train_steps: Optimiser steps between two saves (0: only after validations and epochs).
+        filename: File name in the checkpoint directory.
+
+    Raises:
+        ValueError: If ``every_n_train_steps < 0``.
+    """
+
+    def __init__(self, every_n_train_steps: int = 50, filename: str = "last.ckpt") -> None:
+        if every_n_train_steps < 0:
+            raise ValueError(f"`every_n_train_steps` must be >= 0, got {every_n_train_steps}")
+        self.every_n_train_steps = every_n_train_steps
+        self.filename = filename
+        self._saved_step = -1
+
+    @property
+    def state_key(self) -> str:
+        """Key of this callback's entry in checkpoints."""
+        return self._generate_state_key(every_n_train_steps=self.every_n_train_steps, filename=self.filename)
+
+    def path(self, trainer: Trainer) -> Path:
+        """Where ``last.ckpt`` is written."""
+        checkpoint = trainer.checkpoint_callback
+        dirpath = getattr(checkpoint, "dirpath", None)
+        if dirpath is None:
+            dirpath = Path(trainer.log_dir or trainer.default_root_dir) / "checkpoints"
+        return Path(dirpath) / self.filename
+
+    def _save(self, trainer: Trainer) -> None:
+        if (
+            bool(getattr(trainer, "fast_dev_run", False))
+            or trainer.sanity_checking
+            or trainer.state.fn != TrainerFn.FITTING
+            or trainer.global_step == self._saved_step
+        ):
+            return
+        self._saved_step = trainer.global_step
+        trainer.save_checkpoint(self.path(trainer), weights_only=False)  # the full state, not weights only
+
+    def on_train_batch_end(
+        self, trainer: Trainer, pl_module: LightningModule, outputs: Any, batch: Any, batch_idx: int
+    ) -> None:
+        """Save every ``every_n_train_steps`` optimiser steps."""
+        step, n = trainer.global_step, self.every_n_train_steps
+        due = (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps
+        if due and not _validation_follows(trainer):
+            self._save(trainer)
+
+    def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Save after every validation during ``fit`` (also the step-cadence save of the batch before it)."""
+        self._save(trainer)
+
+    def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Save at the end of every complete training epoch (runs without validation).
+
+        An epoch cut short (``max_steps``) is not saved here: its last step was (a checkpoint here would resume at
+        the next epoch).
+        """
+        if trainer.fit_loop.epoch_loop.batch_progress.current.ready >= trainer.num_training_batches:
+            self._save(trainer)
+
+
+def _validation_follows(trainer: Trainer) -> bool:
+    """Whether Lightning validates right after the current training batch.
+
+    A checkpoint taken at that batch's end would resume after the validation (Lightning fast-forwards it), so the
+    save waits for ``on_validation_end``. Uses the training loop's own decision (a private method of Lightning 2.6).
+    """
+    fetcher = trainer.fit_loop._data_fetcher
+    return fetcher is not None and bool(trainer.fit_loop.epoch_loop._should_check_val_fx(fetcher))
+
+
+class RngState(Callback):
+    """Save the torch (CPU and CUDA), NumPy and Python RNG states in checkpoints; a resumed ``fit`` restores them.
+
+    Lightning checkpoints leave them out, so a resumed run would draw other random numbers than the uninterrupted
+    one (LC's random subsets, dropout). The states are restored when training starts (after the sanity check),
+    as tensors and plain numbers that a weights-only load reads.
+    """
+
+    def __init__(self) -> None:
+        self._pending: dict[str, Any] | None = None
+
+    def state_dict(self) -> dict[str, Any]:
+        """The current RNG states."""
+        key = np.random.get_state(legacy=False)
+        state: dict[str, Any] = {
+            "torch": torch.get_rng_state(),
+            "numpy": {
+                "key": torch.from_numpy(np.asarray(key["state"]["key"], dtype=np.int64)),
+                "pos": int(key["state"]["pos"]),
+                "has_gauss": int(key["has_gauss"]),
+                "gauss": float(key["gauss"]),
+            },
+            "python": random.getstate(),
+        }
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            state["cuda"] = torch.cuda.get_rng_state_all()
+        return state
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Keep the states until training starts."""
+        self._pending = state_dict
+
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Restore the states of the checkpoint being resumed, if any."""
+        state, self._pending = self._pending, None
+        if not state:
+            return
+        torch.set_rng_state(state["torch"])
+        numpy = state["numpy"]
+        np.random.set_state(
+            ("MT19937", numpy["key"].numpy().astype(np.uint32), numpy["pos"], numpy["has_gauss"], numpy["gauss"])
+        )
+        version, internal, gauss = state["python"]
+        random.setstate((version, tuple(internal), gauss))
+        if "cuda" in state and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda"])
 
 
 class TransformWriter(BasePredictionWriter):

@@ -8,6 +8,7 @@ read through this module.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ __all__ = [
     "CheckpointMismatchError",
     "CheckpointNotFoundError",
     "CheckpointReadError",
+    "check_class",
+    "check_keys",
     "one_line",
     "read_checkpoint",
     "read_torch_file",
@@ -85,6 +88,39 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(content, dict) or not isinstance(content.get("state_dict"), dict):
         raise CheckpointFormatError(path, "no 'state_dict' (not a Lightning checkpoint)")
     return content
+
+
+def check_class(path: str | Path, checkpoint: dict[str, Any], class_path: str) -> None:
+    """Refuse a checkpoint of another model class than ``class_path`` (``module.Class``).
+
+    The class is the ``_class_path`` LightningCLI stores in ``hyper_parameters``; a checkpoint without it passes
+    (its ``state_dict`` keys are checked when the model is built, :func:`check_keys`).
+
+    Raises:
+        CheckpointMismatchError: Naming both classes.
+    """
+    hparams = checkpoint.get("hyper_parameters")
+    saved = hparams.get("_class_path") if isinstance(hparams, dict) else None
+    if isinstance(saved, str) and saved != class_path:
+        raise CheckpointMismatchError(path, f"holds a {saved} model, the config builds {class_path}")
+
+
+def check_keys(path: str | Path, keys: Iterable[str], model: torch.nn.Module) -> None:
+    """Refuse a ``state_dict`` whose keys differ from ``model``'s (another architecture or configuration).
+
+    Raises:
+        CheckpointMismatchError: Naming the model class and a few missing/unexpected keys.
+    """
+    saved, expected = set(keys), set(model.state_dict())
+    missing, unexpected = sorted(expected - saved), sorted(saved - expected)
+    if not missing and not unexpected:
+        return
+    parts = [
+        f"{label} {len(names)} keys ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''})"
+        for label, names in (("lacks", missing), ("has unexpected", unexpected))
+        if names
+    ]
+    raise CheckpointMismatchError(path, f"does not fit the configured {type(model).__name__}: {'; '.join(parts)}")
 
 
 def one_line(text: str, limit: int = 300) -> str:

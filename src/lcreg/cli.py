@@ -23,25 +23,58 @@ exported ``.pt`` file) into the configured model once it is built: every tensor 
 model's tensors the file lacks may only be training-only modules (decoder, normal head, loss terms), which keep their
 initialisation. ``fit`` then fine-tunes from them; a ``--ckpt_path`` replaces them (they are not loaded).
 
+Resuming a run: ``lcreg fit --config X --ckpt_path last`` continues the latest run of that config where it stopped
+(killed, crashed or finished): ``last`` is the ``last.ckpt`` of the highest ``runs/<name>/version_<k>`` that has
+one (:mod:`lcreg.resume`), and the run keeps logging in that folder (the earlier ``metrics.csv`` is kept as
+``metrics.segment<n>.csv``). ``last.ckpt`` is the latest state, written every 50 optimiser steps, after every
+validation and every epoch (:class:`lcreg.callbacks.LatestCheckpoint`; list one in ``trainer.callbacks`` to change the
+cadence) with the RNG states (:class:`lcreg.callbacks.RngState`) and the position in the training stream, so the
+resumed run computes what the uninterrupted one would have. An explicit ``--ckpt_path FILE`` works for every
+subcommand; ``last`` with nothing to resume is an error.
+
+Checkpoints are checked before Lightning reads them: read weights-only (no pickled code runs; Lightning also loads
+them with ``weights_only=True``), refused with one line naming the file when missing, damaged, not a Lightning
+checkpoint, of another model class than the config's, or with other ``state_dict`` keys.
+
+Errors: from the command line, user errors print one or two lines on stderr: exit code 2 for arguments and configs,
+1 for files, checkpoints, weights and a training stopped by non-finite losses. ``LCREG_DEBUG=1`` prints the full
+report and traceback instead. Unexpected exceptions (bugs) keep their traceback.
+
 A WandbLogger config works without an account: when one is requested, ``WANDB_MODE`` is unset and no
 ``WANDB_API_KEY`` is present, ``WANDB_MODE=offline`` is set (runs can be synced later with ``wandb sync``).
 """
 
 from __future__ import annotations
 
+import importlib
 import os
+import re
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import yaml
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities import rank_zero_info
 
-from lcreg.models.base import RegistrationModule
+from lcreg.checkpoints import CheckpointError, check_class, check_keys, one_line, read_checkpoint
+from lcreg.models.base import NonFiniteTrainingError, RegistrationModule
 
-__all__ = ["LcregCLI", "build_cli", "expand_configs", "main"]
+__all__ = [
+    "ConfigFileError",
+    "ConfigValueError",
+    "LcregArgumentParser",
+    "LcregCLI",
+    "NothingToTrainError",
+    "UsageError",
+    "build_cli",
+    "expand_configs",
+    "main",
+]
+
+DEBUG_ENV = "LCREG_DEBUG"
+"""Set to 1 for full error reports and tracebacks from the command line."""
 
 TRAINER_DEFAULTS: dict[str, Any] = {
     "logger": {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": "runs", "name": "lcreg"}},
@@ -49,13 +82,152 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 }
 
 
+class UsageError(Exception):
+    """A mistake in the arguments or configs (exit code 2 from the command line)."""
+
+
+class ConfigFileError(UsageError, FileNotFoundError):
+    """A config file (or a file it composes) does not exist."""
+
+
+class ConfigValueError(UsageError, ValueError):
+    """A config is malformed (``compose`` cycle or value) or sets an unsupported option."""
+
+
+class NothingToTrainError(UsageError, RuntimeError):
+    """``lcreg fit`` on a method with nothing to train."""
+
+
+def _debug() -> bool:
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
+
+
+def condense_parser_error(message: str) -> str:
+    r"""One line out of jsonargparse's multi-line report: the innermost key (dotted as on the command line) and why.
+
+    Example:
+        >>> condense_parser_error('Parser key "model":\n  - Problem with given class_path \'a.B\':\n'
+        ...                       '    Parser key "depth":\n      Expected a <class \'int\'>. Got value: x')
+        "--model.init_args.depth: Expected a <class 'int'>. Got value: x"
+    """
+    lines = [line.strip().lstrip("- ").strip() for line in message.splitlines() if line.strip()]
+    key, detail = "", ""
+    for i, line in enumerate(lines):
+        found = re.match(r'Parser key "([^"]+)":\s*(.*)$', line)
+        if found is None:
+            continue
+        joiner = ".init_args." if any("class_path" in ln for ln in lines[max(i - 1, 0) : i]) and key else "."
+        key = f"{key}{joiner}{found.group(1)}" if key else found.group(1)
+        detail = found.group(2) or (lines[i + 1] if i + 1 < len(lines) else "")
+    if not key:
+        return one_line(message)
+    return one_line(f"--{key}: {detail}")
+
+
+class LcregArgumentParser(LightningArgumentParser):
+    """The parser of ``lcreg``: an invalid argument or config is reported in two lines (exit code 2).
+
+    ``LCREG_DEBUG=1`` (or jsonargparse's own debug mode) keeps jsonargparse's full report.
+    """
+
+    def error(self, message: str, ex: Exception | None = None) -> NoReturn:
+        """Print ``lcreg: error: <key>: <why>`` and a hint, then exit with code 2."""
+        if not self.exit_on_error or _debug():
+            super().error(message, ex)
+        parser = getattr(ex, "subcommand_parser", None) or self
+        prog = " ".join(["lcreg", *parser.prog.replace(" [options]", "").split()[1:]])
+        sys.stderr.write(f"lcreg: error: {condense_parser_error(message)}\n")
+        sys.stderr.write(f"hint: `{prog} --help` lists the options; {DEBUG_ENV}=1 prints the full report\n")
+        self.exit(2)
+
+
 class LcregCLI(LightningCLI):
     """LightningCLI with lcreg's base classes in subclass mode, the shared trainer defaults and ``compose``.
 
-    Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg", save_last=True)`` and
-    a ``TQDMProgressBar``. ``lcreg predict`` writes ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to
-    the run's log directory.
+    Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg")`` (the best),
+    :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a ``TQDMProgressBar``; always
+    adds :class:`~lcreg.callbacks.RngState`. ``lcreg predict`` writes ``predictions.npz``
+    (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory. ``--ckpt_path`` is resolved (``last``)
+    and checked before anything is built (see the module docstring).
     """
+
+    _checkpoint_keys: list[str] | None = None
+
+    def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
+        """Parse ``args`` (:func:`build_cli` reads ``sys.argv``, so Lightning's warning about both does not apply)."""
+        if isinstance(args, dict):
+            self.config = parser.parse_object(args)
+        else:
+            self.config = parser.parse_args(args)  # type: ignore[arg-type]  # a list of strings here
+
+    def _parse_ckpt_path(self) -> None:
+        """Check the files named on the command line before anything is built (or seeded).
+
+        ``--weights`` must name known weights; ``--ckpt_path last`` is resolved, the checkpoint is read weights-only
+        and its model class checked against the config's, then its hyper-parameters override the config's model
+        arguments (LightningCLI's behaviour).
+
+        Raises:
+            lcreg.checkpoints.CheckpointError: One line naming the file: nothing to resume, missing, unreadable,
+                not a Lightning checkpoint, or a checkpoint of another model class.
+            lcreg.weights.PretrainedError: Unknown weights name or missing weights file.
+        """
+        subcommand = self.config.get("subcommand")
+        if not subcommand:
+            return
+        config = self.config[subcommand]
+        if config.get("weights_only") is False:
+            raise ConfigValueError("lcreg reads checkpoints weights-only: `--weights_only false` is not supported")
+        model = config.get("model")
+        class_path = model.get("class_path") if model is not None else None
+        if subcommand == "fit" and isinstance(class_path, str):
+            _refuse_nothing_to_train(class_path)
+        path = config.get("ckpt_path")
+        if config.get("weights") and not path:
+            from lcreg.weights import resolve
+
+            resolve(config["weights"])
+        if not path or path in ("best", "hpc", "registry") or str(path).startswith("registry:"):
+            return
+        if path == "last":
+            path = self._resolve_last(subcommand)
+            config["ckpt_path"] = path
+        checkpoint = read_checkpoint(path)
+        if isinstance(class_path, str):
+            check_class(path, checkpoint, class_path)
+        self._checkpoint_keys = list(checkpoint["state_dict"])
+        self._merge_hparams(subcommand, checkpoint)
+
+    def _resolve_last(self, subcommand: str) -> str:
+        """The file ``last`` means (:func:`lcreg.resume.find_last_checkpoint`); ``fit`` logs to its version again."""
+        from lcreg.resume import find_last_checkpoint, keep_previous_metrics
+
+        trainer = self.config[subcommand]["trainer"]
+        last = find_last_checkpoint(trainer)
+        rank_zero_info(f"lcreg: resuming from {last.path}")
+        if subcommand == "fit" and last.version is not None:
+            trainer["logger"]["init_args"]["version"] = last.version
+            kept = keep_previous_metrics(last.path.parent.parent)
+            if kept is not None:
+                rank_zero_info(f"lcreg: the earlier metrics of this run are kept in {kept}")
+        return str(last.path)
+
+    def _merge_hparams(self, subcommand: str, checkpoint: dict[str, Any]) -> None:
+        """The model arguments saved in the checkpoint override the config's (LightningCLI's behaviour)."""
+        hparams = dict(checkpoint.get("hyper_parameters") or {})
+        hparams.pop("_instantiator", None)
+        if not hparams:
+            return
+        if "_class_path" in hparams:
+            hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
+        self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+
+    def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
+        """Lightning loads ``--ckpt_path`` weights-only (its default is a full unpickle for local files)."""
+        kwargs = super()._prepare_subcommand_kwargs(subcommand)
+        if "weights_only" in self._subcommand_method_arguments[subcommand]:
+            kwargs["weights_only"] = True
+        return kwargs
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         """Accept ``--weights`` and the ``compose`` key of configs (already expanded by :func:`expand_configs`)."""
@@ -76,13 +248,12 @@ class LcregCLI(LightningCLI):
         )
 
     def instantiate_classes(self) -> None:
-        """Build model, data and trainer; refuse ``fit`` for models without a loss; load ``--weights``."""
+        """Build model, data and trainer; refuse ``fit`` without a loss; check the checkpoint's keys; load weights."""
         super().instantiate_classes()
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
-            raise RuntimeError(
-                f"{type(self.model).__name__} is a classical method with nothing to train: `lcreg fit` does not "
-                "apply, evaluate it with `lcreg test` (or `lcreg validate`)"
-            )
+            _refuse_nothing_to_train(type(self.model).__name__)
+        if self._checkpoint_keys is not None and getattr(self.model, "strict_loading", True):
+            check_keys(self._get(self.config, "ckpt_path"), self._checkpoint_keys, self.model)
         self._load_pretrained_weights()
 
     def _load_pretrained_weights(self) -> None:
@@ -107,17 +278,25 @@ class LcregCLI(LightningCLI):
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
         from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
 
+        from lcreg.callbacks import LatestCheckpoint, RngState
+
         listed = config.get("callbacks") or []
-        if config.get("enable_checkpointing") is not False and not any(isinstance(c, ModelCheckpoint) for c in listed):
+        checkpointing = config.get("enable_checkpointing") is not False
+        if checkpointing and not any(isinstance(c, ModelCheckpoint) for c in listed):
             callbacks.append(
                 ModelCheckpoint(
                     monitor="val/rre_mean_deg",
                     mode="min",
-                    save_last=True,
                     filename="epoch{epoch:03d}-rre{val/rre_mean_deg:.3f}",
                     auto_insert_metric_name=False,
                 )
             )
+        if checkpointing and not any(isinstance(c, LatestCheckpoint) for c in listed):
+            callbacks.append(LatestCheckpoint())
+        for checkpoint in (c for c in listed if isinstance(c, ModelCheckpoint) and c.save_last):
+            rank_zero_info("lcreg: a listed ModelCheckpoint's save_last is off: LatestCheckpoint writes last.ckpt")
+            checkpoint.save_last = False
+        callbacks.append(RngState())
         if self.subcommand == "predict":
             from lcreg.callbacks import TransformWriter
 
@@ -125,6 +304,24 @@ class LcregCLI(LightningCLI):
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TQDMProgressBar(refresh_rate=20))
         return super()._instantiate_trainer(config, callbacks)
+
+
+def _refuse_nothing_to_train(class_path: str) -> None:
+    """Refuse ``lcreg fit`` for a model class without a training loss (``has_loss = False``).
+
+    Raises:
+        NothingToTrainError: Naming the class and what to run instead.
+    """
+    module, _, name = class_path.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name) if module else None
+    except (ImportError, AttributeError):  # jsonargparse reports unknown classes itself
+        return
+    if cls is not None and not getattr(cls, "has_loss", True):
+        raise NothingToTrainError(
+            f"{name} is a classical method with nothing to train: `lcreg fit` does not apply, evaluate it with "
+            "`lcreg test` (or `lcreg validate`)"
+        )
 
 
 def _wandb_offline_if_no_account(argv: list[str]) -> None:
@@ -161,24 +358,24 @@ def _composed(path: Path, seen: tuple[Path, ...] = ()) -> list[Path]:
     """``path``'s ``compose:`` files (recursively, in order), then ``path`` itself.
 
     Raises:
-        FileNotFoundError: If a composed file does not exist (names the file that lists it).
-        ValueError: On a ``compose`` cycle or a ``compose`` value that is not a list of paths.
+        ConfigFileError: If a composed file does not exist (names the file that lists it).
+        ConfigValueError: On a ``compose`` cycle or a ``compose`` value that is not a list of paths.
     """
     path = path.resolve()
     if path in seen:
-        raise ValueError(f"config compose cycle: {' -> '.join(str(p) for p in (*seen, path))}")
+        raise ConfigValueError(f"config compose cycle: {' -> '.join(str(p) for p in (*seen, path))}")
     with path.open(encoding="utf-8") as fh:
         content = yaml.safe_load(fh)
     parts = content.get("compose") if isinstance(content, dict) else None
     if parts is None:
         return [path]
     if not isinstance(parts, list) or not all(isinstance(p, str) for p in parts):
-        raise ValueError(f"{path}: `compose` must be a list of config paths, got {parts!r}")
+        raise ConfigValueError(f"{path}: `compose` must be a list of config paths, got {parts!r}")
     files: list[Path] = []
     for part in parts:
         child = path.parent / part
         if not child.is_file():
-            raise FileNotFoundError(f"{path}: composed config {part!r} not found ({child})")
+            raise ConfigFileError(f"{path}: composed config {part!r} not found ({child})")
         files += _composed(child, (*seen, path))
     return [*files, path]
 
@@ -229,6 +426,7 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         subclass_mode_model=True,
         subclass_mode_data=True,
         auto_configure_optimizers=False,
+        parser_class=LcregArgumentParser,
         save_config_kwargs={"overwrite": True},
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
@@ -238,10 +436,39 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
 
 
 def main(args: ArgsType = None) -> None:
-    """Entry point of the ``lcreg`` console script (``args=None`` reads ``sys.argv``; tests pass a list)."""
+    """Entry point of the ``lcreg`` console script (``args=None`` reads ``sys.argv``; tests pass a list).
+
+    From the command line (``args=None``), user errors end the program with one line on stderr (:func:`_exit_on`);
+    with ``args`` given, they are raised (typed) to the caller.
+    """
     argv = list(args) if isinstance(args, (list, tuple)) else sys.argv[1:]
     _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
-    build_cli(args)
+    if args is not None or _debug():
+        build_cli(args)
+        return
+    try:
+        build_cli(argv)
+    except Exception as err:
+        _exit_on(err)
+
+
+def _exit_on(err: Exception) -> NoReturn:
+    """Exit with one line for a user error; re-raise anything else (a bug: its traceback is shown).
+
+    Exit codes: 2 for arguments and configs; 1 for files, checkpoints, weights and training stopped on non-finite
+    losses.
+    """
+    from lcreg.weights import PretrainedError
+
+    if isinstance(err, UsageError):
+        code = 2
+    elif isinstance(err, (CheckpointError, PretrainedError, NonFiniteTrainingError)):
+        code = 1
+    else:
+        raise err
+    sys.stderr.write(f"lcreg: error: {one_line(str(err), 1000)}\n")
+    sys.stderr.write(f"hint: {DEBUG_ENV}=1 shows the traceback\n")
+    raise SystemExit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover

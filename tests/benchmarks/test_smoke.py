@@ -32,7 +32,9 @@ RUNS = {
     "tune_classical": [],
 }
 
-CHECKED_ELSEWHERE = {"bench_geometry"}  # test_bench_geometry.py runs its --smoke and checks its values
+# test_bench_geometry.py runs its --smoke and checks its values; kill_resume's --smoke starts five lcreg processes
+# (about 30 s): tests/test_cli_resume.py checks its claim in this process (a stopped run resumed ends alike).
+CHECKED_ELSEWHERE = {"bench_geometry", "kill_resume"}
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 

@@ -2,12 +2,14 @@
 
 * :class:`PairDataset` turns objects into pairs with :func:`lcreg.data.pairs.make_pair`. Deterministic datasets
   (validation, test) seed a fresh generator with ``seed + index``, so the same pairs come out on every run, in every
-  worker and every epoch; training datasets draw a new seed from the global torch RNG on every call (seeded per
-  worker by ``lightning.seed_everything(workers=True)``), so training pairs change every epoch.
+  worker and every epoch. Training items are ``(index, seed)`` keys from :class:`lcreg.data.sampling.EpochSampler`
+  (order and seeds fixed by a base seed and the epoch), so training pairs change every epoch yet a resumed run sees
+  the same stream; a plain training index draws its seed from the global torch RNG.
 * the loaders batch pairs with :func:`lcreg.data.collate.collate_pairs` (a :class:`lcreg.types.RegistrationBatch`).
 * :class:`PairDataModule` holds the protocol options (the LightningCLI keys under ``data.init_args``), carves the
   validation objects out of the training pool with a seeded permutation (never out of the test set) and builds the
-  loaders; subclasses only say which objects make up the pools.
+  loaders; subclasses only say which objects make up the pools. Its ``state_dict`` (saved in every checkpoint) is
+  the training stream's position, so ``lcreg fit --ckpt_path last`` continues mid-epoch with the same batches.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from lcreg.checks import DatasetLayoutError, ShapeError
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
+from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
 from lcreg.data.synthetic import synthetic_shapes
 
 __all__ = [
@@ -46,7 +49,8 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         normals: Object normals ``(S, P, 3)`` or ``None``.
         protocol: How pairs are made.
         deterministic: If ``True`` (validation/test), item ``i`` always uses ``torch.Generator().manual_seed(seed +
-            i)``; if ``False`` (training), every call draws a fresh seed from the global torch RNG.
+            i)``; if ``False`` (training), every call draws a fresh seed from the global torch RNG. A key ``(i, s)``
+            (:class:`~lcreg.data.sampling.EpochSampler`) uses seed ``s`` in both cases.
         seed: Base seed of deterministic items.
 
     Raises:
@@ -93,18 +97,24 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
             return torch.Generator().manual_seed(self.seed + index)
         return torch.Generator().manual_seed(int(torch.randint(0, _SEED_HIGH, (1,)).item()))
 
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        """Pair ``index``: the keys of :func:`~lcreg.data.pairs.make_pair` plus ``index`` (int64 scalar)."""
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        """Pair ``key`` (an index, or ``(index, seed)``).
+
+        Returns:
+            The keys of :func:`~lcreg.data.pairs.make_pair` plus ``index`` (int64 scalar).
+        """
+        index, seed = key if isinstance(key, tuple) else (key, None)
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} is out of range for a dataset of {len(self)} objects")
         index = index % len(self)
         normals = None if self.normals is None else self.normals[index]
-        pair = make_pair(self.points[index], normals, self.protocol, self.generator(index))
+        generator = self.generator(index) if seed is None else torch.Generator().manual_seed(seed)
+        pair = make_pair(self.points[index], normals, self.protocol, generator)
         pair["index"] = torch.tensor(index, dtype=torch.int64)
         return pair
 
 
-class PairDataModule(LightningDataModule):
+class PairDataModule(ResumableTrainingOrder, LightningDataModule):
     """Base DataModule: pair protocol options, validation carving and loaders.
 
     Subclasses implement :meth:`_load_objects`. Validation and test pairs are deterministic per index (generator
@@ -227,24 +237,27 @@ class PairDataModule(LightningDataModule):
     def _loader(self, dataset: PairDataset | None, name: str, shuffle: bool) -> DataLoader[Any]:
         """A DataLoader over ``dataset`` with :func:`~lcreg.data.collate.collate_pairs`.
 
-        The shuffled (training) loader drops the last incomplete batch when there is a full one (as the DCP/PCRNet
-        originals do): a batch of one pair breaks batch-wise BatchNorm (FMR-Net's decoder, PCRNet-style MLPs).
-        Validation and test keep every pair.
+        The shuffled (training) loader follows an :class:`~lcreg.data.sampling.EpochSampler` (resumable) and drops
+        the last incomplete batch when there is a full one (as the DCP/PCRNet originals do): a batch of one pair
+        breaks batch-wise BatchNorm (FMR-Net's decoder, PCRNet-style MLPs). Validation and test keep every pair.
+        Every loader has its own generator, so iterating it never draws from the global RNG.
         """
         if dataset is None:
             raise RuntimeError(f"the {name} set is not built; call `setup()` with the matching stage first")
-        return DataLoader(
+        sampler = self.training_sampler(len(dataset), pair_seeds=True) if shuffle else None
+        return (ResumableLoader if shuffle else DataLoader)(
             dataset,
             batch_size=self.batch_size,
-            shuffle=shuffle,
+            sampler=sampler,
             drop_last=shuffle and len(dataset) > self.batch_size,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             collate_fn=collate_pairs,
+            generator=torch.Generator(),
         )
 
     def train_dataloader(self) -> DataLoader[Any]:
-        """Shuffled training pairs (new pairs every epoch)."""
+        """Shuffled training pairs (new pairs every epoch; order and pairs fixed by the seed and the epoch)."""
         return self._loader(self.train_set, "train", shuffle=True)
 
     def val_dataloader(self) -> DataLoader[Any]:

@@ -33,6 +33,7 @@ from torch.utils.data import DataLoader, Dataset
 from lcreg.data.collate import collate_pairs
 from lcreg.data.io import read_points, voxel_downsample
 from lcreg.data.pairs import PairProtocol
+from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_euler_transform
 
@@ -152,7 +153,7 @@ class ScenePairDataset(Dataset[dict[str, torch.Tensor]]):
         }
 
 
-class ScenePairDataModule(LightningDataModule):
+class ScenePairDataModule(ResumableTrainingOrder, LightningDataModule):
     """Base DataModule of scene pairs: subclasses list the pairs of each split in :meth:`pairs`.
 
     Args:
@@ -222,13 +223,16 @@ class ScenePairDataModule(LightningDataModule):
     def _loader(self, split: Split, shuffle: bool = False) -> DataLoader[Any]:
         if split not in self.datasets:
             raise RuntimeError(f"the {split} set is not built; call `setup()` with the matching stage first")
-        return DataLoader(
-            self.datasets[split],
+        dataset = self.datasets[split]
+        sampler = self.training_sampler(len(dataset), pair_seeds=False) if shuffle else None  # resumable order
+        return (ResumableLoader if shuffle else DataLoader)(
+            dataset,
             batch_size=self.batch_size,
-            shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             collate_fn=collate_pairs,
+            generator=torch.Generator(),  # iterating never draws from the global RNG
         )
 
     def train_dataloader(self) -> DataLoader[Any]:

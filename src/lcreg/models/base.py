@@ -15,6 +15,10 @@ The base validates batches, runs ``forward``, logs every loss term as ``{stage}/
 metrics (:func:`lcreg.metrics.registration.registration_metrics`) on val/test batches that carry a ground truth,
 prints a one-line summary per validation/test epoch and writes per-pair test errors to ``test_per_pair.csv`` in the
 logger's directory. Optimisers are injected (``optimizer``/``lr_scheduler`` callables, LightningCLI style).
+
+A training step whose loss or gradient is not finite (NaN normals or poses in the data, a diverging model) is
+skipped before the optimiser sees it, with a warning naming the batch's dataset indices; ``max_bad_steps``
+consecutive skipped steps stop training (:class:`NonFiniteTrainingError`).
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from typing import Any, ClassVar, Literal
 
 import torch
 from lightning.pytorch import LightningModule
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from lcreg.checks import TooFewPointsError, check_extent, check_points, check_same_batch
 from lcreg.metrics.registration import PerPairErrors, registration_metrics
@@ -36,7 +40,7 @@ from lcreg.models.loss_terms import LossTerm
 from lcreg.nn.dtypes import module_dtype, to_module_dtype
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["COMPONENT_ARGS", "RegistrationModule"]
+__all__ = ["COMPONENT_ARGS", "NonFiniteTrainingError", "RegistrationModule"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
@@ -48,6 +52,10 @@ SchedulerFactory = Callable[
 
 COMPONENT_ARGS = ("optimizer", "lr_scheduler", "loss_terms", "refiner", "voxel_grid")
 """Constructor arguments that are components, not hyper-parameters: never saved in a checkpoint's ``hparams``."""
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Training stopped: too many consecutive steps had a non-finite loss or gradient."""
 
 
 class RegistrationModule(LightningModule):
@@ -83,10 +91,13 @@ class RegistrationModule(LightningModule):
             distance from its centroid is ``unit_scale`` (the scale the model was trained at: 1.0 for unit-sphere
             ModelNet40), register, and map the translation back, so the result does not depend on the unit of the
             clouds (mm, m, km). ``None`` (default for most models): the clouds are used as given.
+        max_bad_steps: Consecutive training steps with a non-finite loss or gradient (each skipped: no parameter or
+            optimiser-state change, a warning naming the batch) after which training stops with
+            :class:`NonFiniteTrainingError`.
 
     Raises:
         TypeError: If a loss term is not a ``LossTerm`` or the refiner is not a ``RegistrationModule``.
-        ValueError: If two loss terms share a name.
+        ValueError: If two loss terms share a name, ``max_bad_steps < 1`` or ``unit_scale`` is not > 0.
     """
 
     has_loss: bool = True
@@ -103,11 +114,18 @@ class RegistrationModule(LightningModule):
         loss_terms: Sequence[LossTerm] = (),
         refiner: RegistrationModule | None = None,
         unit_scale: float | None = None,
+        max_bad_steps: int = 10,
     ) -> None:
         super().__init__()
         if unit_scale is not None and not (isinstance(unit_scale, (int, float)) and 0 < unit_scale < float("inf")):
             raise ValueError(f"`unit_scale` must be a finite number > 0 or None, got {unit_scale!r}")
         self.unit_scale = None if unit_scale is None else float(unit_scale)
+        if max_bad_steps < 1:
+            raise ValueError(f"`max_bad_steps` must be >= 1, got {max_bad_steps}")
+        self.max_bad_steps = max_bad_steps
+        self._bad_steps = 0
+        self._step_skipped = False
+        self._step_index: list[int] | None = None
         self.optimizer_factory = optimizer
         self.scheduler_factory = lr_scheduler
         self.loss_terms = torch.nn.ModuleList(_checked_terms(loss_terms))
@@ -302,6 +320,8 @@ class RegistrationModule(LightningModule):
         if stage == "train" or (stage == "val" and self.has_loss):
             losses = self.training_losses(result, batch)
             loss = losses["loss"]
+            if stage == "train" and not bool(torch.isfinite(loss.detach()).all()):
+                return loss  # skipped by training_step: not logged (the epoch means stay finite)
             for name, value in losses.items():
                 self.log(
                     f"{stage}/{name}",
@@ -323,12 +343,52 @@ class RegistrationModule(LightningModule):
                 self.test_pairs.update(transform_pred=pred, transform_gt=gt, index=batch.index)
         return loss
 
-    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor:
-        """One optimisation step on a batch."""
+    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor | None:
+        """One optimisation step on a batch; ``None`` (Lightning skips the step) when the loss is not finite."""
         loss = self._common_step(batch, "train")
         if loss is None:  # pragma: no cover - train always computes a loss
             raise RuntimeError("training_losses returned no loss")
+        self._step_index = None if batch.index is None else batch.index.detach().cpu().tolist()
+        self._step_skipped = not bool(torch.isfinite(loss.detach()).all())
+        if self._step_skipped:
+            self._skip_step(f"non-finite loss ({float(loss.detach().float().sum())})")
+            return None
         return loss
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Skip the update when a gradient is not finite.
+
+        Every gradient is dropped, so the optimiser leaves the parameters and its state as they are.
+        """
+        if self._step_skipped:
+            return
+        grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        if grads and not bool(torch.isfinite(torch.nn.utils.get_total_norm(grads))):
+            for group in optimizer.param_groups:
+                for param in group["params"]:
+                    param.grad = None
+            self._skip_step("non-finite gradient")
+            return
+        self._bad_steps = 0
+
+    def _skip_step(self, reason: str) -> None:
+        """Warn about a skipped step; stop after ``max_bad_steps`` in a row.
+
+        Raises:
+            NonFiniteTrainingError: At the ``max_bad_steps``-th consecutive skipped step.
+        """
+        self._bad_steps += 1
+        where = f"batch indices {self._step_index}" if self._step_index is not None else "a batch without indices"
+        if self._bad_steps >= self.max_bad_steps:
+            raise NonFiniteTrainingError(
+                f"training stopped at step {self.global_step}: {self._bad_steps} consecutive steps with a non-finite "
+                f"loss or gradient (last: {reason} on {where}); check the data for NaN/Inf (points, normals, poses) "
+                "or lower the learning rate"
+            )
+        rank_zero_warn(
+            f"step {self.global_step} skipped: {reason} on {where} "
+            f"({self._bad_steps} in a row; training stops at {self.max_bad_steps})"
+        )
 
     def validation_step(self, batch: RegistrationBatch, batch_idx: int) -> None:
         """Validation losses (for checkpoint selection) and metrics."""

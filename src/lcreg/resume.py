@@ -1,0 +1,117 @@
+"""``--ckpt_path last``: find the latest run's ``last.ckpt`` under the configured logger and resume in its folder.
+
+A run logs under ``<save_dir>/<name>/version_<k>/`` (CSV or TensorBoard logger) and keeps its latest state in
+``version_<k>/checkpoints/last.ckpt`` (:class:`lcreg.callbacks.LatestCheckpoint`). ``last`` is the ``last.ckpt`` of
+the highest-numbered version that has one (``lcreg test``/``predict`` runs log to versions without checkpoints);
+``fit`` then logs to that same version (:class:`lcreg.cli.LcregCLI` sets the logger's ``version``). Without a
+logger, ``last`` is ``<default_root_dir>/checkpoints/last.ckpt``; a ``ModelCheckpoint`` with its own ``dirpath`` is
+searched there.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcreg.checkpoints import CheckpointNotFoundError
+
+__all__ = ["LastCheckpoint", "find_last_checkpoint", "keep_previous_metrics"]
+
+LAST = "last.ckpt"
+_VERSION = re.compile(r"^version_(\d+)$")
+_VERSIONED_LOGGERS = ("CSVLogger", "TensorBoardLogger")
+
+
+@dataclass(frozen=True)
+class LastCheckpoint:
+    """The checkpoint ``last`` resolves to and, for a versioned logger, the version folder it belongs to."""
+
+    path: Path
+    version: int | str | None = None
+
+
+def _get(node: Any, key: str, default: Any = None) -> Any:
+    """``node[key]`` for dicts and jsonargparse Namespaces (``default`` when absent)."""
+    if isinstance(node, Mapping):
+        return node.get(key, default)
+    return getattr(node, key, default) if node is not None else default
+
+
+def _listed_dirpath(trainer: Any) -> Path | None:
+    """The ``dirpath`` of a ``ModelCheckpoint`` listed in the trainer config, if one sets it."""
+    for callback in _get(trainer, "callbacks") or []:
+        if "ModelCheckpoint" in str(_get(callback, "class_path", "")):
+            dirpath = _get(_get(callback, "init_args"), "dirpath")
+            if dirpath:
+                return Path(dirpath)
+    return None
+
+
+def _version_dirs(root: Path) -> list[tuple[int | str, Path]]:
+    """``(version, folder)`` of ``root``'s ``version_<k>`` folders, highest ``k`` first."""
+    found = [(int(m.group(1)), p) for p in root.glob("version_*") if (m := _VERSION.match(p.name)) and p.is_dir()]
+    return sorted(found, key=lambda item: item[0], reverse=True)
+
+
+def find_last_checkpoint(trainer: Any) -> LastCheckpoint:
+    """The ``last.ckpt`` that ``--ckpt_path last`` means under a trainer config (``trainer`` key of the CLI config).
+
+    Raises:
+        CheckpointNotFoundError: No ``last.ckpt`` exists where the configured run would write it (nothing to
+            resume), or the configured logger has no version folders to search (pass the file instead).
+    """
+    listed = _listed_dirpath(trainer)
+    if listed is not None:
+        return _existing(LastCheckpoint(listed / LAST))
+    logger = _get(trainer, "logger")
+    root_dir = Path(_get(trainer, "default_root_dir") or ".")
+    if logger is None or logger is False:
+        return _existing(LastCheckpoint(root_dir / "checkpoints" / LAST))
+    if logger is True:
+        save_dir, name, version = root_dir, "lightning_logs", None
+    else:
+        class_path = str(_get(logger, "class_path", ""))
+        if not class_path.endswith(_VERSIONED_LOGGERS):
+            raise CheckpointNotFoundError(
+                LAST,
+                f"`--ckpt_path last` is resolved for CSV/TensorBoard loggers only, not {class_path or logger!r}: "
+                "pass the checkpoint file (`--ckpt_path <run>/checkpoints/last.ckpt`)",
+            )
+        args = _get(logger, "init_args")
+        save_dir, name, version = Path(_get(args, "save_dir", ".")), _get(args, "name", ""), _get(args, "version")
+    root = save_dir / (name or "")
+    if version is not None:
+        folder = root / (version if isinstance(version, str) else f"version_{version}")
+        return _existing(LastCheckpoint(folder / "checkpoints" / LAST, version))
+    for number, folder in _version_dirs(root):
+        if (folder / "checkpoints" / LAST).is_file():
+            return LastCheckpoint(folder / "checkpoints" / LAST, number)
+    raise CheckpointNotFoundError(root / "version_*" / "checkpoints" / LAST, "nothing to resume (no such file)")
+
+
+def _existing(last: LastCheckpoint) -> LastCheckpoint:
+    if not last.path.is_file():
+        raise CheckpointNotFoundError(last.path, "nothing to resume (no such file)")
+    return last
+
+
+def keep_previous_metrics(log_dir: Path) -> Path | None:
+    """Rename ``log_dir/metrics.csv`` to ``metrics.segment<n>.csv`` (first free ``n``) before a resumed run logs.
+
+    Lightning's CSV logger deletes an existing ``metrics.csv`` when it logs into a used folder; the renamed file
+    keeps the earlier segment's rows (including any logged after its last checkpoint).
+
+    Returns:
+        The new path, or ``None`` when there was no ``metrics.csv``.
+    """
+    metrics = log_dir / "metrics.csv"
+    if not metrics.is_file():
+        return None
+    n = 1
+    while (target := log_dir / f"metrics.segment{n}.csv").exists():
+        n += 1
+    metrics.rename(target)
+    return target

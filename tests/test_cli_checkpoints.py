@@ -1,0 +1,154 @@
+"""`--ckpt_path` is checked before Lightning reads it: weights-only, one typed error naming the file, right class."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from lcreg.checkpoints import CheckpointError, CheckpointMismatchError
+from lcreg.cli import main
+
+from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
+PLAIN = [*TINY_DVDS, "--trainer.max_steps=1"]
+DATA_ONLY = [arg for arg in PLAIN if not arg.startswith("--model.")]
+SUBCOMMANDS = ("fit", "validate", "test", "predict")
+
+
+@dataclass(frozen=True)
+class Trained:
+    dvds: Path  # a DVDs checkpoint without loss terms (the model of models/dvds.yaml)
+    dvds_lc: Path  # a DVDs + LC checkpoint (configs/dvds.yaml): two more tensors
+    pointnetlk: Path
+
+
+def _fit(root: Path, name: str, args: list[str]) -> Path:
+    out = [f"--trainer.logger.init_args.save_dir={root}", f"--trainer.logger.init_args.name={name}"]
+    main(["fit", *args, f"--trainer.default_root_dir={root}", *out])
+    return root / name / "version_0" / "checkpoints" / "last.ckpt"
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Trained:
+    """One-step fits of DVDs, DVDs + LC and a small PointNetLK on the embedded shapes."""
+    root = tmp_path_factory.mktemp("fits")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WANDB_MODE", "disabled")
+        patch.setattr(sys, "argv", ["lcreg"])
+        patch.chdir(root)
+        pointnetlk = config_args("models/pointnetlk.yaml", "data/embedded.yaml")
+        return Trained(
+            dvds=_fit(root, "dvds", [*DVDS, *PLAIN]),
+            dvds_lc=_fit(root, "dvds_lc", [*config_args("dvds.yaml"), *PLAIN]),
+            pointnetlk=_fit(root, "plk", [*pointnetlk, *DATA_ONLY, "--model.init_args.encoder_channels=[16,32]"]),
+        )
+
+
+@pytest.mark.parametrize("subcommand", SUBCOMMANDS)
+def test_a_checkpoint_of_another_model_class_is_refused(trained: Trained, subcommand: str) -> None:
+    """Before: `lcreg test` with the DVDs config and a PointNetLK checkpoint built and tested PointNetLK (exit 0)."""
+    with pytest.raises(CheckpointMismatchError) as err:
+        main([subcommand, *DVDS, *PLAIN, "--ckpt_path", str(trained.pointnetlk)])
+    message = str(err.value)
+    assert str(trained.pointnetlk) in message and "\n" not in message
+    assert "lcreg.baselines.pointnetlk.PointNetLK" in message and "lcreg.models.dvds.DVDs" in message
+
+
+def test_a_checkpoint_with_other_state_dict_keys_is_refused_naming_them(trained: Trained) -> None:
+    """Before: Lightning's strict load failed with a 40-line traceback ending in `Unexpected key(s) in state_dict`."""
+    with pytest.raises(CheckpointMismatchError, match=r"has unexpected 2 keys \(loss_terms\.0\.") as err:
+        main(["test", *DVDS, *PLAIN, "--ckpt_path", str(trained.dvds_lc)])
+    assert str(trained.dvds_lc) in str(err.value)
+
+
+class _Payload:
+    """Unpickling runs ``exec(code)``: a checkpoint that would run code."""
+
+    def __init__(self, code: str) -> None:
+        self.code = code
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (exec, (self.code,))
+
+
+def _damaged(kind: str, trained: Trained, directory: Path) -> Path:
+    path = directory / f"{kind}.ckpt"
+    if kind == "truncated":
+        data = trained.dvds.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+    elif kind == "random":
+        noise = torch.randint(0, 256, (4096,), generator=torch.Generator().manual_seed(0))
+        path.write_bytes(noise.byte().numpy().tobytes())
+    elif kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "no_state_dict":
+        torch.save({"epoch": 0, "global_step": 1}, path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "reason"),
+    [
+        ("truncated", "not a readable weights-only torch file"),
+        ("random", "not a readable weights-only torch file"),
+        ("empty", "empty file"),
+        ("no_state_dict", "no 'state_dict'"),
+        ("missing", "no such file"),
+    ],
+)
+def test_a_damaged_checkpoint_is_one_line_naming_the_file(
+    trained: Trained, tmp_path: Path, kind: str, reason: str
+) -> None:
+    """Before: EOFError / UnpicklingError / KeyError: 'pytorch-lightning_version' tracebacks (or a silent fresh
+    start for fit)."""
+    path = _damaged(kind, trained, tmp_path)
+    for subcommand in ("fit", "test"):
+        with pytest.raises(CheckpointError, match=reason) as err:
+            main([subcommand, *DVDS, *PLAIN, "--ckpt_path", str(path)])
+        assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path: Path) -> None:
+    live, marker = tmp_path / "live", tmp_path / "marker"
+    torch.save(_Payload(f"open({str(live)!r}, 'w').close()"), tmp_path / "probe.ckpt")
+    torch.load(tmp_path / "probe.ckpt", weights_only=False)
+    assert live.is_file()  # the payload does run when fully unpickled
+    evil = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {}, "payload": _Payload(f"open({str(marker)!r}, 'w').close()")}, evil)
+    for subcommand in SUBCOMMANDS:
+        with pytest.raises(CheckpointError, match="not a readable weights-only torch file") as err:
+            main([subcommand, *DVDS, *PLAIN, "--ckpt_path", str(evil)])
+        assert str(evil) in str(err.value)
+    assert not marker.exists()
+
+
+def test_lightning_loads_the_checkpoint_weights_only(trained: Trained, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: Lightning's `trainer.test(ckpt_path=...)` got `weights_only=None` (a full unpickle for local files)."""
+    from lightning.pytorch import Trainer
+
+    calls: list[dict[str, Any]] = []
+
+    @functools.wraps(Trainer.test)  # keeps the signature LightningCLI builds the `test` options from
+    def record(self: Trainer, **kwargs: Any) -> None:
+        calls.append(kwargs)
+
+    monkeypatch.setattr(Trainer, "test", record)
+    main(["test", *DVDS, *PLAIN, "--ckpt_path", str(trained.dvds)])
+    assert calls[0]["weights_only"] is True and calls[0]["ckpt_path"] == str(trained.dvds)
+    with pytest.raises(ValueError, match="weights-only"):
+        main(["test", *DVDS, *PLAIN, "--ckpt_path", str(trained.dvds), "--weights_only=false"])
+
+
+def test_a_matching_checkpoint_tests_end_to_end(trained: Trained, tmp_path: Path) -> None:
+    """The checks pass a checkpoint of the configured model; Lightning's weights-only load reads every state."""
+    main(["test", *DVDS, *PLAIN, "--ckpt_path", str(trained.dvds), f"--trainer.logger.init_args.save_dir={tmp_path}"])
+    assert (tmp_path / "lcreg" / "version_0" / "test_per_pair.csv").is_file()

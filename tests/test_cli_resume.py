@@ -1,0 +1,152 @@
+"""`lcreg fit --ckpt_path last` resumes a stopped run: same batches, same random numbers, same final state.
+
+A run stopped after k optimiser steps (mid-epoch, its last.ckpt written at step k) and resumed with one command ends
+exactly where an uninterrupted run with the same seed ends. ``benchmarks/kill_resume.py`` does the same with a real
+``kill -9`` at a random step.
+"""
+
+from __future__ import annotations
+
+import csv
+import random
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lcreg.checkpoints import CheckpointNotFoundError
+from lcreg.cli import main
+
+from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+# 6 training shapes in batches of 2: 3 steps per epoch, 2 epochs.
+RUN = [
+    *config_args("dvds.yaml"),
+    *TINY_DVDS,
+    "--data.init_args.num_train=6",
+    "--trainer.limit_train_batches=1.0",
+    "--trainer.max_epochs=2",
+]
+# A stop at the first step of the second epoch (mid-epoch; last.ckpt written at max_steps), and at the end of the first
+# epoch (last.ckpt written after its validation).
+STOPS = [4, 3]
+
+
+def _fit(save_dir: Path, *extra: str) -> Path:
+    """``lcreg fit`` logging under ``save_dir``; the run's folder."""
+    outputs = [f"--trainer.logger.init_args.save_dir={save_dir}", f"--trainer.default_root_dir={save_dir}"]
+    main(["fit", *RUN, *outputs, *extra])
+    return save_dir / "lcreg" / "version_0"
+
+
+def _val_errors(run: Path) -> list[tuple[int, float]]:
+    """``(epoch, val/rre_mean_deg)`` of every validation logged in the run's metrics files."""
+    rows = [row for path in sorted(run.glob("metrics*.csv")) for row in csv.DictReader(path.open())]
+    return sorted({(int(r["epoch"]), float(r["val/rre_mean_deg"])) for r in rows if r.get("val/rre_mean_deg")})
+
+
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The uninterrupted run."""
+    root = tmp_path_factory.mktemp("whole")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WANDB_MODE", "disabled")
+        patch.setattr(sys, "argv", ["lcreg"])
+        patch.chdir(root)
+        return _fit(root)
+
+
+@pytest.mark.parametrize("stop", STOPS, ids=["mid-epoch", "epoch-end"])
+def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_run(
+    whole: Path, tmp_path: Path, stop: int
+) -> None:
+    """Before: `--ckpt_path last` started a new version_1, found no checkpoint there, warned and trained from step 0."""
+    stopped = _fit(tmp_path / "stopped", f"--trainer.max_steps={stop}")
+    last = stopped / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=True)["global_step"] == stop  # the latest state, not the best
+    _fit(tmp_path / "stopped", "--ckpt_path", "last")
+
+    assert not (tmp_path / "stopped" / "lcreg" / "version_1").exists()  # the resumed run logs in its own folder
+    assert (stopped / "metrics.segment1.csv").is_file()  # the first segment's metrics are kept
+    expected = torch.load(whole / "checkpoints" / "last.ckpt", weights_only=True)
+    resumed = torch.load(last, weights_only=True)
+    assert resumed["global_step"] == expected["global_step"] == 6
+    assert expected["state_dict"].keys() == resumed["state_dict"].keys()
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(resumed["state_dict"][key], value, rtol=0, atol=0, msg=key)
+    adam, adam_resumed = expected["optimizer_states"][0]["state"], resumed["optimizer_states"][0]["state"]
+    for index, state in adam.items():
+        torch.testing.assert_close(adam_resumed[index]["exp_avg_sq"], state["exp_avg_sq"], rtol=0, atol=0)
+    assert _val_errors(stopped) == _val_errors(whole) and len(_val_errors(whole)) == 2
+
+
+def test_ckpt_path_last_with_nothing_to_resume_is_an_error_naming_where_it_looked(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointNotFoundError, match=r"nothing to resume") as err:
+        _fit(tmp_path / "empty", "--ckpt_path", "last")
+    assert str(tmp_path / "empty" / "lcreg") in str(err.value)
+    assert not (tmp_path / "empty" / "lcreg").exists()  # nothing was trained
+
+
+def test_a_listed_latest_checkpoint_sets_the_cadence() -> None:
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from lcreg.callbacks import LatestCheckpoint, RngState
+    from lcreg.cli import build_cli
+
+    listed = "--trainer.callbacks=[{class_path: lcreg.callbacks.LatestCheckpoint, init_args: {every_n_train_steps: 7}}]"
+    callbacks = build_cli([*RUN, listed], run=False).trainer.callbacks
+    (latest,) = [c for c in callbacks if isinstance(c, LatestCheckpoint)]
+    assert latest.every_n_train_steps == 7 and sum(isinstance(c, RngState) for c in callbacks) == 1
+    (best,) = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
+    assert best.monitor == "val/rre_mean_deg" and not best.save_last  # LatestCheckpoint alone writes last.ckpt
+    with pytest.raises(ValueError, match=">= 0"):
+        LatestCheckpoint(every_n_train_steps=-1)
+
+
+def test_ckpt_path_last_follows_the_latest_version_with_a_checkpoint(tmp_path: Path) -> None:
+    """last.ckpt follows the latest run of the configured logger that has one (a later `test` run has none)."""
+    run = _fit(tmp_path / "runs", "--trainer.max_epochs=1")
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 3
+    (tmp_path / "runs" / "lcreg" / "version_1").mkdir()  # e.g. an `lcreg test` run: no checkpoints
+    _fit(tmp_path / "runs", "--ckpt_path", "last", "--trainer.max_epochs=2")
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == 6
+    assert not list((tmp_path / "runs" / "lcreg" / "version_1").iterdir())
+
+
+def test_rng_state_round_trip_restores_every_stream_when_training_starts() -> None:
+    from lcreg.callbacks import RngState
+
+    torch.manual_seed(3)
+    np.random.seed(3)
+    random.seed(3)
+    state = RngState().state_dict()
+    expected = (torch.rand(3), np.random.rand(3), random.random())
+    torch.manual_seed(0)
+    np.random.seed(0)
+    random.seed(0)
+    callback = RngState()
+    callback.load_state_dict(state)
+    callback.on_train_start(None, None)  # type: ignore[arg-type]  # the trainer and module are not used
+    torch.testing.assert_close(torch.rand(3), expected[0])
+    np.testing.assert_array_equal(np.random.rand(3), expected[1])
+    assert random.random() == expected[2]
+
+
+def test_epoch_sampler_order_and_seeds_follow_seed_and_epoch_and_resume_mid_epoch() -> None:
+    from lcreg.data.sampling import EpochSampler
+
+    sampler = EpochSampler(6, seed=5)
+    epoch0 = list(sampler)
+    assert list(sampler) == epoch0 and sorted(i for i, _ in epoch0) == list(range(6))
+    sampler.set_epoch(1)
+    epoch1 = list(sampler)
+    assert epoch1 != epoch0 and {s for _, s in epoch1}.isdisjoint({s for _, s in epoch0})
+    resumed = EpochSampler(6, seed=None)
+    resumed.load_state_dict({"seed": 5, "epoch": 1, "start": 4})
+    assert list(resumed) == epoch1[4:]
+    assert list(resumed) == epoch1  # the skip applies to one iteration only
+    assert EpochSampler(6, seed=6).seed != sampler.seed and list(EpochSampler(6, seed=6)) != epoch0
