@@ -121,7 +121,18 @@ def condense_parser_error(message: str) -> str:
         detail = found.group(2) or (lines[i + 1] if i + 1 < len(lines) else "")
     if not key:
         return one_line(message)
+    if "Union subtypes" in detail:  # the reason is under "Problem with given class_path 'x':", not in the summary
+        detail = _class_path_problem(lines) or detail
     return one_line(f"--{key}: {detail}")
+
+
+def _class_path_problem(lines: list[str]) -> str | None:
+    """``<class path>: <first reason>`` of jsonargparse's ``Problem with given class_path`` block, if any."""
+    for i, line in enumerate(lines[:-1]):
+        found = re.match(r"Problem with given class_path '([^']+)':", line)
+        if found:
+            return f"{found.group(1)}: {lines[i + 1]}"
+    return None
 
 
 class LcregArgumentParser(LightningArgumentParser):
