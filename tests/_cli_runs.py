@@ -5,9 +5,13 @@ Tests that call the CLI also request the ``isolated_cli`` fixture (``tests/conft
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from lcreg.cli import main
@@ -70,3 +74,13 @@ def fit_then_test_embedded(host: str, lc: bool = False) -> None:
     config = host_composition(host, lc=lc, data="embedded")
     main(["fit", *config, *TINY_RUN, *SYNTHETIC])
     main(["test", *config, *TINY_RUN, *SYNTHETIC])
+
+
+@contextmanager
+def cli_isolation(root: Path) -> Iterator[None]:
+    """The ``isolated_cli`` fixture for module-scoped fixtures: no wandb, program name `lcreg`, working dir ``root``."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WANDB_MODE", "disabled")
+        patch.setattr(sys, "argv", ["lcreg"])
+        patch.chdir(root)
+        yield

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,7 +13,7 @@ import torch
 from lcreg.checkpoints import CheckpointError, CheckpointMismatchError
 from lcreg.cli import main
 
-from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
+from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -41,10 +40,7 @@ def _fit(root: Path, name: str, args: list[str]) -> Path:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Trained:
     """One-step fits of DVDs, DVDs + LC and a small PointNetLK on the embedded shapes."""
     root = tmp_path_factory.mktemp("fits")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("WANDB_MODE", "disabled")
-        patch.setattr(sys, "argv", ["lcreg"])
-        patch.chdir(root)
+    with cli_isolation(root):
         pointnetlk = config_args("models/pointnetlk.yaml", "data/embedded.yaml")
         return Trained(
             dvds=_fit(root, "dvds", [*DVDS, *PLAIN]),

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import random
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ import torch
 from lcreg.checkpoints import CheckpointNotFoundError
 from lcreg.cli import main
 
-from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
+from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -53,10 +52,7 @@ def _val_errors(run: Path) -> list[tuple[int, float]]:
 def whole(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The uninterrupted run."""
     root = tmp_path_factory.mktemp("whole")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("WANDB_MODE", "disabled")
-        patch.setattr(sys, "argv", ["lcreg"])
-        patch.chdir(root)
+    with cli_isolation(root):
         return _fit(root)
 
 

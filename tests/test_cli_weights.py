@@ -6,7 +6,6 @@ The weights come from a tiny real `lcreg fit` on the embedded shapes, exported b
 from __future__ import annotations
 
 import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +25,7 @@ from lcreg.weights import (
 )
 from lcreg.weights.export import export_weights
 
-from _cli_runs import TINY_DVDS, config_args  # type: ignore[import-not-found]
+from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
 
 DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
 TINY = [*TINY_DVDS, "--data.init_args.num_test=4"]  # later arguments win
@@ -48,10 +47,7 @@ def _outputs(root: Path) -> list[str]:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Trained:
     """A tiny real `lcreg fit` of DVDs on the embedded shapes, exported as a weights file."""
     root = tmp_path_factory.mktemp("fit")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("WANDB_MODE", "disabled")
-        patch.setattr(sys, "argv", ["lcreg"])
-        patch.chdir(root)
+    with cli_isolation(root):
         main(["fit", *DVDS, *TINY, *_outputs(root)])
     checkpoint = root / "runs" / "lcreg" / "version_0" / "checkpoints" / "last.ckpt"
     return Trained(checkpoint, export_weights(checkpoint, "tiny-dvds", root / "weights"))
