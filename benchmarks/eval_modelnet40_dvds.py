@@ -69,7 +69,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--icp-distances",
         type=float,
-        nargs="+",
+        nargs="*",
         default=[0.2, 1.0],
         help="ICP max correspondence distances, declared in advance (not tuned on test): a tight gate and a gate "
         "covering the largest displacement of the protocol (|t| <= 0.87 plus a 45-degree rotation of the unit sphere)",
@@ -78,7 +78,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--init-seeds",
         type=int,
-        nargs="+",
+        nargs="*",
         default=[0, 1, 2, 3, 4],
         help="initialisation seeds of the untrained-weights baseline (reported as mean ± std)",
     )
@@ -141,7 +141,7 @@ def table(args: argparse.Namespace, sigma: float) -> str:
         f"{source}, {reports[0].num_pairs} test pairs, {args.num_points} points, noise sigma {sigma}, "
         f"batch {args.batch_size}, {machine_line()}\n"
     )
-    rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups)
+    rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
     return header + "\n" + rows + "\n"
 
 
