@@ -320,8 +320,10 @@ class RegistrationModule(LightningModule):
         if stage == "train" or (stage == "val" and self.has_loss):
             losses = self.training_losses(result, batch)
             loss = losses["loss"]
-            if stage == "train" and not bool(torch.isfinite(loss.detach()).all()):
-                return loss  # skipped by training_step: not logged (the epoch means stay finite)
+            if stage == "train":
+                self._step_skipped = not bool(torch.isfinite(loss.detach()).all())  # one host sync per step
+                if self._step_skipped:
+                    return loss  # skipped by training_step: not logged (the epoch means stay finite)
             for name, value in losses.items():
                 self.log(
                     f"{stage}/{name}",
@@ -349,8 +351,7 @@ class RegistrationModule(LightningModule):
         if loss is None:  # pragma: no cover - train always computes a loss
             raise RuntimeError("training_losses returned no loss")
         self._step_index = None if batch.index is None else batch.index.detach().cpu().tolist()
-        self._step_skipped = not bool(torch.isfinite(loss.detach()).all())
-        if self._step_skipped:
+        if self._step_skipped:  # set by _common_step
             self._skip_step(f"non-finite loss ({float(loss.detach().float().sum())})")
             return None
         return loss
