@@ -24,6 +24,7 @@ RUNS = {
     "eval_modelnet40_dvds": [],
     "eval_scenes": [],
     "eval_scenes --tune": ["--tune"],
+    "kill_resume": [],  # five lcreg processes, about 30 s: the real kill -9 and resume
     "kitti_full_pair": [],
     "lc_plus_x": [],
     "learning_curves": [],
@@ -32,9 +33,7 @@ RUNS = {
     "tune_classical": [],
 }
 
-# test_bench_geometry.py runs its --smoke and checks its values; kill_resume's --smoke starts five lcreg processes
-# (about 30 s): tests/test_cli_resume.py checks its claim in this process (a stopped run resumed ends alike).
-CHECKED_ELSEWHERE = {"bench_geometry", "kill_resume"}
+CHECKED_ELSEWHERE = {"bench_geometry"}  # test_bench_geometry.py runs its --smoke and checks its values
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
