@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -54,35 +55,41 @@ READERS: dict[str, Callable[[Path], np.ndarray]] = {
     ".bin": formats.read_kitti_bin,
 }
 SUFFIXES = tuple(READERS)
+NonFinite = Literal["error", "keep"]
 
 
-def _to_float32(path: Path, columns: np.ndarray) -> np.ndarray:
-    """Cast ``(N, 3)`` coordinates to contiguous float32, then refuse non-finite ones (overflow gives Inf)."""
+def _to_float32(path: Path, columns: np.ndarray, nonfinite: NonFinite) -> np.ndarray:
+    """Cast ``(N, 3)`` coordinates to contiguous float32, then refuse (or keep) non-finite ones (overflow gives Inf)."""
     with np.errstate(over="ignore", invalid="ignore"):
         points = np.ascontiguousarray(columns, dtype=np.float32)
     finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
+    if nonfinite == "error" and not finite.all():
         raise PointCloudFileError(
             path, f"{int((~finite).sum())} point(s) have NaN/Inf coordinates or coordinates beyond the float32 range"
         )
     return points
 
 
-def read_points(path: str | Path) -> np.ndarray:
+def read_points(path: str | Path, nonfinite: NonFinite = "error") -> np.ndarray:
     """Read the points of one file, validated against its format (see the module docstring).
 
     Args:
         path: A ``.ply``, ``.pcd``, ``.xyz``/``.xyzn``/``.xyzrgb``/``.pts``, ``.npy`` or KITTI ``.bin`` file.
+        nonfinite: ``"error"``: a NaN/Inf (or float32-overflowing) coordinate is an error; ``"keep"``: such rows
+            are returned as they are (NaN/Inf), for a caller that drops them and reports how many (depth sensors
+            write NaN for pixels without a return; ``lcreg register`` drops them with a warning).
 
     Returns:
-        ``(N, 3)`` float32 coordinates, ``N >= 1``, all finite.
+        ``(N, 3)`` float32 coordinates, ``N >= 1``, all finite unless ``nonfinite="keep"``.
 
     Raises:
         FileNotFoundError: The path does not exist or is not a file.
-        ValueError: Unsupported extension.
+        ValueError: Unsupported extension or ``nonfinite`` value.
         PointCloudFileError: Unreadable or empty file, a file that is not exactly what its header claims, or
-            coordinates that are NaN/Inf or beyond the float32 range.
+            (``nonfinite="error"``) coordinates that are NaN/Inf or beyond the float32 range.
     """
+    if nonfinite not in ("error", "keep"):
+        raise ValueError(f"`nonfinite` must be 'error' or 'keep', got {nonfinite!r}")
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"point-cloud file {str(path)!r} does not exist or is not a file")
@@ -99,7 +106,7 @@ def read_points(path: str | Path) -> np.ndarray:
         raise PointCloudFileError(path, f"could not be read ({err})") from err
     if len(columns) == 0:
         raise PointCloudFileError(path, "the file holds no points")
-    return _to_float32(path, columns)
+    return _to_float32(path, columns, nonfinite)
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:

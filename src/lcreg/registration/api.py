@@ -1,0 +1,248 @@
+"""``lcreg.register(src, ref)``: register two clouds of any size, unit and container in one call.
+
+>>> import lcreg
+>>> result = lcreg.register("scan_a.ply", "scan_b.ply")          # doctest: +SKIP
+>>> result.transform            # (4, 4) float64, maps scan_a's points into scan_b's frame
+>>> result.fitness, result.inlier_rmse, result.time_s
+>>> moved = result.apply(points_of_scan_a)
+
+Steps: read or convert both clouds (:mod:`lcreg.registration.inputs`: NaN rows dropped with a warning), pick the
+voxel size from the clouds (:mod:`lcreg.registration.voxel`) unless given, apply the initial guess to the source,
+run the method (:mod:`lcreg.registration.methods`), compose the result with the initial guess, and score it
+(fitness: share of the source's points within ``2v`` of the reference after alignment; inlier RMSE of those).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from lcreg.checks import check_rigid
+from lcreg.registration.inputs import Cloud, CloudLike, as_cloud
+from lcreg.registration.methods import (
+    Method,
+    PreparedCache,
+    evaluate,
+    global_step,
+    icp_step,
+    learned_model,
+    learned_step,
+    parse_method,
+)
+from lcreg.registration.voxel import TARGET_POINTS, auto_voxel_size
+
+__all__ = ["DEFAULT_METHOD", "Registration", "register", "register_clouds"]
+
+DEFAULT_METHOD = "ransac+icp"
+"""The method of ``method="default"``: the best on the validation pairs of ``docs/results/register.md``."""
+
+
+@dataclass
+class Registration:
+    """The result of :func:`register`.
+
+    Attributes:
+        transform: ``(4, 4)`` float64 ``[R t; 0 1]`` mapping source points into the reference frame
+            (``p_ref = R p_src + t``), in the inputs' unit.
+        method: The method that ran (``"ransac+icp"``).
+        voxel_size: ``v`` used by the steps (input unit).
+        fitness: Share of the (downsampled) source points within ``2v`` of the reference after alignment.
+        inlier_rmse: RMSE of those points' distances (input unit).
+        time_s: Wall time of the registration (reading the files excluded), seconds.
+        num_points: Points of source and reference as given (after dropping NaN rows).
+        used_points: Points of source and reference the steps used (after downsampling).
+        dropped: NaN/Inf rows dropped from source and reference.
+        coarse_transform: The coarse step's estimate before refinement (``None`` without refinement).
+        sources: Labels of the two clouds (file paths, or ``points_src``/``points_ref``).
+    """
+
+    transform: np.ndarray
+    method: str
+    voxel_size: float
+    fitness: float
+    inlier_rmse: float
+    time_s: float
+    num_points: tuple[int, int]
+    used_points: tuple[int, int]
+    dropped: tuple[int, int] = (0, 0)
+    coarse_transform: np.ndarray | None = None
+    sources: tuple[str, str] = ("points_src", "points_ref")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def apply(self, points: CloudLike) -> np.ndarray:
+        """``(N, 3)`` points moved by :attr:`transform` (float64; NaN rows pass through as NaN)."""
+        array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+        array = np.asarray(array, dtype=np.float64).reshape(-1, 3)
+        return array @ self.transform[:3, :3].T + self.transform[:3, 3]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values (JSON-ready): the transform as 4 rows of 4 numbers, the diagnostics."""
+        out = {
+            "transform_ref_src": self.transform.tolist(),
+            "method": self.method,
+            "voxel_size": self.voxel_size,
+            "fitness": self.fitness,
+            "inlier_rmse": self.inlier_rmse,
+            "time_s": self.time_s,
+            "num_points": list(self.num_points),
+            "used_points": list(self.used_points),
+            "dropped_nonfinite": list(self.dropped),
+            "source": self.sources[0],
+            "reference": self.sources[1],
+        }
+        if self.coarse_transform is not None:
+            out["coarse_transform_ref_src"] = self.coarse_transform.tolist()
+        return out
+
+
+def _check_init(init: Any) -> np.ndarray:
+    """``init`` as a ``(4, 4)`` float64 rigid motion (typed errors naming ``init``)."""
+    tensor = torch.as_tensor(np.asarray(init.detach().cpu() if isinstance(init, torch.Tensor) else init, float))
+    from lcreg.checks import check_transform
+
+    check_transform(tensor.reshape(-1, 4, 4) if tensor.numel() == 16 else tensor, "init")
+    check_rigid(tensor.reshape(1, 4, 4), "init")
+    return tensor.reshape(4, 4).numpy()
+
+
+def register_clouds(
+    src: Cloud,
+    ref: Cloud,
+    method: Method,
+    *,
+    weights: str | None = None,
+    voxel_size: float | None = None,
+    init: np.ndarray | None = None,
+    target_points: int = TARGET_POINTS,
+    learned_points: int = 1024,
+    seed: int = 0,
+    cache: PreparedCache | None = None,
+) -> Registration:
+    """Register two validated clouds (the work of :func:`register`; ``cache`` reuses files' features across pairs).
+
+    Args:
+        src: Source cloud.
+        ref: Reference cloud.
+        method: Parsed method.
+        weights: Learned methods: a shipped name, an exported ``.pt`` or a ``.ckpt`` (``None``: shipped weights).
+        voxel_size: ``v`` in the clouds' unit (``None``: automatic).
+        init: ``(4, 4)`` initial guess applied to the source first (``None``: identity).
+        target_points: Points kept per cloud by downsampling (and by the automatic voxel size).
+        learned_points: Points per cloud fed to a network.
+        seed: Seed of the networks' point samples.
+        cache: Prepared clouds shared by pairs (files only; keys are the file paths).
+
+    Returns:
+        The :class:`Registration`.
+    """
+    start = time.perf_counter()
+    model = learned_model(method.coarse, weights) if method.learned else None
+    v = auto_voxel_size(src.points, ref.points, target_points) if voxel_size is None else float(voxel_size)
+    points_src = src.points
+    src_key = None if src.path is None else str(src.path)
+    if init is not None:
+        points_src = points_src @ init[:3, :3].T + init[:3, 3]
+        src_key = None
+    cache = cache or PreparedCache()
+    ref_key = None if ref.path is None else str(ref.path)
+    p_src = cache.get(src_key, points_src, v, target_points)
+    p_ref = cache.get(ref_key, ref.points, v, target_points)
+    coarse = _coarse(method.coarse, p_src, p_ref, model, learned_points, seed)
+    transform = coarse if method.refine is None else icp_step(p_src, p_ref, coarse).transform
+    fitness, rmse = evaluate(p_src, p_ref, transform)
+    if init is not None:
+        transform, coarse = transform @ init, coarse @ init
+    return Registration(
+        transform=transform,
+        method=method.name,
+        voxel_size=v,
+        fitness=fitness,
+        inlier_rmse=rmse,
+        time_s=time.perf_counter() - start,
+        num_points=(len(src.points), len(ref.points)),
+        used_points=(len(p_src.points), len(p_ref.points)),
+        dropped=(src.dropped, ref.dropped),
+        coarse_transform=None if method.refine is None else coarse,
+        sources=(src.label, ref.label),
+    )
+
+
+def _coarse(name: str, src: Any, ref: Any, model: Any, learned_points: int, seed: int) -> np.ndarray:
+    """The coarse step's ``(4, 4)`` estimate."""
+    if name == "icp":
+        return icp_step(src, ref, np.eye(4)).transform
+    if name in ("ransac", "fgr"):
+        return global_step(name, src, ref).transform
+    return learned_step(model, src.points, ref.points, learned_points, seed)
+
+
+def register(
+    src: CloudLike,
+    ref: CloudLike,
+    method: str = "default",
+    *,
+    weights: str | None = None,
+    refine: str | None = None,
+    voxel_size: float | None = None,
+    init: Any = None,
+    target_points: int = TARGET_POINTS,
+    learned_points: int = 1024,
+    seed: int = 0,
+) -> Registration:
+    """Register ``src`` onto ``ref``: the rigid motion mapping the source's points into the reference's frame.
+
+    Args:
+        src: Source cloud: a file path (``.ply``, ``.pcd``, ``.xyz``, ``.pts``, ``.npy``, KITTI ``.bin``, ...), an
+            ``(N, 3)`` numpy array (float32/float64/int) or torch tensor, or an Open3D ``PointCloud``.
+        ref: Reference cloud, same kinds.
+        method: ``"default"`` (:data:`DEFAULT_METHOD`), or a name of
+            :func:`lcreg.registration.methods.available_methods` (``"icp"``, ``"ransac"``, ``"fgr"``, ``"dvds"``,
+            ``"ransac+icp"``, ``"dvds+icp"``, ...).
+        weights: Learned methods only: a shipped name (``lcreg.pretrained_names()``), an exported ``.pt`` file or a
+            ``.ckpt`` of ``lcreg fit``; ``None`` takes the method's shipped weights.
+        refine: ``"icp"`` adds ICP refinement to a single-step method (``"none"``/``None``: as named).
+        voxel_size: ``v`` in the clouds' unit; ``None`` picks it from the clouds (about ``target_points`` points
+            after downsampling, never below 1.5 point spacings).
+        init: Initial guess ``(4, 4)`` (numpy or torch), applied to the source before the method; the result
+            includes it.
+        target_points: Points per cloud after downsampling.
+        learned_points: Points per cloud given to a network.
+        seed: Seed of the networks' point samples (classical steps are seeded too: results are reproducible).
+
+    Returns:
+        :class:`Registration`: ``transform (4, 4)``, ``fitness``, ``inlier_rmse``, ``time_s`` and diagnostics.
+
+    Raises:
+        FileNotFoundError, lcreg.checks.PointCloudFileError: A missing, empty or damaged file (named).
+        TypeError, lcreg.checks.ShapeError, lcreg.checks.TooFewPointsError: Bad clouds (the argument is named).
+        lcreg.registration.methods.MethodError: Unknown method, or a learned method without weights.
+        ValueError: A bad ``init``, ``voxel_size`` or count.
+    """
+    chosen = parse_method(DEFAULT_METHOD if method == "default" else method, refine)
+    _check_options(voxel_size, target_points, learned_points)
+    init_matrix = None if init is None else _check_init(init)
+    cloud_src, cloud_ref = as_cloud(src, "points_src"), as_cloud(ref, "points_ref")
+    return register_clouds(
+        cloud_src,
+        cloud_ref,
+        chosen,
+        weights=weights,
+        voxel_size=voxel_size,
+        init=init_matrix,
+        target_points=target_points,
+        learned_points=learned_points,
+        seed=seed,
+    )
+
+
+def _check_options(voxel_size: float | None, target_points: int, learned_points: int) -> None:
+    """Typed errors naming the option."""
+    if voxel_size is not None and not (isinstance(voxel_size, (int, float)) and 0 < voxel_size < float("inf")):
+        raise ValueError(f"`voxel_size` must be a finite number > 0 or None, got {voxel_size!r}")
+    for name, value in (("target_points", target_points), ("learned_points", learned_points)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 16:
+            raise ValueError(f"`{name}` must be an int >= 16, got {value!r}")
