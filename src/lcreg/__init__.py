@@ -44,6 +44,8 @@ _LAZY = {
     "read_points": "lcreg.data.io",
     "pretrained": "lcreg.weights",
     "pretrained_names": "lcreg.weights",
+    "register": "lcreg.registration.api",
+    "Registration": "lcreg.registration.api",
 }
 
 __all__ = [*_LAZY, "__version__"]

@@ -453,6 +453,11 @@ def main(args: ArgsType = None) -> None:
     with ``args`` given, they are raised (typed) to the caller.
     """
     argv = list(args) if isinstance(args, (list, tuple)) else sys.argv[1:]
+    if argv[:1] == ["register"]:  # not a Lightning subcommand: no trainer, no config
+        from lcreg.registration.command import main as register_main
+
+        register_main([str(a) for a in argv[1:]])
+        return
     _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
     if args is not None or _debug():
         build_cli(args)

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from lcreg.data.io import voxel_downsample
 
-__all__ = ["SPACING_FACTOR", "TARGET_POINTS", "auto_voxel_size", "cloud_voxel_size", "median_spacing"]
+__all__ = ["SPACING_FACTOR", "TARGET_POINTS", "auto_voxel_size", "cloud_voxel_size", "median_spacing", "round_voxel_size"]
 
 TARGET_POINTS = 5000
 """Points kept per cloud (about) by the automatic voxel size."""
@@ -54,7 +54,7 @@ def median_spacing(points: np.ndarray, seed: int = 0) -> float:
     return float(np.median(distances[:, 1]))
 
 
-def _grid_up(value: float) -> float:
+def round_voxel_size(value: float) -> float:
     """``value`` rounded up to the grid ``2^(k/4)`` (at most +19 %)."""
     return float(2.0 ** (math.ceil(math.log2(value) * 4 - 1e-9) / 4))
 
@@ -103,4 +103,4 @@ def auto_voxel_size(points_src: np.ndarray, points_ref: np.ndarray, target: int 
         >>> auto_voxel_size(grid, grid)  # 1.5 rounded up to 2^(k/4)
         1.681792830507429
     """
-    return _grid_up(max(cloud_voxel_size(points_src, target), cloud_voxel_size(points_ref, target)))
+    return round_voxel_size(max(cloud_voxel_size(points_src, target), cloud_voxel_size(points_ref, target)))

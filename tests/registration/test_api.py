@@ -1,0 +1,105 @@
+"""``lcreg.register``: methods recover a known motion, at any unit, from any container; init; learned models."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import lcreg
+from lcreg.registration import DEFAULT_METHOD, MethodError, available_methods, register
+from lcreg.registration.methods import parse_method
+
+from _register_pairs import errors, motion  # type: ignore[import-not-found]
+
+
+@pytest.mark.parametrize("method", ["default", "ransac+icp", "fgr+icp"])
+def test_global_pipelines_recover_a_large_motion(pair, method):
+    src, ref, gt = pair
+    result = register(src, ref, method)
+    rre, rte = errors(result.transform, gt)
+    assert rre < 1.0 and rte < 0.01, (rre, rte)
+    assert result.fitness > 0.9 and result.inlier_rmse < result.voxel_size
+    assert result.method == (DEFAULT_METHOD if method == "default" else method)
+    assert result.coarse_transform is not None and result.num_points == (3000, 3000)
+
+
+def test_icp_alone_fails_from_far_and_succeeds_from_the_initial_guess(pair):
+    src, ref, gt = pair
+    far = register(src, ref, "icp")
+    assert errors(far.transform, gt)[0] > 10  # a local method: 60 degrees is out of reach
+    near = motion(5, angle_deg=3.0, shift=0.02) @ gt
+    result = register(src, ref, "icp", init=torch.from_numpy(near))
+    rre, rte = errors(result.transform, gt)
+    assert rre < 0.5 and rte < 0.01
+    assert result.fitness > far.fitness
+
+
+def test_any_unit_gives_the_same_motion(pair):
+    src, ref, gt = pair
+    metres = register(src, ref)
+    millimetres = register(src * 1000, ref * 1000)
+    np.testing.assert_allclose(millimetres.transform[:3, :3], metres.transform[:3, :3], atol=1e-3)
+    np.testing.assert_allclose(millimetres.transform[:3, 3], 1000 * metres.transform[:3, 3], atol=1.0)
+    assert np.isclose(millimetres.voxel_size / metres.voxel_size, 1000, rtol=0.2)
+
+
+def test_containers_and_dtypes_agree(pair):
+    src, ref, _ = pair
+    base = register(src, ref).transform
+    for a, b in ((src.astype(np.float32), ref.astype(np.float32)), (torch.from_numpy(src), torch.from_numpy(ref))):
+        np.testing.assert_allclose(register(a, b).transform, base, atol=1e-4)
+
+
+def test_result_helpers(pair):
+    src, ref, gt = pair
+    result = register(src, ref)
+    moved = result.apply(src)
+    np.testing.assert_allclose(moved, src @ result.transform[:3, :3].T + result.transform[:3, 3])
+    record = result.to_dict()
+    assert np.array(record["transform_ref_src"]).shape == (4, 4) and record["method"] == DEFAULT_METHOD
+
+
+def test_learned_method_with_shipped_weights(pair):
+    src, ref, gt = pair
+    small = motion(1, angle_deg=10.0, shift=0.1)
+    moved_ref = src @ small[:3, :3].T + small[:3, 3]
+    alone = register(src * 5, moved_ref * 5, "dvds")  # any scale: the network sees the unit sphere
+    refined = register(src * 5, moved_ref * 5, "dvds+icp")
+    big = small.copy()
+    big[:3, 3] *= 5
+    assert errors(refined.transform, big)[0] < 1.0
+    assert np.allclose(alone.transform[:3, :3] @ alone.transform[:3, :3].T, np.eye(3), atol=1e-5)
+    assert errors(alone.transform, big)[0] < 10.0
+
+
+def test_learned_method_without_weights_is_refused(pair):
+    with pytest.raises(MethodError, match="pointnetlk.*no shipped weights.*weights"):
+        register(pair[0], pair[1], "pointnetlk")
+
+
+def test_method_names():
+    assert parse_method("RANSAC+ICP").name == "ransac+icp"
+    assert parse_method("fgr", refine="icp").name == "fgr+icp"
+    assert parse_method("fgr", refine="none").name == "fgr"
+    assert {"icp", "ransac", "fgr", "dvds", "ransac+icp", "dvds+icp"} <= set(available_methods())
+    with pytest.raises(MethodError, match="unknown method 'sift'.*ransac\\+icp"):
+        parse_method("sift")
+    with pytest.raises(MethodError, match="refinement"):
+        parse_method("icp+icp")
+
+
+def test_bad_options_are_named(pair):
+    src, ref, _ = pair
+    with pytest.raises(ValueError, match="voxel_size"):
+        register(src, ref, voxel_size=-1.0)
+    with pytest.raises(ValueError, match="target_points"):
+        register(src, ref, target_points=3)
+    with pytest.raises(ValueError, match="init"):
+        register(src, ref, init=np.full((4, 4), 2.0))
+    with pytest.raises(ValueError, match="init"):
+        register(src, ref, init=np.eye(3))
+
+
+def test_top_level_export():
+    assert lcreg.register is register
