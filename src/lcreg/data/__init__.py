@@ -11,7 +11,9 @@
 * :mod:`lcreg.data.scenes`: scene pairs from files (:class:`ScenePair`, :class:`ScenePairDataset`,
   :class:`ScenePairDataModule`);
 * :mod:`lcreg.data.threedmatch`: 3DMatch / 7-Scenes fragment pairs and :class:`SevenScenesDataModule`;
-* :mod:`lcreg.data.kitti`: KITTI odometry pairs and :class:`KITTIOdometryDataModule`.
+* :mod:`lcreg.data.kitti`: KITTI odometry pairs and :class:`KITTIOdometryDataModule`;
+* :mod:`lcreg.data.pairlists`: :func:`read_pair_list` (CSV lists, 3DMatch benchmarks, KITTI json lists) into
+  :class:`ListedPair` for registering many pairs.
 
 Names are re-exported lazily, so ``import lcreg.data.pairs`` does not import Lightning. :class:`DatasetLayoutError` is
 :class:`lcreg.checks.DatasetLayoutError` (re-exported here as part of the data API).
@@ -25,6 +27,7 @@ from typing import Any
 __all__ = [
     "DatasetLayoutError",
     "KITTIOdometryDataModule",
+    "ListedPair",
     "ModelNet40DataModule",
     "ObjectSet",
     "PairDataModule",
@@ -42,6 +45,7 @@ __all__ = [
     "load_scanobjectnn_h5",
     "make_pair",
     "modelnet40_objects",
+    "read_pair_list",
     "read_points",
     "scanobjectnn_objects",
     "synthetic_shapes",
@@ -51,6 +55,7 @@ __all__ = [
 _SOURCES = {
     "DatasetLayoutError": "lcreg.checks",
     "KITTIOdometryDataModule": "kitti",
+    "ListedPair": "pairlists",
     "ModelNet40DataModule": "datamodule",
     "ObjectSet": "pairs",
     "PairDataModule": "datamodule",
@@ -68,6 +73,7 @@ _SOURCES = {
     "load_scanobjectnn_h5": "scanobjectnn",
     "make_pair": "pairs",
     "modelnet40_objects": "modelnet40",
+    "read_pair_list": "pairlists",
     "read_points": "io",
     "scanobjectnn_objects": "scanobjectnn",
     "synthetic_shapes": "synthetic",
