@@ -104,13 +104,13 @@ def _errors(pair: ListedPair, transform: np.ndarray) -> tuple[float, float, floa
         return math.nan, math.nan, math.nan
     from lcreg.metrics import functional as F
 
-    pred = torch.from_numpy(np.asarray(transform, dtype=np.float64))[None]
-    gt = torch.from_numpy(np.asarray(pair.transform_ref_src, dtype=np.float64))[None]
+    pred = torch.from_numpy(np.array(transform, dtype=np.float64))[None]
+    gt = torch.from_numpy(np.array(pair.transform_ref_src, dtype=np.float64))[None]
     rre = float(F.rotation_error_deg(pred, gt)[0])
     rte = float(F.translation_error(pred, gt)[0])
     rmse = math.nan
     if pair.info is not None:
-        info = torch.from_numpy(np.asarray(pair.info, dtype=np.float64))[None]
+        info = torch.from_numpy(np.array(pair.info, dtype=np.float64))[None]
         rmse = math.sqrt(max(float(F.correspondence_rmse_sq(pred, gt, info)[0]), 0.0))
     return rre, rte, rmse
 

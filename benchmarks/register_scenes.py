@@ -1,0 +1,163 @@
+"""Every ``lcreg register`` method on real pairs through ``lcreg register --pairs``; validation picks the default.
+
+    python benchmarks/register_scenes.py --set validation --out runs/register_bench     # choose the default
+    python benchmarks/register_scenes.py --set test --out runs/register_bench           # 8 3DMatch scenes + KITTI
+    python benchmarks/register_scenes.py --smoke                                        # seconds, synthetic pairs
+
+Sets (``../shared/data``):
+
+* ``validation``: ModelNet40 validation pairs (78 pairs of the object protocol: 1,024 points, Euler U[0,45]° per axis,
+  t U[-0.5,0.5]; written as ``.npy`` files + a CSV under ``--out``), the two 3DMatch SUN3D scenes used as validation
+  scenes since the voxelised-LK tuning (home_md scan9, mit_76_studyroom; all their ``gt.log`` pairs) and the KITTI
+  sequence 00 pairs (frames 0-15 at least 10 m apart, ICP-refined ground truth; sequence 00 is in KITTI's training
+  split). The default method is the one with the best recall averaged over the three kinds.
+* ``test``: all 8 scenes of the 3DMatch benchmark (every ``gt.log`` pair; official recall on the scored pairs) and
+  the KITTI pairs.
+
+Each (set, method) writes ``<out>/<set>/<data>__<method>.csv`` (resumable: a rerun continues it) and its
+``.summary.json``; the Markdown table (``--md``) is rebuilt from all summaries found.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcreg.benchmarking import add_smoke_argument, machine_line, markdown_table, write_text
+from lcreg.registration.command import run
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+VALIDATION_SCENES = ["sun3d-home_md-home_md_scan9_2012_sep_30", "sun3d-mit_76_studyroom-76-1studyroom2"]
+METHODS = ["ransac+icp", "fgr+icp", "ransac", "fgr", "icp", "dvds", "dvds+icp"]
+
+
+def modelnet40_val_csv(folder: Path, smoke: bool = False) -> Path:
+    """Write the ModelNet40 validation pairs (or 2 synthetic pairs with ``smoke``) as ``.npy`` + ``pairs.csv``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    csv = folder / "pairs.csv"
+    if csv.is_file():
+        return csv
+    if smoke:
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+        from _register_pairs import make_pair  # type: ignore[import-not-found]
+
+        batches = [(make_pair()[0][None], make_pair()[1][None], make_pair()[2][None])] * 2
+    else:
+        from lcreg.data.datamodule import ModelNet40DataModule
+
+        dm = ModelNet40DataModule(root=str(DATA / "modelnet40_mini"), num_points=1024, batch_size=32, seed=1234)
+        dm.setup("fit")
+        batches = [(b.points_src.numpy(), b.points_ref.numpy(), b.transform_ref_src.numpy()) for b in dm.val_dataloader()]
+    lines, k = ["src,ref,gt"], 0
+    for src, ref, gt in batches:
+        for i in range(len(src)):
+            np.save(folder / f"src_{k:03d}.npy", src[i].astype(np.float32))
+            np.save(folder / f"ref_{k:03d}.npy", ref[i].astype(np.float32))
+            lines.append(f"src_{k:03d}.npy,ref_{k:03d}.npy," + " ".join(f"{x:.10g}" for x in gt[i].reshape(-1)))
+            k += 1
+    csv.write_text("\n".join(lines) + "\n")
+    return csv
+
+
+def kitti_csv(folder: Path) -> Path:
+    """The KITTI sequence 00 pairs (frames >= 10 m apart among those with scans; ICP-refined ground truth) as a CSV."""
+    folder.mkdir(parents=True, exist_ok=True)
+    csv = folder / "kitti_pairs.csv"
+    if csv.is_file():
+        return csv
+    from lcreg.data.kitti import kitti_pairs
+
+    pairs = kitti_pairs(DATA / "kitti", "train", selection="all")
+    lines = ["src,ref,gt"] + [
+        f"{p.path_src},{p.path_ref}," + " ".join(f"{x:.10g}" for x in p.transform_ref_src.reshape(-1)) for p in pairs
+    ]
+    csv.write_text("\n".join(lines) + "\n")
+    return csv
+
+
+def datasets(kind: str, out: Path, smoke: bool) -> dict[str, list[str]]:
+    """``name -> --pairs`` arguments (one or more lists, registered into one results file each)."""
+    if smoke:
+        return {"synthetic": [str(modelnet40_val_csv(out / "synthetic", smoke=True))]}
+    bench = DATA / "3dmatch" / "benchmarks" / "3DMatch"
+    if kind == "validation":
+        return {
+            "modelnet40_val": [str(modelnet40_val_csv(out / "modelnet40_val"))],
+            "3dmatch_val": [str(bench / s) for s in VALIDATION_SCENES],
+            "kitti00": [str(kitti_csv(out))],
+        }
+    return {"3dmatch": [str(bench)], "kitti00": [str(kitti_csv(out))]}
+
+
+def run_one(pairs: list[str], method: str, results: Path, extra: Sequence[str]) -> None:
+    """``lcreg register --pairs`` for each list into ``results`` (resumed; one file per list, then merged)."""
+    for i, path in enumerate(pairs):
+        part = results.with_name(f"{results.stem}.part{i}.csv") if len(pairs) > 1 else results
+        print(f"== {method}: {path} -> {part}", flush=True)
+        run(["--pairs", path, "--method", method, "--results", str(part), "--resume", "--no-progress", *extra])
+
+
+def _summaries(folder: Path) -> list[dict[str, Any]]:
+    rows = []
+    for path in sorted(folder.glob("*.summary.json")):
+        data, _, method = path.name.removesuffix(".summary.json").partition("__")
+        summary = json.loads(path.read_text())
+        rows.append({"data": data.split(".part")[0], "part": path.name, "method": summary["method"], **summary})
+    return rows
+
+
+def _cell(value: float | None, percent: bool = False, digits: str = ".3g") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return f"{100 * value:.1f} %" if percent else format(value, digits)
+
+
+def table(folder: Path) -> str:
+    """Markdown: one row per (data, method, group) from the summaries in ``folder``."""
+    header = ["data", "group", "method", "pairs", "recall (RRE, RTE)", "3DMatch recall (scored)", "median RRE °",
+              "median RTE", "ms/pair"]
+    rows = []
+    for s in _summaries(folder):
+        groups = s["groups"] if len(s["groups"]) > 1 or "" not in s["groups"] else {}
+        for name, g in [*groups.items(), ("all", s["overall"])]:
+            scored = f"{_cell(g.get('threedmatch_recall'), True)} ({g.get('scored_pairs', 0)})" if "threedmatch_recall" in g else "-"
+            rows.append([s["data"], name or "all", s["method"], g["pairs"], _cell(g.get("recall"), True), scored,
+                         _cell(g.get("rre_median_deg")), _cell(g.get("rte_median")), f"{g['ms_per_pair']:.0f}"])
+    return markdown_table(header, rows)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--set", choices=("validation", "test"), default="validation")
+    parser.add_argument("--methods", nargs="+", default=METHODS)
+    parser.add_argument("--data", nargs="+", help="only these data names (e.g. 3dmatch kitti00)")
+    parser.add_argument("--out", help="results folder (default: runs/register_bench, or a temporary one with --smoke)")
+    parser.add_argument("--md", help="write the Markdown table here")
+    parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more lcreg register options")
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    out = Path(args.out or (tempfile.mkdtemp(prefix="lcreg_register_") if args.smoke else "runs/register_bench"))
+    folder = out / ("smoke" if args.smoke else args.set)
+    folder.mkdir(parents=True, exist_ok=True)
+    methods = ["icp", "ransac+icp"] if args.smoke else args.methods
+    for data, pairs in datasets(args.set, out, args.smoke).items():
+        if args.data and data not in args.data:
+            continue
+        for method in methods:
+            run_one(pairs, method, folder / f"{data}__{method.replace('+', '-')}.csv", args.extra)
+    text = f"Machine: {machine_line()}\n\n{table(folder)}\n"
+    print(text)
+    if args.md:
+        write_text(args.md, text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,107 @@
+"""``lcreg register`` end to end: one pair with every output, many pairs with scores and resume, exit codes."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from lcreg.cli import main
+from lcreg.data.io import read_points
+from lcreg.registration.outputs import read_transform, write_ply
+
+from _register_pairs import errors  # type: ignore[import-not-found]
+
+
+@pytest.fixture()
+def files(tmp_path, pair):
+    src, ref, gt = pair
+    return write_ply(tmp_path / "src.ply", src), write_ply(tmp_path / "ref.ply", ref), gt
+
+
+def _exit_code(args, capsys) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as info:
+        main(["register", *args])
+    return int(info.value.code), capsys.readouterr().err
+
+
+def test_one_pair_prints_and_writes_everything(files, tmp_path, capsys):
+    src, ref, gt = files
+    out, aligned = tmp_path / "T.json", tmp_path / "aligned.ply"
+    main(["register", str(src), str(ref), "--out", str(out), "--save-aligned", str(aligned)])
+    text = capsys.readouterr().out
+    assert "transform (maps source points into the reference frame)" in text and "fitness:" in text
+    assert f"wrote {out}" in text and f"wrote {aligned}" in text and "ms" in text
+    estimate = read_transform(out)
+    assert errors(estimate, gt)[0] < 1.0
+    moved = read_points(aligned)
+    np.testing.assert_allclose(moved, read_points(src) @ estimate[:3, :3].T + estimate[:3, 3], atol=1e-4)
+    assert json.loads(out.read_text())["method"] == "ransac+icp"
+
+
+def test_init_file_is_used(files, tmp_path, capsys):
+    src, ref, gt = files
+    init = tmp_path / "init.txt"
+    np.savetxt(init, gt)
+    out = tmp_path / "T.npy"
+    main(["register", str(src), str(ref), "--method", "icp", "--init", str(init), "--out", str(out)])
+    assert errors(np.load(out), gt)[0] < 0.5
+
+
+def test_user_errors_exit_non_zero_and_write_nothing(files, tmp_path, capsys):
+    src, ref, _ = files
+    out = tmp_path / "T.txt"
+    empty = tmp_path / "empty.ply"
+    empty.write_bytes(b"")
+    code, err = _exit_code([str(empty), str(ref), "--out", str(out)], capsys)
+    assert code == 1 and "empty.ply" in err and len(err.strip().splitlines()) == 2
+    code, err = _exit_code([str(tmp_path / "missing.pcd"), str(ref), "--out", str(out)], capsys)
+    assert code == 1 and "missing.pcd" in err
+    code, err = _exit_code([str(src), str(ref), "--method", "sift"], capsys)
+    assert code == 2 and "unknown method 'sift'" in err
+    code, err = _exit_code([str(src), str(ref), "--out", str(tmp_path / "T.csv")], capsys)
+    assert code == 1 and "extension" in err
+    code, err = _exit_code([str(src)], capsys)
+    assert code == 2 and "SRC and REF" in err
+    code, err = _exit_code([str(src), str(ref), "--method", "pointnetlk"], capsys)
+    assert code == 2 and "--weights" in err or "weights" in err
+    assert not out.exists()
+
+
+def test_help_lists_methods_and_weights(capsys):
+    with pytest.raises(SystemExit):
+        main(["register", "--help"])
+    text = capsys.readouterr().out
+    for name in ("ransac+icp", "fgr", "icp", "dvds-modelnet40", "pointnetlk", "--plot", "--pairs", "--out"):
+        assert name in text
+
+
+def _pairs_csv(tmp_path, files, rows=3):
+    src, ref, gt = files
+    path = tmp_path / "pairs.csv"
+    lines = ["src,ref,gt"] + [f"{src.name},{ref.name}," + " ".join(map(str, gt.reshape(-1)))] * rows
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_many_pairs_csv_scores_and_resumes(files, tmp_path, capsys):
+    pairs = _pairs_csv(tmp_path, files)
+    results = tmp_path / "res.csv"
+    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--limit", "1",
+          "--rte", "0.05", "--no-progress"])
+    first = list(csv.DictReader(results.open()))
+    assert len(first) == 1
+    code, err = _exit_code(["--pairs", str(pairs), "--results", str(results)], capsys)
+    assert code == 1 and "--resume" in err  # never overwrites earlier results
+    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--resume",
+          "--rte", "0.05", "--no-progress"])
+    rows = list(csv.DictReader(results.open()))
+    assert len(rows) == 3 and rows[0] == first[0]
+    assert all(r["success"] == "1" and float(r["rre_deg"]) < 1.0 for r in rows)
+    summary = json.loads(results.with_suffix(".summary.json").read_text())
+    assert summary["overall"]["recall"] == 1.0 and summary["overall"]["pairs"] == 3
+    assert summary["thresholds"] == {"rre_deg": 5.0, "rte": 0.05, "rmse": 0.2}
+    code, err = _exit_code(["--pairs", str(pairs), "--method", "icp", "--results", str(results), "--resume"], capsys)
+    assert code == 1 and "fgr+icp" in err  # resume refuses another method's file
