@@ -32,7 +32,15 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["COLOR_REF", "COLOR_SRC", "VIEWS", "DisplayUnavailableError", "plot_registration", "show_registration"]
+__all__ = [
+    "COLOR_REF",
+    "COLOR_SRC",
+    "VIEWS",
+    "DisplayUnavailableError",
+    "check_display",
+    "plot_registration",
+    "show_registration",
+]
 
 COLOR_SRC = "#e6550d"
 """Source points (orange)."""
@@ -335,7 +343,7 @@ def _hex_rgb(color: str) -> np.ndarray:
     return np.array([int(color[k : k + 2], 16) for k in (1, 3, 5)], dtype=np.float64) / 255.0
 
 
-def _check_display() -> None:
+def check_display() -> None:
     """Raise :class:`DisplayUnavailableError` on Linux without ``DISPLAY`` and ``WAYLAND_DISPLAY``."""
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise DisplayUnavailableError(
@@ -386,7 +394,7 @@ def show_registration(
         DisplayUnavailableError: Linux without ``DISPLAY``/``WAYLAND_DISPLAY`` (checked before anything else).
         TypeError, ShapeError, TooFewPointsError, NonFiniteError, ValueError: As :func:`plot_registration`.
     """
-    _check_display()
+    check_display()
     geometries = _open3d_geometries(points_src, points_ref, transform_ref_src)
     import open3d as o3d
 

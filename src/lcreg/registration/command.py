@@ -99,6 +99,10 @@ def _check_args(args: argparse.Namespace) -> None:
         check_suffix(args.save_aligned, (".ply",), "--save-aligned")
     if args.plot is not None:
         check_suffix(args.plot, (".png",), "--plot")
+    if args.show:
+        from lcreg.viz import check_display
+
+        check_display()  # before the work: no window can open here
     for option in ("out", "save_aligned", "plot", "results"):
         value = getattr(args, option)
         if value is not None and not Path(value).expanduser().parent.is_dir():
