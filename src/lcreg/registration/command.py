@@ -68,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", help="write the 4x4 transform: .txt, .json (with diagnostics) or .npy")
     parser.add_argument("--save-aligned", help="write the moved source as a .ply")
     parser.add_argument("--plot", help="write a before/after picture (.png, three orthogonal views)")
+    parser.add_argument("--plot-dpi", type=int, default=120, help="resolution of --plot (default: %(default)s)")
     parser.add_argument("--show", action="store_true", help="open an Open3D window with the aligned clouds")
     many = parser.add_argument_group("many pairs (--pairs)")
     many.add_argument("--results", help="results CSV (default: register_results.csv in the current folder)")
@@ -152,7 +153,7 @@ def _one_pair(args: argparse.Namespace) -> None:
             from lcreg.viz import plot_registration
 
             title = f"{Path(args.src).name} -> {Path(args.ref).name}: {result.method}, fitness {result.fitness:.3f}"
-            plot_registration(src, ref, result.transform, args.plot, title=title)
+            plot_registration(src, ref, result.transform, args.plot, title=title, dpi=args.plot_dpi)
             print(f"wrote {args.plot}")
         if args.show:
             from lcreg.viz import show_registration
