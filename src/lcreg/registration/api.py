@@ -57,6 +57,7 @@ class Registration:
         used_points: Points of source and reference the steps used (after downsampling).
         dropped: NaN/Inf rows dropped from source and reference.
         coarse_transform: The coarse step's estimate before refinement (``None`` without refinement).
+        coarse_time_s: Wall time up to the end of the coarse step (``None`` without refinement).
         sources: Labels of the two clouds (file paths, or ``points_src``/``points_ref``).
     """
 
@@ -70,6 +71,7 @@ class Registration:
     used_points: tuple[int, int]
     dropped: tuple[int, int] = (0, 0)
     coarse_transform: np.ndarray | None = None
+    coarse_time_s: float | None = None
     sources: tuple[str, str] = ("points_src", "points_ref")
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -152,6 +154,7 @@ def register_clouds(
     p_src = cache.get(src_key, points_src, v, target_points)
     p_ref = cache.get(ref_key, ref.points, v, target_points)
     coarse = _coarse(method.coarse, p_src, p_ref, model, learned_points, seed)
+    coarse_time = time.perf_counter() - start
     transform = coarse if method.refine is None else icp_step(p_src, p_ref, coarse).transform
     fitness, rmse = evaluate(p_src, p_ref, transform)
     if init is not None:
@@ -167,6 +170,7 @@ def register_clouds(
         used_points=(len(p_src.points), len(p_ref.points)),
         dropped=(src.dropped, ref.dropped),
         coarse_transform=None if method.refine is None else coarse,
+        coarse_time_s=None if method.refine is None else coarse_time,
         sources=(src.label, ref.label),
     )
 

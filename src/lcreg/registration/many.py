@@ -45,7 +45,10 @@ __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_p
 COLUMNS = (
     "name", "group", "source", "reference", "method", "voxel_size", "fitness", "inlier_rmse", "time_ms",
     "rre_deg", "rte", "success", "rmse", "scored", *(f"t{i}{j}" for i in range(4) for j in range(4)),
+    "coarse_time_ms", "coarse_rre_deg", "coarse_rte", "coarse_success", "coarse_rmse",
 )  # fmt: skip
+"""Columns of the results CSV; ``coarse_*`` hold the coarse step of a pipeline (``ransac`` of ``ransac+icp``):
+its time and errors, so one run also scores the coarse method alone (the same computation, its time included)."""
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,7 @@ class PairRow:
     rte: float
     rmse: float
     success: bool | None
+    coarse: tuple[float, float, float, bool | None] | None = None
 
     def as_csv(self) -> dict[str, Any]:
         """The CSV row (:data:`COLUMNS`)."""
@@ -95,7 +99,16 @@ class PairRow:
             "rmse": f"{self.rmse:.6g}",
             "scored": int(self.pair.scored),
         }
-        return out | {f"t{i}{j}": f"{self.result.transform[i, j]:.10g}" for i in range(4) for j in range(4)}
+        out |= {f"t{i}{j}": f"{self.result.transform[i, j]:.10g}" for i in range(4) for j in range(4)}
+        coarse_time = self.result.coarse_time_s
+        rre, rte, rmse, success = self.coarse or (math.nan, math.nan, math.nan, None)
+        return out | {
+            "coarse_time_ms": "" if coarse_time is None else f"{1000 * coarse_time:.1f}",
+            "coarse_rre_deg": "" if self.coarse is None else f"{rre:.6g}",
+            "coarse_rte": "" if self.coarse is None else f"{rte:.6g}",
+            "coarse_success": "" if success is None else int(success),
+            "coarse_rmse": "" if self.coarse is None else f"{rmse:.6g}",
+        }
 
 
 def _errors(pair: ListedPair, transform: np.ndarray) -> tuple[float, float, float]:
@@ -170,7 +183,11 @@ def register_pairs(
             src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache
         )
         rre, rte, rmse = _errors(pair, result.transform)
-        yield PairRow(pair, result, rre, rte, rmse, _success(pair, rre, rte, thresholds))
+        coarse = None
+        if result.coarse_transform is not None:
+            c_rre, c_rte, c_rmse = _errors(pair, result.coarse_transform)
+            coarse = (c_rre, c_rte, c_rmse, _success(pair, c_rre, c_rte, thresholds))
+        yield PairRow(pair, result, rre, rte, rmse, _success(pair, rre, rte, thresholds), coarse)
 
 
 def _median(values: list[float]) -> float:
@@ -178,38 +195,49 @@ def _median(values: list[float]) -> float:
     return float(np.median(finite)) if finite else math.nan
 
 
-def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds) -> dict[str, Any]:
-    """Scores of CSV rows (values as read back): counts, recall, medians, 3DMatch recall, ms/pair."""
-    with_gt = [r for r in rows if r["success"] != ""]
+def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "") -> dict[str, Any]:
+    """Scores of CSV rows (values as read back): counts, recall, medians, 3DMatch recall, ms/pair.
+
+    ``p="coarse_"`` scores the coarse step of a pipeline from its ``coarse_*`` columns.
+    """
+    with_gt = [r for r in rows if r[f"{p}success"] != ""]
     out: dict[str, Any] = {
         "pairs": len(rows),
         "pairs_with_gt": len(with_gt),
-        "ms_per_pair": float(np.mean([float(r["time_ms"]) for r in rows])) if rows else math.nan,
+        "ms_per_pair": float(np.mean([float(r[f"{p}time_ms"]) for r in rows])) if rows else math.nan,
     }
     if with_gt:
         out |= {
-            "recall": float(np.mean([int(r["success"]) for r in with_gt])),
-            "rre_median_deg": _median([float(r["rre_deg"]) for r in with_gt]),
-            "rte_median": _median([float(r["rte"]) for r in with_gt]),
-            "rre_mean_deg": float(np.nanmean([float(r["rre_deg"]) for r in with_gt])),
+            "recall": float(np.mean([int(r[f"{p}success"]) for r in with_gt])),
+            "rre_median_deg": _median([float(r[f"{p}rre_deg"]) for r in with_gt]),
+            "rte_median": _median([float(r[f"{p}rte"]) for r in with_gt]),
+            "rre_mean_deg": float(np.nanmean([float(r[f"{p}rre_deg"]) for r in with_gt])),
         }
-    scored = [r for r in rows if r["scored"] == "1" and r["rmse"] not in ("", "nan")]
+    scored = [r for r in rows if r["scored"] == "1" and r[f"{p}rmse"] not in ("", "nan")]
     if scored:
-        ok = [float(r["rmse"]) < thresholds.rmse for r in scored]
+        ok = [float(r[f"{p}rmse"]) <= thresholds.rmse for r in scored]  # <=: the official test
         out |= {"scored_pairs": len(scored), "threedmatch_recall": float(np.mean(ok))}
     return out
 
 
-def summarize(rows: list[dict[str, Any]], thresholds: Thresholds) -> dict[str, Any]:
-    """Overall and per-group scores of the results CSV rows (3DMatch: also the mean of the scenes' recalls)."""
+def _scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "") -> dict[str, Any]:
+    """``{"overall": ..., "groups": ...}`` (3DMatch: also the mean of the scenes' recalls)."""
     groups = sorted({r["group"] for r in rows})
-    per_group = {g: _group_scores([r for r in rows if r["group"] == g], thresholds) for g in groups}
-    overall = _group_scores(rows, thresholds)
+    per_group = {g: _group_scores([r for r in rows if r["group"] == g], thresholds, p) for g in groups}
+    overall = _group_scores(rows, thresholds, p)
     recalls = [s["threedmatch_recall"] for s in per_group.values() if "threedmatch_recall" in s]
     if recalls and len(per_group) > 1:
         overall["threedmatch_recall_scene_mean"] = float(np.mean(recalls))
+    return {"overall": overall, "groups": per_group}
+
+
+def summarize(rows: list[dict[str, Any]], thresholds: Thresholds) -> dict[str, Any]:
+    """Scores of the results CSV rows; a pipeline's coarse step under ``"coarse"`` (same keys)."""
     thresholds_out = {"rre_deg": thresholds.rre_deg, "rte": thresholds.rte if math.isfinite(thresholds.rte) else None}
-    return {"thresholds": thresholds_out | {"rmse": thresholds.rmse}, "overall": overall, "groups": per_group}
+    out = {"thresholds": thresholds_out | {"rmse": thresholds.rmse}, **_scores(rows, thresholds)}
+    if rows and all(r["coarse_time_ms"] != "" for r in rows):
+        out["coarse"] = _scores(rows, thresholds, "coarse_")
+    return out
 
 
 def _read_done(path: Path, method: str) -> list[dict[str, Any]]:
