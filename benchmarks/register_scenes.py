@@ -57,7 +57,9 @@ def modelnet40_val_csv(folder: Path, smoke: bool = False) -> Path:
 
         dm = ModelNet40DataModule(root=str(DATA / "modelnet40_mini"), num_points=1024, batch_size=32, seed=1234)
         dm.setup("fit")
-        batches = [(b.points_src.numpy(), b.points_ref.numpy(), b.transform_ref_src.numpy()) for b in dm.val_dataloader()]
+        batches = [
+            (b.points_src.numpy(), b.points_ref.numpy(), b.transform_ref_src.numpy()) for b in dm.val_dataloader()
+        ]
     lines, k = ["src,ref,gt"], 0
     for src, ref, gt in batches:
         for i in range(len(src)):
@@ -110,7 +112,7 @@ def run_one(pairs: list[str], method: str, results: Path, extra: Sequence[str]) 
 def _summaries(folder: Path) -> list[dict[str, Any]]:
     rows = []
     for path in sorted(folder.glob("*.summary.json")):
-        data, _, method = path.name.removesuffix(".summary.json").partition("__")
+        data, _, _method = path.name.removesuffix(".summary.json").partition("__")
         summary = json.loads(path.read_text())
         rows.append({"data": data.split(".part")[0], "part": path.name, "method": summary["method"], **summary})
     return rows
@@ -124,8 +126,17 @@ def _cell(value: float | None, percent: bool = False, digits: str = ".3g") -> st
 
 def table(folder: Path) -> str:
     """Markdown: one row per (data, method, group) from the summaries in ``folder``."""
-    header = ["data", "group", "method", "pairs", "recall (RRE, RTE)", "3DMatch recall (scored)", "median RRE °",
-              "median RTE", "ms/pair"]
+    header = [
+        "data",
+        "group",
+        "method",
+        "pairs",
+        "recall (RRE, RTE)",
+        "3DMatch recall (scored)",
+        "median RRE °",
+        "median RTE",
+        "ms/pair",
+    ]
     rows = []
     for s in _summaries(folder):
         for method, scores in _variants(s):
@@ -148,11 +159,33 @@ def _rows(data: str, method: str, s: dict[str, Any]) -> list[list[Any]]:
     for name, g in [*groups.items(), ("all", s["overall"])]:
         recall = g.get("threedmatch_recall")
         scored = "-" if recall is None else f"{_cell(recall, True)} ({g.get('scored_pairs', 0)})"
-        rows.append([data, name or "all", method, g["pairs"], _cell(g.get("recall"), True), scored,
-                     _cell(g.get("rre_median_deg")), _cell(g.get("rte_median")), f"{g['ms_per_pair']:.0f}"])
+        rows.append(
+            [
+                data,
+                name or "all",
+                method,
+                g["pairs"],
+                _cell(g.get("recall"), True),
+                scored,
+                _cell(g.get("rre_median_deg")),
+                _cell(g.get("rte_median")),
+                f"{g['ms_per_pair']:.0f}",
+            ]
+        )
     if "threedmatch_recall_scene_mean" in s["overall"]:
-        rows.append([data, "mean of scenes", method, "", "", _cell(s["overall"]["threedmatch_recall_scene_mean"], True),
-                     "", "", ""])
+        rows.append(
+            [
+                data,
+                "mean of scenes",
+                method,
+                "",
+                "",
+                _cell(s["overall"]["threedmatch_recall_scene_mean"], True),
+                "",
+                "",
+                "",
+            ]
+        )
     return rows
 
 

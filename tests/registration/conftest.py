@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from _register_pairs import make_pair  # type: ignore[import-not-found]
 
 

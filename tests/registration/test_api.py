@@ -7,10 +7,9 @@ import pytest
 import torch
 
 import lcreg
+from _register_pairs import errors, motion  # type: ignore[import-not-found]
 from lcreg.registration import DEFAULT_METHOD, MethodError, available_methods, register
 from lcreg.registration.methods import parse_method
-
-from _register_pairs import errors, motion  # type: ignore[import-not-found]
 
 
 @pytest.mark.parametrize("method", ["default", "ransac+icp", "fgr+icp"])
@@ -36,7 +35,7 @@ def test_icp_alone_fails_from_far_and_succeeds_from_the_initial_guess(pair):
 
 
 def test_any_unit_gives_the_same_motion(pair):
-    src, ref, gt = pair
+    src, ref, _gt = pair
     metres = register(src, ref)
     millimetres = register(src * 1000, ref * 1000)
     np.testing.assert_allclose(millimetres.transform[:3, :3], metres.transform[:3, :3], atol=1e-3)
@@ -52,7 +51,7 @@ def test_containers_and_dtypes_agree(pair):
 
 
 def test_result_helpers(pair):
-    src, ref, gt = pair
+    src, ref, _gt = pair
     result = register(src, ref)
     moved = result.apply(src)
     np.testing.assert_allclose(moved, src @ result.transform[:3, :3].T + result.transform[:3, 3])
@@ -61,7 +60,7 @@ def test_result_helpers(pair):
 
 
 def test_learned_method_with_shipped_weights(pair):
-    src, ref, gt = pair
+    src, _ref, _gt = pair
     small = motion(1, angle_deg=10.0, shift=0.1)
     moved_ref = src @ small[:3, :3].T + small[:3, 3]
     alone = register(src * 5, moved_ref * 5, "dvds")  # any scale: the network sees the unit sphere
@@ -74,7 +73,7 @@ def test_learned_method_with_shipped_weights(pair):
 
 
 def test_learned_method_without_weights_is_refused(pair):
-    with pytest.raises(MethodError, match="pointnetlk.*no shipped weights.*weights"):
+    with pytest.raises(MethodError, match=r"pointnetlk.*no shipped weights.*weights"):
         register(pair[0], pair[1], "pointnetlk")
 
 
@@ -83,7 +82,7 @@ def test_method_names():
     assert parse_method("fgr", refine="icp").name == "fgr+icp"
     assert parse_method("fgr", refine="none").name == "fgr"
     assert {"icp", "ransac", "fgr", "dvds", "ransac+icp", "dvds+icp"} <= set(available_methods())
-    with pytest.raises(MethodError, match="unknown method 'sift'.*ransac\\+icp"):
+    with pytest.raises(MethodError, match=r"unknown method 'sift'.*ransac\\+icp"):
         parse_method("sift")
     with pytest.raises(MethodError, match="refinement"):
         parse_method("icp+icp")

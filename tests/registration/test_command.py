@@ -8,11 +8,10 @@ import json
 import numpy as np
 import pytest
 
+from _register_pairs import errors  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.data.io import read_points
 from lcreg.registration.outputs import read_transform, write_ply
-
-from _register_pairs import errors  # type: ignore[import-not-found]
 
 
 @pytest.fixture()
@@ -66,7 +65,7 @@ def test_user_errors_exit_non_zero_and_write_nothing(files, tmp_path, capsys):
     code, err = _exit_code([str(src)], capsys)
     assert code == 2 and "SRC and REF" in err
     code, err = _exit_code([str(src), str(ref), "--method", "pointnetlk"], capsys)
-    assert code == 2 and "--weights" in err or "weights" in err
+    assert (code == 2 and "--weights" in err) or "weights" in err
     assert not out.exists()
 
 
@@ -89,14 +88,41 @@ def _pairs_csv(tmp_path, files, rows=3):
 def test_many_pairs_csv_scores_and_resumes(files, tmp_path, capsys):
     pairs = _pairs_csv(tmp_path, files)
     results = tmp_path / "res.csv"
-    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--limit", "1",
-          "--rte", "0.05", "--no-progress"])
+    main(
+        [
+            "register",
+            "--pairs",
+            str(pairs),
+            "--method",
+            "fgr+icp",
+            "--results",
+            str(results),
+            "--limit",
+            "1",
+            "--rte",
+            "0.05",
+            "--no-progress",
+        ]
+    )
     first = list(csv.DictReader(results.open()))
     assert len(first) == 1
     code, err = _exit_code(["--pairs", str(pairs), "--results", str(results)], capsys)
     assert code == 1 and "--resume" in err  # never overwrites earlier results
-    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--resume",
-          "--rte", "0.05", "--no-progress"])
+    main(
+        [
+            "register",
+            "--pairs",
+            str(pairs),
+            "--method",
+            "fgr+icp",
+            "--results",
+            str(results),
+            "--resume",
+            "--rte",
+            "0.05",
+            "--no-progress",
+        ]
+    )
     rows = list(csv.DictReader(results.open()))
     assert len(rows) == 3 and rows[0] == first[0]
     assert all(r["success"] == "1" and float(r["rre_deg"]) < 1.0 for r in rows)

@@ -51,15 +51,15 @@ def test_errors_name_the_argument_or_file(tmp_path):
         as_cloud(np.array([["a", "b", "c"]] * 20), "points_ref")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NonFiniteRowsWarning)
-        with pytest.raises(TooFewPointsError, match="points_src.*0 finite points"):
+        with pytest.raises(TooFewPointsError, match=r"points_src.*0 finite points"):
             as_cloud(np.full((100, 3), np.nan), "points_src")
     with pytest.raises(TooFewPointsError, match="points_src"):
         as_cloud(np.zeros((0, 3)), "points_src")
     with pytest.raises(DegenerateCloudError, match="points_ref"):
         as_cloud(np.ones((50, 3)), "points_ref")
-    with pytest.raises(FileNotFoundError, match="missing.ply"):
+    with pytest.raises(FileNotFoundError, match=r"missing.ply"):
         as_cloud(tmp_path / "missing.ply", "points_src")
     empty = tmp_path / "empty.ply"
     empty.write_bytes(b"")
-    with pytest.raises(PointCloudFileError, match="empty.ply"):
+    with pytest.raises(PointCloudFileError, match=r"empty.ply"):
         as_cloud(empty, "points_src")

@@ -32,7 +32,7 @@ def test_ply_is_read_back_exactly(tmp_path, pair):
 
 
 def test_refusals_write_nothing(tmp_path):
-    with pytest.raises(ValueError, match="--out.*extension"):
+    with pytest.raises(ValueError, match=r"--out.*extension"):
         write_transform(tmp_path / "T.csv", np.eye(4))
     with pytest.raises(FileNotFoundError, match="does not exist"):
         write_transform(tmp_path / "no" / "T.txt", np.eye(4))
@@ -41,7 +41,7 @@ def test_refusals_write_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
     bad = tmp_path / "bad.txt"
     bad.write_text("1 2 3\n")
-    with pytest.raises(TransformFileError, match="bad.txt"):
+    with pytest.raises(TransformFileError, match=r"bad.txt"):
         read_transform(bad)
-    with pytest.raises(FileNotFoundError, match="nope.npy"):
+    with pytest.raises(FileNotFoundError, match=r"nope.npy"):
         read_transform(tmp_path / "nope.npy")

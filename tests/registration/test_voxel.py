@@ -42,5 +42,5 @@ def test_scale_equivariant_on_the_rounding_grid(pair):
 
 def test_rounding_grid():
     assert round_voxel_size(1.0) == 1.0
-    assert round_voxel_size(1.01) == 2 ** 0.25
+    assert round_voxel_size(1.01) == 2**0.25
     assert 0.05 <= round_voxel_size(0.05) < 0.05 * 1.19

@@ -55,14 +55,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("src", nargs="?", help="source cloud file (moved onto the reference)")
     parser.add_argument("ref", nargs="?", help="reference cloud file")
-    parser.add_argument("--pairs", help="many pairs: a CSV (src,ref[,16 gt numbers]), a 3DMatch scene folder or "
-                        "gt.log (or a benchmarks/3DMatch folder: all scenes), or a KITTI pairs/*.json list")
+    parser.add_argument(
+        "--pairs",
+        help="many pairs: a CSV (src,ref[,16 gt numbers]), a 3DMatch scene folder or "
+        "gt.log (or a benchmarks/3DMatch folder: all scenes), or a KITTI pairs/*.json list",
+    )
     parser.add_argument("--method", default="default", help="method short name (see below); default: %(default)s")
     parser.add_argument("--weights", help="learned methods: a shipped name, an exported .pt or a .ckpt of lcreg fit")
     parser.add_argument("--refine", choices=("icp", "none"), help="add ICP refinement to a single-step method")
     parser.add_argument("--voxel-size", type=float, help="voxel size in the clouds' unit (default: automatic)")
-    parser.add_argument("--target-points", type=int, default=TARGET_POINTS,
-                        help="points per cloud after the automatic downsampling (default: %(default)s)")
+    parser.add_argument(
+        "--target-points",
+        type=int,
+        default=TARGET_POINTS,
+        help="points per cloud after the automatic downsampling (default: %(default)s)",
+    )
     parser.add_argument("--init", help="initial guess: a 4x4 transform file (.txt, .npy or .json)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the learned methods' point samples")
     parser.add_argument("--out", help="write the 4x4 transform: .txt, .json (with diagnostics) or .npy")
@@ -73,12 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
     many = parser.add_argument_group("many pairs (--pairs)")
     many.add_argument("--results", help="results CSV (default: register_results.csv in the current folder)")
     many.add_argument("--resume", action="store_true", help="keep the rows of an existing results CSV, run the rest")
-    many.add_argument("--rre", type=float, help="recall threshold on the rotation error, degrees (default: the "
-                      "dataset's: 3DMatch 15, KITTI 5, CSV 5)")
-    many.add_argument("--rte", type=float, help="recall threshold on the translation error, cloud units (default: "
-                      "3DMatch 0.3, KITTI 2.0, CSV none: set it)")
-    many.add_argument("--rmse", type=float, default=0.2, help="3DMatch recall: RMSE of the ground-truth "
-                      "correspondences (gt.info) below this (default: %(default)s m)")
+    many.add_argument(
+        "--rre",
+        type=float,
+        help="recall threshold on the rotation error, degrees (default: the dataset's: 3DMatch 15, KITTI 5, CSV 5)",
+    )
+    many.add_argument(
+        "--rte",
+        type=float,
+        help="recall threshold on the translation error, cloud units (default: "
+        "3DMatch 0.3, KITTI 2.0, CSV none: set it)",
+    )
+    many.add_argument(
+        "--rmse",
+        type=float,
+        default=0.2,
+        help="3DMatch recall: RMSE of the ground-truth correspondences (gt.info) below this (default: %(default)s m)",
+    )
     many.add_argument("--limit", type=int, help="register only the first N pairs")
     many.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -92,8 +110,10 @@ def _check_args(args: argparse.Namespace) -> None:
     if args.pairs is None and (args.src is None or args.ref is None):
         raise _Usage("give SRC and REF files, or --pairs FILE")
     if args.pairs is not None and (args.src is not None or args.save_aligned or args.plot or args.show or args.init):
-        raise _Usage("--pairs registers the pairs of its file: SRC/REF, --init, --save-aligned, --plot and --show "
-                     "apply to one pair")
+        raise _Usage(
+            "--pairs registers the pairs of its file: SRC/REF, --init, --save-aligned, --plot and --show "
+            "apply to one pair"
+        )
     if args.out is not None:
         check_suffix(args.out, TRANSFORM_SUFFIXES, "--out")
     if args.save_aligned is not None:
@@ -114,8 +134,10 @@ def _print_result(result: Registration) -> None:
     np.set_printoptions(suppress=True, precision=6, linewidth=120)
     print(f"source:    {result.sources[0]} ({result.num_points[0]} points)")
     print(f"reference: {result.sources[1]} ({result.num_points[1]} points)")
-    print(f"method:    {result.method}, voxel size {result.voxel_size:.6g} (clouds' unit), "
-          f"{result.used_points[0]} + {result.used_points[1]} points used")
+    print(
+        f"method:    {result.method}, voxel size {result.voxel_size:.6g} (clouds' unit), "
+        f"{result.used_points[0]} + {result.used_points[1]} points used"
+    )
     print("transform (maps source points into the reference frame):")
     for row in result.transform:
         print("  " + "  ".join(f"{x: .6f}" for x in row))
@@ -210,4 +232,3 @@ def _fail(message: str, code: int) -> NoReturn:
     sys.stderr.write(f"lcreg register: error: {one_line(message, 1000)}\n")
     sys.stderr.write("hint: `lcreg register --help` lists the options and methods; LCREG_DEBUG=1 shows the traceback\n")
     raise SystemExit(code)
-

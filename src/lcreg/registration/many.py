@@ -38,7 +38,7 @@ from lcreg.data.pairlists import ListedPair, read_pair_list
 from lcreg.registration.api import DEFAULT_METHOD, Registration, register_clouds
 from lcreg.registration.inputs import Cloud, as_cloud
 from lcreg.registration.methods import Method, PreparedCache, parse_method
-from lcreg.registration.voxel import TARGET_POINTS, round_voxel_size, cloud_voxel_size
+from lcreg.registration.voxel import TARGET_POINTS, cloud_voxel_size, round_voxel_size
 
 __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_pairs", "run_pairs", "summarize"]
 
@@ -323,9 +323,11 @@ def _print_summary(summary: dict[str, Any]) -> None:
     print(f"recall: RRE < {t['rre_deg']:g} deg and RTE < {rte}; 3DMatch recall: correspondence RMSE < {t['rmse']:g}")
     header = ("group", "pairs", "recall", "3DMatch recall", "median RRE deg", "median RTE", "ms/pair")
     print(" | ".join(header))
-    items = [*summary["groups"].items(), ("all", summary["overall"])] if len(summary["groups"]) > 1 else [
-        ("all", summary["overall"])
-    ]
+    items = (
+        [*summary["groups"].items(), ("all", summary["overall"])]
+        if len(summary["groups"]) > 1
+        else [("all", summary["overall"])]
+    )
     for name, s in items:
         cells = [
             name or "all", s["pairs"], _format(s.get("recall", "-"), True),

@@ -23,9 +23,9 @@ at most 100 iterations). Clouds with more than the target number of points are v
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 from collections import OrderedDict
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -270,9 +270,7 @@ def learned_model(method: str, weights: str | None) -> RegistrationModule:
     return model.eval()
 
 
-def learned_step(
-    model: RegistrationModule, src: np.ndarray, ref: np.ndarray, num_points: int, seed: int
-) -> np.ndarray:
+def learned_step(model: RegistrationModule, src: np.ndarray, ref: np.ndarray, num_points: int, seed: int) -> np.ndarray:
     """The network's ``(4, 4)`` estimate on ``num_points`` points of each cloud, centred on the reference centroid.
 
     Args:

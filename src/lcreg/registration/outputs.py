@@ -1,4 +1,4 @@
-"""Files ``lcreg register`` writes and reads: the transform (``.txt``, ``.json``, ``.npy``) and the moved source (``.ply``).
+"""Files ``lcreg register`` writes and reads: the transform (``.txt``, ``.json``, ``.npy``), the moved source (.ply).
 
 Every file is written to a temporary name in the target folder and renamed into place, so an error or a kill never
 leaves a half-written file, and nothing is written when the registration fails.
@@ -24,7 +24,7 @@ class TransformFileError(ValueError):
     """A transform file that cannot be read or written (the message names it)."""
 
 
-def _atomic(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
+def _atomic(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
     """Write through ``write(handle)`` to a temporary file beside ``path``, then rename it to ``path``."""
     if not path.parent.is_dir():
         raise FileNotFoundError(f"cannot write {str(path)!r}: folder {str(path.parent)!r} does not exist")

@@ -27,7 +27,14 @@ from scipy.spatial import cKDTree
 
 from lcreg.data.io import voxel_downsample
 
-__all__ = ["SPACING_FACTOR", "TARGET_POINTS", "auto_voxel_size", "cloud_voxel_size", "median_spacing", "round_voxel_size"]
+__all__ = [
+    "SPACING_FACTOR",
+    "TARGET_POINTS",
+    "auto_voxel_size",
+    "cloud_voxel_size",
+    "median_spacing",
+    "round_voxel_size",
+]
 
 TARGET_POINTS = 5000
 """Points kept per cloud (about) by the automatic voxel size."""
