@@ -82,7 +82,7 @@ def test_method_names():
     assert parse_method("fgr", refine="icp").name == "fgr+icp"
     assert parse_method("fgr", refine="none").name == "fgr"
     assert {"icp", "ransac", "fgr", "dvds", "ransac+icp", "dvds+icp"} <= set(available_methods())
-    with pytest.raises(MethodError, match=r"unknown method 'sift'.*ransac\\+icp"):
+    with pytest.raises(MethodError, match=r"unknown method 'sift'.*ransac\+icp"):
         parse_method("sift")
     with pytest.raises(MethodError, match="refinement"):
         parse_method("icp+icp")
