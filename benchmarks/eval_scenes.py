@@ -11,8 +11,9 @@
   pairs once; every method sees the same batches.
 * Metrics: :func:`lcreg.evaluation.evaluate` (RMSE/MAE of the Euler angles in degrees and of the translation in
   metres, mean/median RRE) plus the scene recall of the usual benchmarks: RRE < 15° and RTE < 0.3 m on 3DMatch /
-  7-Scenes (FCGF, DGR), RRE < 5° and RTE < 2 m on KITTI (DGR, GeoTransformer). ms/pair is the wall time of
-  ``register``.
+  7-Scenes (FCGF, DGR), RRE < 5° and RTE < 2 m on KITTI (DGR, GeoTransformer). The thresholds are the DataModules'
+  ``recall_thresholds``, the same that ``lcreg test`` logs as ``test/recall_r15_t0p3`` / ``test/recall_r5_t2``.
+  ms/pair is the wall time of ``register``.
 * ``--tune`` picks the voxelisation settings on validation scenes only (3DMatch SUN3D scenes, never redkitchen or
   KITTI): each candidate (``configs/voxelize/lk27.yaml`` with other ``normalize`` / ``coarse_iterations`` /
   ``reassign_every``) is run with DVDs and ranked by mean RRE.
@@ -47,10 +48,16 @@ from lcreg.benchmarking import (
     voxelize_overrides,
     write_text,
 )
+from lcreg.data.kitti import KITTIOdometryDataModule
+from lcreg.data.threedmatch import SevenScenesDataModule
 from lcreg.evaluation import EvaluationReport, evaluate
 from lcreg.metrics.functional import registration_recall
 
-RECALL = {"sevenscenes": (15.0, 0.3), "kitti": (5.0, 2.0)}
+# (degrees, metres) of each dataset's standard recall: the one its DataModule gives `lcreg test` (single source).
+RECALL = {
+    "sevenscenes": SevenScenesDataModule.recall_thresholds[0],
+    "kitti": KITTIOdometryDataModule.recall_thresholds[0],
+}
 VALIDATION_SCENES = ["sun3d-home_md-home_md_scan9_2012_sep_30", "sun3d-mit_76_studyroom-76-1studyroom2"]
 METHOD_KEYS = ("dvds", "dvds_voxel", "ransac_icp")
 SCENE_METRICS = {

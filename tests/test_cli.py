@@ -72,6 +72,39 @@ def test_fit_with_the_wandb_logging_fragment(tmp_path: Path) -> None:
     assert not (tmp_path / "runs" / "lcreg" / "version_0").exists()  # not the CSV logger
 
 
+def _logged_test_metrics(run_dir: Path) -> dict[str, float]:
+    rows = list(csv.DictReader((run_dir / "metrics.csv").open()))
+    return {k: float(v) for row in rows for k, v in row.items() if k.startswith("test/") and v}
+
+
+def test_lcreg_test_logs_the_recalls_asked_for_on_the_command_line_or_in_yaml(tmp_path: Path) -> None:
+    """Before: `lcreg test` logged only recall_r2_t0p01 and recall_r5_t0p05 (object units); no other recall could be
+    asked for (`recall_thresholds` was an unknown key)."""
+    from lcreg.metrics.functional import registration_recall
+
+    recall_yaml = _write(tmp_path / "recall.yaml", "model:\n  init_args:\n    recall_thresholds: [[5, 2]]\n")
+    runs = {
+        "version_0": ["--model.init_args.recall_thresholds", "[[15, 0.3], [90, 1.5]]"],
+        "version_1": ["--config", str(recall_yaml)],
+    }
+    expected = {"version_0": {(15.0, 0.3), (90.0, 1.5)}, "version_1": {(5.0, 2.0)}}
+    for version, extra in runs.items():
+        main(["test", "--config", str(DVDS), *TINY, *_outputs(tmp_path), *extra])
+        run_dir = tmp_path / "runs" / "lcreg" / version
+        metrics = _logged_test_metrics(run_dir)
+        names = {f"test/recall_r{r:g}_t{t:g}".replace(".", "p"): (r, t) for r, t in expected[version]}
+        assert {k for k in metrics if k.startswith("test/recall")} == {
+            "test/recall_r2_t0p01",
+            "test/recall_r5_t0p05",
+            *names,
+        }
+        pairs = list(csv.DictReader((run_dir / "test_per_pair.csv").open()))
+        rot = torch.tensor([float(p["rotation_error_deg"]) for p in pairs])
+        trans = torch.tensor([float(p["translation_error"]) for p in pairs])
+        for name, (r, t) in names.items():
+            assert metrics[name] == pytest.approx(float(registration_recall(rot, trans, r, t)), abs=1e-6), name
+
+
 def test_wandb_fragment_sets_only_the_logger() -> None:
     fragment = yaml.safe_load((CONFIGS / "logging" / "wandb.yaml").read_text())
     assert list(fragment) == ["trainer"] and list(fragment["trainer"]) == ["logger"]
@@ -148,7 +181,7 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
     from lightning.pytorch.loggers import CSVLogger
 
-    from lcreg.callbacks import LatestCheckpoint, RngState
+    from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar
 
     model_only = CONFIGS / "models" / "pcrnet.yaml"
     cli = build_cli(["--config", str(model_only), "--config", str(CONFIGS / "data" / "embedded.yaml")], run=False)
@@ -159,7 +192,8 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     assert (checkpoint.monitor, checkpoint.mode, checkpoint.save_last) == ("val/rre_mean_deg", "min", None)
     (latest,) = [c for c in cli.trainer.callbacks if isinstance(c, LatestCheckpoint)]
     assert latest.every_n_train_steps == 50 and any(isinstance(c, RngState) for c in cli.trainer.callbacks)
-    assert any(isinstance(c, TQDMProgressBar) for c in cli.trainer.callbacks)
+    (bar,) = [c for c in cli.trainer.callbacks if isinstance(c, TQDMProgressBar)]
+    assert isinstance(bar, TimedProgressBar) and (bar.refresh_rate, bar.min_interval_s) == (1, 0.5)
     raw = yaml.safe_load(model_only.read_text())
     assert "seed_everything" not in raw and set(raw["trainer"]) == {"max_epochs"}  # no file repeats the defaults
 

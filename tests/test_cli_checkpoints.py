@@ -148,3 +148,20 @@ def test_a_matching_checkpoint_tests_end_to_end(trained: Trained, tmp_path: Path
     """The checks pass a checkpoint of the configured model; Lightning's weights-only load reads every state."""
     main(["test", *DVDS, *PLAIN, "--ckpt_path", str(trained.dvds), f"--trainer.logger.init_args.save_dir={tmp_path}"])
     assert (tmp_path / "lcreg" / "version_0" / "test_per_pair.csv").is_file()
+
+
+def test_the_recalls_asked_for_at_test_time_beat_the_checkpoints(trained: Trained, tmp_path: Path) -> None:
+    """Before: a checkpoint of `lcreg fit` saves `recall_thresholds: null`, and its hyper-parameters override the
+    command line's model arguments (LightningCLI's merge), so `--model.init_args.recall_thresholds` was dropped."""
+    import csv
+
+    content = torch.load(trained.dvds, map_location="cpu", weights_only=True)
+    assert content["hyper_parameters"]["recall_thresholds"] is None
+    del content["hyper_parameters"]["recall_thresholds"]  # a checkpoint written before the argument existed
+    torch.save(content, tmp_path / "old.ckpt")
+    for name, checkpoint in (("new", trained.dvds), ("old", tmp_path / "old.ckpt")):
+        out = [f"--trainer.logger.init_args.save_dir={tmp_path}", f"--trainer.logger.init_args.name={name}"]
+        recall = ["--model.init_args.recall_thresholds", "[[15, 0.3]]"]
+        main(["test", *DVDS, *PLAIN, "--ckpt_path", str(checkpoint), *recall, *out])
+        rows = list(csv.DictReader((tmp_path / name / "version_0" / "metrics.csv").open()))
+        assert any(row.get("test/recall_r15_t0p3") for row in rows), name

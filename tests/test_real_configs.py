@@ -32,6 +32,13 @@ def _test_rows() -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+def _test_recalls() -> dict[str, float]:
+    """The ``test/recall_*`` values of the run's ``metrics.csv``."""
+    (table,) = Path("runs").rglob("metrics.csv")
+    with table.open() as fh:
+        return {k: float(v) for row in csv.DictReader(fh) for k, v in row.items() if k.startswith("test/recall") and v}
+
+
 @pytest.mark.parametrize(
     ("name", "cls"),
     [
@@ -92,6 +99,12 @@ def test_ransac_icp_on_seven_scenes_through_lcreg_test() -> None:
     rows = _test_rows()
     assert len(rows) == 2
     assert all(float(r["rotation_error_deg"]) < 5.0 for r in rows)  # measured 0.2-0.7 deg on these pairs
+    # The 3DMatch recall (RRE < 15 deg, RTE < 0.3 m) of the DataModule, next to the object-unit recalls.
+    recalls = _test_recalls()
+    assert set(recalls) == {"test/recall_r2_t0p01", "test/recall_r5_t0p05", "test/recall_r15_t0p3"}
+    assert recalls["test/recall_r15_t0p3"] == sum(
+        float(r["rotation_error_deg"]) < 15 and float(r["translation_error"]) < 0.3 for r in rows
+    ) / len(rows)
 
 
 @pytest.mark.data
@@ -114,3 +127,4 @@ def test_ransac_icp_on_the_kitti_pair_through_lcreg_test() -> None:
     main(["test", *config, *QUIET, f"--data.init_args.root={root}", "--data.init_args.test_split=train"])
     (row,) = _test_rows()
     assert float(row["rotation_error_deg"]) < 2.0 and float(row["translation_error"]) < 1.0
+    assert _test_recalls()["test/recall_r5_t2"] == 1.0  # KITTI's recall (RRE < 5 deg, RTE < 2 m)

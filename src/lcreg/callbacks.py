@@ -1,22 +1,23 @@
-"""Lightning callbacks used by the CLI: the latest-state checkpoint, the RNG state in checkpoints, predictions."""
+"""Lightning callbacks used by the CLI: latest-state checkpoint, RNG state, predictions, a time-based progress bar."""
 
 from __future__ import annotations
 
 import random
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import BasePredictionWriter, Callback
+from lightning.pytorch.callbacks import BasePredictionWriter, Callback, TQDMProgressBar
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.types import RegistrationResult
 
-__all__ = ["LatestCheckpoint", "RngState", "TransformWriter"]
+__all__ = ["LatestCheckpoint", "RngState", "TimedProgressBar", "TransformWriter"]
 
 
 class LatestCheckpoint(Callback):
@@ -189,3 +190,42 @@ class TransformWriter(BasePredictionWriter):
         path = directory / self.filename
         np.savez(path, **out)  # type: ignore[arg-type]  # numpy stubs type **kwds as allow_pickle
         rank_zero_info(f"{len(out['index'])} predictions written to {path}")
+
+
+class TimedProgressBar(TQDMProgressBar):
+    """A TQDM bar that refreshes at the end of a batch once ``min_interval_s`` have passed since its last refresh.
+
+    Lightning's ``refresh_rate`` counts batches: 20 keeps a CPU run (about 1 s a step) still for 20 s, 1 redraws the
+    bar hundreds of times a second on a fast GPU. This bar is checked after every train/val/test/predict batch and
+    redraws when ``min_interval_s`` have passed since its last redraw, and always at the last batch of a loop, so it
+    moves at every step on the CPU and a few times a second on a GPU. ``refresh_rate`` stays 1 (the environment's
+    ``TQDM_MINITERS`` still raises it).
+
+    Args:
+        min_interval_s: Least time between two redraws, in seconds (0: every batch).
+        process_position: Forwarded to ``TQDMProgressBar`` (bar position, for several trainers at once).
+        leave: Forwarded to ``TQDMProgressBar`` (keep each epoch's bar).
+
+    Raises:
+        ValueError: If ``min_interval_s`` is negative or not finite.
+    """
+
+    clock: Callable[[], float] = staticmethod(time.monotonic)
+    """Seconds of a monotonic clock (replaced in tests)."""
+
+    def __init__(self, min_interval_s: float = 0.5, process_position: int = 0, leave: bool = False) -> None:
+        if not 0 <= min_interval_s < float("inf"):
+            raise ValueError(f"`min_interval_s` must be a finite number >= 0, got {min_interval_s!r}")
+        super().__init__(refresh_rate=1, process_position=process_position, leave=leave)
+        self.min_interval_s = min_interval_s
+        self._last_refresh = float("-inf")
+
+    def _should_update(self, current: int, total: int) -> bool:
+        """Whether the batch-end hook redraws the bar (Lightning 2.x calls this from all four batch-end hooks)."""
+        if not super()._should_update(current, total):  # enabled, refresh_rate
+            return False
+        now = self.clock()
+        if current != total and now - self._last_refresh < self.min_interval_s:
+            return False
+        self._last_refresh = now
+        return True

@@ -7,8 +7,9 @@ family); both are picked in YAML.
 Shared trainer defaults live here, once: seed 1234, CSV logging under ``runs/<name>/version_<k>/``, checkpoints
 selected on the validation registration error ``val/rre_mean_deg`` (validation pairs carry a known pose; the
 label-free ``val/loss`` of self-supervised models keeps falling while registration degrades) plus ``last.ckpt``, and a
-TQDM bar. A config that lists its own ``ModelCheckpoint`` or progress bar replaces the default. Optimisers are model
-arguments (``model.init_args.optimizer``), so the top-level ``optimizer:`` key of LightningCLI is not used.
+TQDM bar redrawn by time (:class:`lcreg.callbacks.TimedProgressBar`). A config that lists its own ``ModelCheckpoint``
+or progress bar replaces the default. Optimisers are model arguments (``model.init_args.optimizer``), so the top-level
+``optimizer:`` key of LightningCLI is not used.
 
 Configs compose: ``--config`` may be given several times (later files override earlier ones; ``loss_terms+:``
 appends to a list), and a file may list the files it builds on under ``compose:`` (paths relative to that file),
@@ -59,7 +60,7 @@ from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCL
 from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.checkpoints import CheckpointError, check_class, check_keys, one_line, read_checkpoint
-from lcreg.models.base import NonFiniteTrainingError, RegistrationModule
+from lcreg.models.base import EVALUATION_ARGS, NonFiniteTrainingError, RegistrationModule
 
 __all__ = [
     "ConfigFileError",
@@ -156,7 +157,8 @@ class LcregCLI(LightningCLI):
     """LightningCLI with lcreg's base classes in subclass mode, the shared trainer defaults and ``compose``.
 
     Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg")`` (the best),
-    :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a ``TQDMProgressBar``; always
+    :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a
+    :class:`~lcreg.callbacks.TimedProgressBar` (a TQDM bar redrawn at most every 0.5 s, at every step on a CPU); always
     adds :class:`~lcreg.callbacks.RngState`. ``lcreg predict`` writes ``predictions.npz``
     (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory. ``--ckpt_path`` is resolved (``last``)
     and checked before anything is built (see the module docstring).
@@ -224,9 +226,16 @@ class LcregCLI(LightningCLI):
         return str(last.path)
 
     def _merge_hparams(self, subcommand: str, checkpoint: dict[str, Any]) -> None:
-        """The model arguments saved in the checkpoint override the config's (LightningCLI's behaviour)."""
+        """The model arguments saved in the checkpoint override the config's (LightningCLI's behaviour).
+
+        Except the evaluation settings (:data:`~lcreg.models.base.EVALUATION_ARGS`, ``recall_thresholds``): what a
+        run reports is the run's choice, so ``lcreg test --ckpt_path X --model.init_args.recall_thresholds ...``
+        logs the recalls asked for, whatever the training run had.
+        """
         hparams = dict(checkpoint.get("hyper_parameters") or {})
         hparams.pop("_instantiator", None)
+        for key in EVALUATION_ARGS:
+            hparams.pop(key, None)
         if not hparams:
             return
         if "_class_path" in hparams:
@@ -289,7 +298,7 @@ class LcregCLI(LightningCLI):
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
         from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
 
-        from lcreg.callbacks import LatestCheckpoint, RngState
+        from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar
 
         listed = config.get("callbacks") or []
         checkpointing = config.get("enable_checkpointing") is not False
@@ -313,7 +322,7 @@ class LcregCLI(LightningCLI):
 
             callbacks.append(TransformWriter())
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
-            callbacks.append(TQDMProgressBar(refresh_rate=20))
+            callbacks.append(TimedProgressBar())
         return super()._instantiate_trainer(config, callbacks)
 
 

@@ -21,6 +21,8 @@ from lcreg.metrics.registration import (
     TranslationErrorMean,
     TranslationMAE,
     TranslationRMSE,
+    check_recall_thresholds,
+    recall_key,
     registration_metrics,
 )
 
@@ -233,3 +235,57 @@ def test_a_pair_seen_twice_counts_once_by_index() -> None:
     for idx in (rank0, rank1):
         unindexed.update(transform_pred=preds[idx], transform_gt=transforms[idx])
     assert float(unindexed.compute()["rre_mean_deg"]) != pytest.approx(want["rre_mean_deg"], rel=1e-6)  # 6 pairs
+
+
+@pytest.mark.parametrize(
+    ("rot", "trans", "key"),
+    [
+        (2.0, 0.01, "recall_r2_t0p01"),
+        (5.0, 0.05, "recall_r5_t0p05"),
+        (15.0, 0.3, "recall_r15_t0p3"),
+        (5, 2, "recall_r5_t2"),
+        (2.5, 1e-5, "recall_r2p5_t1e-05"),
+    ],
+)
+def test_recall_key_writes_thresholds_like_the_standard_keys(rot: float, trans: float, key: str) -> None:
+    assert recall_key(rot, trans) == key
+
+
+def test_extra_recall_thresholds_add_keys_equal_to_the_functional_recall(rng: torch.Generator) -> None:
+    from lcreg.metrics import functional
+
+    gt, _ = random_euler_transform(64, generator=rng)
+    noise, _ = random_euler_transform(64, max_angle_deg=10.0, max_translation=0.1, generator=rng)
+    pred = noise @ gt
+    collection = registration_metrics("test/", recall_thresholds=[[15, 0.3], (5.0, 0.05), (10.0, 0.25)])
+    collection.update(transform_pred=pred, transform_gt=gt)
+    out = collection.compute()
+    assert sorted(out) == sorted([f"test/{k}" for k in KEYS] + ["test/recall_r15_t0p3", "test/recall_r10_t0p25"])
+    rot, trans = functional.rotation_error_deg(pred, gt), functional.translation_error(pred, gt)
+    for rot_thr, trans_thr in ((15.0, 0.3), (10.0, 0.25)):  # (5, 0.05) is a standard key: added once
+        want = functional.registration_recall(rot, trans, rot_thr, trans_thr)
+        assert 0 < float(want) < 1  # a recall that tells the thresholds apart
+        torch.testing.assert_close(out[f"test/{recall_key(rot_thr, trans_thr)}"], want.float())
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        [[15.0]],
+        [[15.0, 0.3, 1.0]],
+        [[0.0, 0.3]],
+        [[15.0, -0.3]],
+        [[math.nan, 0.3]],
+        [[15.0, math.inf]],
+        [[True, 0.3]],
+        [["15", 0.3]],
+        [15.0, 0.3],
+        "15,0.3",
+        15.0,
+    ],
+)
+def test_bad_recall_thresholds_are_a_value_error_naming_the_argument(bad: object) -> None:
+    with pytest.raises(ValueError, match="`recall_thresholds`"):
+        check_recall_thresholds(bad)
+    with pytest.raises(ValueError, match="`recall_thresholds`"):
+        registration_metrics(recall_thresholds=bad)  # type: ignore[arg-type]

@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -170,6 +170,11 @@ class ScenePairDataModule(ResumableTrainingOrder, LightningDataModule):
     Raises:
         ValueError: On an invalid option, or ``num_points=None`` with ``batch_size > 1``.
     """
+
+    recall_thresholds: ClassVar[tuple[tuple[float, float], ...]] = ()
+    """The benchmark's standard recall, ``(rotation degrees, translation in file units)`` pairs: registration models
+    log ``recall_r{deg}_t{trans}`` for each at validation and test (:meth:`lcreg.models.base.RegistrationModule.setup`)
+    unless their own ``recall_thresholds`` is set. None here; the dataset subclasses set theirs."""
 
     def __init__(
         self,

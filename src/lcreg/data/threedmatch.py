@@ -32,7 +32,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 
@@ -374,6 +374,9 @@ class SevenScenesDataModule(ScenePairDataModule):
         benchmark: ``"3DMatch"`` or ``"3DLoMatch"`` (use ``min_overlap: 0`` with the latter).
         **kwargs: Options of :class:`~lcreg.data.scenes.ScenePairDataModule` (``num_points``, ``voxel_size``, ...).
     """
+
+    recall_thresholds: ClassVar[tuple[tuple[float, float], ...]] = ((15.0, 0.3),)
+    """The 3DMatch / 7-Scenes recall (FCGF, DGR): RRE < 15 degrees and RTE < 0.3 m (``recall_r15_t0p3``)."""
 
     def __init__(
         self,

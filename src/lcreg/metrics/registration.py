@@ -23,6 +23,9 @@ otherwise). A summary metric's ``compute`` over zero pairs raises :class:`NoPair
 
 from __future__ import annotations
 
+import math
+import numbers
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -44,10 +47,14 @@ __all__ = [
     "TranslationErrorMean",
     "TranslationMAE",
     "TranslationRMSE",
+    "check_recall_thresholds",
+    "recall_key",
     "registration_metrics",
 ]
 
 WORST_ROTATION_DEG = 180.0
+STANDARD_RECALL_THRESHOLDS: tuple[tuple[float, float], ...] = ((2.0, 0.01), (5.0, 0.05))
+"""The recalls every collection logs, ``(degrees, point units)``: the object protocol's (unit-sphere shapes)."""
 _STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt", "index")
 
 
@@ -268,25 +275,87 @@ class PerPairErrors(_PairErrorMetric):
         return self._state("rot_err_deg"), self._state("trans_err"), self._state("index")
 
 
-def registration_metrics(prefix: str = "") -> MetricCollection:
+def recall_key(rot_thr_deg: float, trans_thr: float) -> str:
+    """The metric name of the recall at ``(rot_thr_deg, trans_thr)``: ``recall_r{rot}_t{trans}``, ``.`` as ``p``.
+
+    Module names cannot contain ``.``; each threshold is written as Python prints the float, without a trailing
+    ``.0``, so distinct thresholds get distinct names.
+
+    Example:
+        >>> recall_key(15.0, 0.3), recall_key(5, 2), recall_key(2.0, 0.01)
+        ('recall_r15_t0p3', 'recall_r5_t2', 'recall_r2_t0p01')
+    """
+    return f"recall_r{_number(rot_thr_deg)}_t{_number(trans_thr)}"
+
+
+def _number(value: float) -> str:
+    """``value`` as in a metric name: ``15.0 -> "15"``, ``0.3 -> "0p3"``."""
+    text = repr(float(value))
+    return text.removesuffix(".0").replace(".", "p")
+
+
+def check_recall_thresholds(value: Any, name: str = "recall_thresholds") -> tuple[tuple[float, float], ...]:
+    """Validated recall thresholds: a sequence of ``(rotation degrees, translation in point units)`` pairs.
+
+    Args:
+        value: The pairs, e.g. ``[[15, 0.3]]`` (YAML) or ``((5.0, 2.0),)``.
+        name: The argument named in the error.
+
+    Returns:
+        The pairs as a tuple of ``(float, float)``, in the given order.
+
+    Raises:
+        ValueError: If ``value`` is not a sequence of pairs of finite numbers > 0 (the message names ``name``).
+
+    Example:
+        >>> check_recall_thresholds([[15, 0.3]])
+        ((15.0, 0.3),)
+    """
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise ValueError(f"`{name}` must be a list of [degrees, translation] pairs, got {value!r}")
+    pairs = []
+    for pair in value:
+        if isinstance(pair, (str, bytes)) or not isinstance(pair, Sequence) or len(pair) != 2:
+            raise ValueError(f"`{name}` must hold [degrees, translation] pairs, got {pair!r} in {value!r}")
+        if not all(_positive_number(v) for v in pair):
+            raise ValueError(f"`{name}` thresholds must be finite numbers > 0, got {list(pair)!r} in {value!r}")
+        pairs.append((float(pair[0]), float(pair[1])))
+    return tuple(pairs)
+
+
+def _positive_number(value: Any) -> bool:
+    """Whether ``value`` is a finite real number (not a bool) above 0."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value) and float(value) > 0
+
+
+def registration_metrics(prefix: str = "", recall_thresholds: Sequence[tuple[float, float]] = ()) -> MetricCollection:
     """The standard metric collection logged by every registration model.
 
     Keys (after ``prefix``): ``rmse_r_deg``, ``mae_r_deg`` (DCP Euler), ``rmse_t``, ``mae_t``, ``rre_mean_deg``,
     ``rre_median_deg``, ``rte_mean``, ``recall_r2_t0p01`` (2 degrees and 0.01) and ``recall_r5_t0p05``
-    (5 degrees and 0.05). Module names cannot contain ``.``, hence ``0p01`` for 0.01.
+    (5 degrees and 0.05), then one :func:`recall_key` per extra pair of ``recall_thresholds`` (e.g.
+    ``recall_r15_t0p3``; a pair already listed adds nothing). Module names cannot contain ``.``, hence ``0p01``
+    for 0.01.
 
     Args:
         prefix: Prepended to every key, e.g. ``"val/"``.
+        recall_thresholds: Extra ``(rotation degrees, translation in point units)`` recalls.
 
     Returns:
         A ``MetricCollection`` to ``update(transform_pred=..., transform_gt=...)`` and ``compute()``.
 
+    Raises:
+        ValueError: If ``recall_thresholds`` is not a sequence of pairs of finite numbers > 0.
+
     Example:
-        >>> metrics = registration_metrics("test/")
+        >>> metrics = registration_metrics("test/", recall_thresholds=[(15.0, 0.3)])
         >>> metrics.update(transform_pred=torch.eye(4)[None], transform_gt=torch.eye(4)[None])
-        >>> float(metrics.compute()["test/recall_r2_t0p01"])
-        1.0
+        >>> values = metrics.compute()
+        >>> float(values["test/recall_r2_t0p01"]), float(values["test/recall_r15_t0p3"])
+        (1.0, 1.0)
     """
+    thresholds = STANDARD_RECALL_THRESHOLDS + check_recall_thresholds(recall_thresholds)
+    recalls = {recall_key(rot, trans): (rot, trans) for rot, trans in thresholds}
     return MetricCollection(
         {
             "rmse_r_deg": EulerRotationRMSE(),
@@ -296,8 +365,7 @@ def registration_metrics(prefix: str = "") -> MetricCollection:
             "rre_mean_deg": RotationErrorMean(),
             "rre_median_deg": RotationErrorMedian(),
             "rte_mean": TranslationErrorMean(),
-            "recall_r2_t0p01": RegistrationRecall(rot_thr_deg=2.0, trans_thr=0.01),
-            "recall_r5_t0p05": RegistrationRecall(rot_thr_deg=5.0, trans_thr=0.05),
+            **{key: RegistrationRecall(rot_thr_deg=rot, trans_thr=trans) for key, (rot, trans) in recalls.items()},
         },
         prefix=prefix,
     )

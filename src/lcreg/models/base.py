@@ -12,7 +12,8 @@ The one public way to get a model's training losses is :meth:`RegistrationModule
 every injected term, each weighted and logged as ``{stage}/{name}``).
 
 The base validates batches, runs ``forward``, logs every loss term as ``{stage}/{name}``, updates the registration
-metrics (:func:`lcreg.metrics.registration.registration_metrics`) on val/test batches that carry a ground truth,
+metrics (:func:`lcreg.metrics.registration.registration_metrics`) on val/test batches that carry a ground truth (plus
+the recalls of ``recall_thresholds``, else of the DataModule's ``recall_thresholds``: the scene benchmarks' in metres),
 prints a one-line summary per validation/test epoch and writes per-pair test errors to ``test_per_pair.csv`` in the
 logger's directory. Optimisers are injected (``optimizer``/``lr_scheduler`` callables, LightningCLI style).
 
@@ -35,12 +36,18 @@ from lightning.pytorch import LightningModule
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 from lcreg.checks import TooFewPointsError, check_extent, check_points, check_same_batch
-from lcreg.metrics.registration import PerPairErrors, registration_metrics
+from lcreg.metrics.registration import (
+    STANDARD_RECALL_THRESHOLDS,
+    PerPairErrors,
+    check_recall_thresholds,
+    recall_key,
+    registration_metrics,
+)
 from lcreg.models.loss_terms import LossTerm
 from lcreg.nn.dtypes import module_dtype, to_module_dtype
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["COMPONENT_ARGS", "NonFiniteTrainingError", "RegistrationModule"]
+__all__ = ["COMPONENT_ARGS", "EVALUATION_ARGS", "NonFiniteTrainingError", "RegistrationModule"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
@@ -52,6 +59,10 @@ SchedulerFactory = Callable[
 
 COMPONENT_ARGS = ("optimizer", "lr_scheduler", "loss_terms", "refiner", "voxel_grid")
 """Constructor arguments that are components, not hyper-parameters: never saved in a checkpoint's ``hparams``."""
+
+EVALUATION_ARGS = ("recall_thresholds",)
+"""Constructor arguments that only choose what evaluation reports: saved in ``hparams`` like the others, but the CLI
+never lets a checkpoint's value override the one of the run (``lcreg test --ckpt_path ...``)."""
 
 
 class NonFiniteTrainingError(RuntimeError):
@@ -94,10 +105,16 @@ class RegistrationModule(LightningModule):
         max_bad_steps: Consecutive training steps with a non-finite loss or gradient (each skipped: no parameter or
             optimiser-state change, a warning naming the batch) after which training stops with
             :class:`NonFiniteTrainingError`.
+        recall_thresholds: Extra recalls logged at validation and test, as ``(rotation degrees, translation in point
+            units)`` pairs, each as ``{stage}/recall_r{deg}_t{trans}`` (``.`` written ``p``:
+            ``[[15, 0.3]]`` -> ``recall_r15_t0p3``), besides ``recall_r2_t0p01`` and ``recall_r5_t0p05``.
+            ``None``: the ``recall_thresholds`` of the trainer's DataModule, if it has any (7-Scenes/3DMatch
+            ``((15.0, 0.3),)``, KITTI ``((5.0, 2.0),)``; object datasets none), added in :meth:`setup`.
 
     Raises:
         TypeError: If a loss term is not a ``LossTerm`` or the refiner is not a ``RegistrationModule``.
-        ValueError: If two loss terms share a name, ``max_bad_steps < 1`` or ``unit_scale`` is not > 0.
+        ValueError: If two loss terms share a name, ``max_bad_steps < 1``, ``unit_scale`` is not > 0 or
+            ``recall_thresholds`` is not a list of pairs of finite numbers > 0.
     """
 
     has_loss: bool = True
@@ -105,6 +122,7 @@ class RegistrationModule(LightningModule):
     inference_hparams: ClassVar[Mapping[str, Any]] = {}
     _min_points: int = 3
     _refiner: RegistrationModule | None = None
+    _recall_thresholds: tuple[tuple[float, float], ...] = ()
     loss_terms: torch.nn.ModuleList
 
     def __init__(
@@ -115,6 +133,7 @@ class RegistrationModule(LightningModule):
         refiner: RegistrationModule | None = None,
         unit_scale: float | None = None,
         max_bad_steps: int = 10,
+        recall_thresholds: Sequence[tuple[float, float]] | None = None,
     ) -> None:
         super().__init__()
         if unit_scale is not None and not (isinstance(unit_scale, (int, float)) and 0 < unit_scale < float("inf")):
@@ -134,8 +153,8 @@ class RegistrationModule(LightningModule):
                 f"`refiner` must be a RegistrationModule (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}"
             )
         object.__setattr__(self, "_refiner", refiner)  # plain attribute: not trained, not saved
-        self.val_metrics = registration_metrics("val/")
-        self.test_metrics = registration_metrics("test/")
+        self.recall_thresholds = None if recall_thresholds is None else check_recall_thresholds(recall_thresholds)
+        self._use_recall_thresholds(self.recall_thresholds or ())
         self.test_pairs = PerPairErrors()
         self._input_dtypes: list[torch.dtype] = []
         self.register_forward_pre_hook(_inputs_to_model_dtype, with_kwargs=True)
@@ -410,7 +429,9 @@ class RegistrationModule(LightningModule):
         return result
 
     def _summary(self, stage: Stage) -> None:
-        keys = ("rre_mean_deg", "rre_median_deg", "rmse_r_deg", "rte_mean", "recall_r2_t0p01")
+        standard = {recall_key(*pair) for pair in STANDARD_RECALL_THRESHOLDS}
+        extra = [k for k in dict.fromkeys(recall_key(*pair) for pair in self._recall_thresholds) if k not in standard]
+        keys = ("rre_mean_deg", "rre_median_deg", "rmse_r_deg", "rte_mean", "recall_r2_t0p01", *extra)
         values = {k: self.trainer.callback_metrics.get(f"{stage}/{k}") for k in keys}
         if all(v is not None for v in values.values()):
             text = ", ".join(f"{k}={float(v):.4g}" for k, v in values.items() if v is not None)
@@ -447,16 +468,29 @@ class RegistrationModule(LightningModule):
             rank_zero_info(f"per-pair test errors written to {path}")
 
     def setup(self, stage: str) -> None:
-        """Before any step: refuse data whose clouds are smaller than the model (and its loss terms) accept.
+        """Before any step: check the data's cloud size; add the data's recalls unless ``recall_thresholds`` is set.
 
-        Lightning calls this after the DataModule's ``setup``; a DataModule exposing ``points_per_cloud`` (the
+        Lightning calls this after the DataModule's ``setup`` and before it moves the model to its device (the
+        metrics added here move with it). A DataModule exposing ``points_per_cloud`` (the
         :class:`~lcreg.data.datamodule.PairDataModule` family) is checked, so ``num_points`` below LC's
-        ``num_local_points`` fails here, not at the first training step.
+        ``num_local_points`` fails here, not at the first training step. A DataModule exposing ``recall_thresholds``
+        (the scene DataModules: the benchmark's standard recall in metres) sets the extra recalls of the val/test
+        metrics when the model's own ``recall_thresholds`` is ``None``.
 
         Raises:
             TooFewPointsError: The data yields clouds of fewer than :attr:`min_points` points.
+            ValueError: The DataModule's ``recall_thresholds`` is not a sequence of pairs of finite numbers > 0.
         """
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        self._check_cloud_size(datamodule)
+        if self.recall_thresholds is None:
+            thresholds = getattr(datamodule, "recall_thresholds", None) or ()
+            thresholds = check_recall_thresholds(thresholds, f"{type(datamodule).__name__}.recall_thresholds")
+            if thresholds != self._recall_thresholds:
+                self._use_recall_thresholds(thresholds)
+
+    def _check_cloud_size(self, datamodule: Any) -> None:
+        """Refuse a DataModule whose ``points_per_cloud`` is below :attr:`min_points` (:class:`TooFewPointsError`)."""
         points = getattr(datamodule, "points_per_cloud", None)
         if isinstance(points, int) and points < self.min_points:
             needs = [f"{type(self).__name__} {self._min_points}"]
@@ -466,6 +500,12 @@ class RegistrationModule(LightningModule):
                 f"but the model needs at least {self.min_points} ({', '.join(needs)}): raise `num_points` or lower "
                 "the model's requirement (e.g. LC's `num_local_points`)"
             )
+
+    def _use_recall_thresholds(self, thresholds: tuple[tuple[float, float], ...]) -> None:
+        """(Re)build the val/test metric collections with the extra recalls of ``thresholds`` (validated)."""
+        self._recall_thresholds = thresholds
+        self.val_metrics = registration_metrics("val/", thresholds)
+        self.test_metrics = registration_metrics("test/", thresholds)
 
     def configure_optimizers(self) -> Any:
         """Build the injected optimiser (trainable parameters only) and optional scheduler."""

@@ -6,6 +6,8 @@ Pairs come from :func:`~lcreg.data.kitti.pairs.kitti_pairs`; loading, voxel down
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from lcreg.data.kitti.pairs import kitti_pairs
 from lcreg.data.kitti.selection import Selection, Split
 from lcreg.data.scenes import ScenePair, ScenePairDataModule
@@ -42,6 +44,9 @@ class KITTIOdometryDataModule(ScenePairDataModule):
         num_workers: DataLoader workers.
         seed: Base seed of the deterministic pairs.
     """
+
+    recall_thresholds: ClassVar[tuple[tuple[float, float], ...]] = ((5.0, 2.0),)
+    """The KITTI recall (DGR, GeoTransformer): RRE < 5 degrees and RTE < 2 m (``recall_r5_t2``)."""
 
     def __init__(
         self,

@@ -1,0 +1,101 @@
+"""The CLI's progress bar (:class:`lcreg.callbacks.TimedProgressBar`): redrawn by time, checked after every batch.
+
+The other callbacks of :mod:`lcreg.callbacks` are tested through the CLI (``test_cli.py``, ``test_cli_resume.py``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from lightning.pytorch import LightningModule, Trainer
+from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+from torch.utils.data import DataLoader
+
+from lcreg.callbacks import TimedProgressBar
+
+BATCHES = 8
+
+
+class _Steps(LightningModule):
+    """One parameter, one number per batch: the bar's hooks run as in a real run."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(1))
+
+    def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
+        return (self.weight - batch).square().mean()
+
+    def test_step(self, batch: torch.Tensor, batch_idx: int) -> None:
+        self.log("test/value", (self.weight - batch).mean())
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def train_dataloader(self) -> DataLoader[Any]:
+        return DataLoader(torch.arange(BATCHES, dtype=torch.float32), batch_size=1)
+
+    def test_dataloader(self) -> DataLoader[Any]:
+        return self.train_dataloader()
+
+
+class _Clock(Callback):
+    """Sets the bar's clock to ``times[i]`` when batch ``i`` starts; records the bar's ``n`` after each batch."""
+
+    def __init__(self, bar: TQDMProgressBar, times: list[float]) -> None:
+        self.bar, self.times, self.now, self.shown = bar, times, 0.0, []
+        if isinstance(bar, TimedProgressBar):
+            bar.clock = lambda: self.now  # type: ignore[method-assign]
+
+    def _start(self, batch_idx: int) -> None:
+        self.now = self.times[batch_idx]
+
+    def on_train_batch_start(self, trainer: Trainer, pl_module: LightningModule, batch: Any, batch_idx: int) -> None:
+        self._start(batch_idx)
+
+    def on_test_batch_start(self, trainer: Trainer, pl_module: LightningModule, *args: Any) -> None:
+        self._start(args[1])
+
+    def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any) -> None:
+        self.shown.append(self.bar.train_progress_bar.n)
+
+    def on_test_batch_end(self, trainer: Trainer, pl_module: LightningModule, *args: Any) -> None:
+        self.shown.append(self.bar.test_progress_bar.n)
+
+
+def _shown(bar: TQDMProgressBar, times: list[float], stage: str, tmp_path: Path) -> list[int]:
+    clock = _Clock(bar, times)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_epochs=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_model_summary=False,
+        callbacks=[bar, clock],
+        default_root_dir=tmp_path,
+    )
+    (trainer.fit if stage == "fit" else trainer.test)(_Steps())
+    return clock.shown
+
+
+CPU = [float(i) for i in range(BATCHES)]  # about 1 s a step
+GPU = [0.0, 0.2, 0.4, 0.6, 1.5, 1.6, 1.7, 1.8]  # fast steps, one slow
+
+
+@pytest.mark.parametrize("stage", ["fit", "test"])
+def test_the_bar_moves_at_every_slow_step_and_at_most_every_interval_on_fast_ones(stage: str, tmp_path: Path) -> None:
+    assert _shown(TimedProgressBar(), CPU, stage, tmp_path) == [1, 2, 3, 4, 5, 6, 7, 8]
+    # Redrawn at the first batch, once 0.5 s passed (batches 4 and 5), and at the last batch.
+    assert _shown(TimedProgressBar(), GPU, stage, tmp_path) == [1, 1, 1, 4, 5, 5, 5, 8]
+    assert _shown(TimedProgressBar(min_interval_s=0.0), GPU, stage, tmp_path) == [1, 2, 3, 4, 5, 6, 7, 8]
+    # Before: TQDMProgressBar(refresh_rate=20) stood still until the last batch, however slow the steps.
+    assert _shown(TQDMProgressBar(refresh_rate=20), CPU, stage, tmp_path) == [0, 0, 0, 0, 0, 0, 0, 8]
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("inf"), float("nan")])
+def test_a_bad_interval_is_a_value_error(bad: float) -> None:
+    with pytest.raises(ValueError, match="min_interval_s"):
+        TimedProgressBar(min_interval_s=bad)
