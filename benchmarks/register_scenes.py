@@ -1,8 +1,8 @@
 """Every ``lcreg register`` method on real pairs through ``lcreg register --pairs``; validation picks the default.
 
-    python benchmarks/register_scenes.py --set validation --out runs/register_bench     # choose the default
-    python benchmarks/register_scenes.py --set test --out runs/register_bench           # 8 3DMatch scenes + KITTI
-    python benchmarks/register_scenes.py --smoke                                        # seconds, synthetic pairs
+    python benchmarks/register_scenes.py --set validation --out docs/results/register_validation.md
+    python benchmarks/register_scenes.py --set test --out docs/results/register_test.md    # 3DMatch + KITTI
+    python benchmarks/register_scenes.py --smoke                                             # seconds, synthetic
 
 Sets (``../shared/data``):
 
@@ -14,8 +14,8 @@ Sets (``../shared/data``):
 * ``test``: all 8 scenes of the 3DMatch benchmark (every ``gt.log`` pair; official recall on the scored pairs) and
   the KITTI pairs.
 
-Each (set, method) writes ``<out>/<set>/<data>__<method>.csv`` (resumable: a rerun continues it) and its
-``.summary.json``; the Markdown table (``--md``) is rebuilt from all summaries found.
+Each (set, method) writes ``<results>/<set>/<data>__<method>.csv`` (resumable: a rerun continues it) and its
+``.summary.json``; the Markdown table (``--out``) is rebuilt from all summaries found.
 """
 
 from __future__ import annotations
@@ -194,12 +194,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--set", choices=("validation", "test"), default="validation")
     parser.add_argument("--methods", nargs="+", default=METHODS)
     parser.add_argument("--data", nargs="+", help="only these data names (e.g. 3dmatch kitti00)")
-    parser.add_argument("--out", help="results folder (default: runs/register_bench, or a temporary one with --smoke)")
-    parser.add_argument("--md", help="write the Markdown table here")
+    parser.add_argument("--out", help="write the Markdown table here")
+    parser.add_argument("--results", help="results folder (default: runs/register_bench; a temporary one with --smoke)")
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more lcreg register options")
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
-    out = Path(args.out or (tempfile.mkdtemp(prefix="lcreg_register_") if args.smoke else "runs/register_bench"))
+    out = Path(args.results or (tempfile.mkdtemp(prefix="lcreg_register_") if args.smoke else "runs/register_bench"))
     folder = out / ("smoke" if args.smoke else args.set)
     folder.mkdir(parents=True, exist_ok=True)
     methods = ["icp", "ransac+icp"] if args.smoke else args.methods
@@ -210,8 +210,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             run_one(pairs, method, folder / f"{data}__{method.replace('+', '-')}.csv", args.extra)
     text = f"Machine: {machine_line()}\n\n{table(folder)}\n"
     print(text)
-    if args.md:
-        write_text(args.md, text)
+    if args.out:
+        write_text(args.out, text)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ RUNS = {
     "learning_curves": [],
     "pilot_dvds_variants": [],
     "plot_learning_curves": [],
+    "register_scenes": [],
     "tune_classical": [],
 }
 

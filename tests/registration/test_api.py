@@ -102,3 +102,13 @@ def test_bad_options_are_named(pair):
 
 def test_top_level_export():
     assert lcreg.register is register
+
+
+def test_a_million_points_are_downsampled_first(pair):
+    src, ref, gt = pair
+    rng = np.random.default_rng(0)
+    dense = (src[None] + rng.normal(scale=2e-3, size=(334, *src.shape))).reshape(-1, 3)  # ~1M points
+    result = register(dense, ref)
+    assert result.num_points[0] == len(dense) > 1_000_000 - 10_000
+    assert result.used_points[0] <= 5000
+    assert errors(result.transform, gt)[0] < 1.5

@@ -61,11 +61,17 @@ class Thresholds:
 
 
 def default_thresholds(pairs: Sequence[ListedPair]) -> Thresholds:
-    """The standard thresholds of the list's kind: 3DMatch 15° / 0.3 m, KITTI 5° / 2 m, CSV 5° / none."""
+    """The standard thresholds of the list's kind: 3DMatch 15° / 0.3 m, KITTI 5° / 2 m, CSV 5° / none.
+
+    The scene values are those ``lcreg test`` logs (the DataModules' ``recall_thresholds``): one source of truth.
+    """
+    from lcreg.data.kitti import KITTIOdometryDataModule
+    from lcreg.data.threedmatch import SevenScenesDataModule
+
     if any(p.info is not None for p in pairs):
-        return Thresholds(15.0, 0.3)
+        return Thresholds(*SevenScenesDataModule.recall_thresholds[0])
     if pairs and all(p.path_src.suffix.lower() == ".bin" for p in pairs):
-        return Thresholds(5.0, 2.0)
+        return Thresholds(*KITTIOdometryDataModule.recall_thresholds[0])
     return Thresholds(5.0, math.inf)
 
 

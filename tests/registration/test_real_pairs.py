@@ -1,0 +1,50 @@
+"""``lcreg register --pairs`` on the real 3DMatch and KITTI lists of ``../shared/data`` (skipped when absent)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from _shared_data import shared_data  # type: ignore[import-not-found]
+
+from lcreg.cli import main
+from lcreg.data.pairlists import read_pair_list
+from lcreg.metrics.functional import correspondence_rmse_sq
+
+pytestmark = pytest.mark.data
+
+
+def test_threedmatch_scene_scores_with_the_official_recall(tmp_path, capsys):
+    scene = shared_data("3dmatch") / "benchmarks" / "3DMatch" / "7-scenes-redkitchen"
+    results = tmp_path / "kitchen.csv"
+    main(["register", "--pairs", str(scene), "--method", "fgr+icp", "--limit", "4", "--results", str(results)])
+    rows = list(csv.DictReader(results.open()))
+    pairs = {p.name: p for p in read_pair_list(scene)[:4]}
+    assert [r["name"] for r in rows] == list(pairs)
+    for row in rows:
+        pair = pairs[row["name"]]
+        estimate = np.array([float(row[f"t{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
+        expected = correspondence_rmse_sq(
+            torch.tensor(estimate)[None], torch.tensor(pair.transform_ref_src)[None], torch.tensor(pair.info)[None]
+        )
+        assert np.isclose(float(row["rmse"]) ** 2, float(expected[0]), rtol=1e-4, atol=1e-10)
+        assert row["scored"] == str(int(pair.scored))
+    summary = json.loads(results.with_suffix(".summary.json").read_text())
+    scored = [r for r in rows if r["scored"] == "1"]
+    assert summary["overall"]["scored_pairs"] == len(scored)
+    assert summary["overall"]["threedmatch_recall"] == np.mean([float(r["rmse"]) <= 0.2 for r in scored])
+    assert summary["thresholds"] == {"rre_deg": 15.0, "rte": 0.3, "rmse": 0.2}
+    assert "3DMatch recall" in capsys.readouterr().out
+
+
+def test_kitti_pair_list_registers_full_scans(tmp_path):
+    pairs_json = shared_data("kitti") / "pairs" / "train.json"
+    results = tmp_path / "kitti.csv"
+    with pytest.warns(UserWarning, match="skipped"):
+        main(["register", "--pairs", str(pairs_json), "--results", str(results), "--no-progress"])
+    rows = list(csv.DictReader(results.open()))
+    assert len(rows) == 1 and rows[0]["name"] == "00/11-0"
+    assert float(rows[0]["rre_deg"]) < 5 and float(rows[0]["rte"]) < 2 and rows[0]["success"] == "1"
