@@ -448,6 +448,10 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         auto_configure_optimizers=False,
         parser_class=LcregArgumentParser,
         save_config_kwargs={"overwrite": True},
+        parser_kwargs={
+            "description": "lcreg: train, test and compare registration networks (fit, validate, test, predict). "
+            "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`).",
+        },
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
         args=args,

@@ -131,3 +131,9 @@ def test_many_pairs_csv_scores_and_resumes(files, tmp_path, capsys):
     assert summary["thresholds"] == {"rre_deg": 5.0, "rte": 0.05, "rmse": 0.2}
     code, err = _exit_code(["--pairs", str(pairs), "--method", "icp", "--results", str(results), "--resume"], capsys)
     assert code == 1 and "fgr+icp" in err  # resume refuses another method's file
+
+
+def test_top_level_help_points_to_register(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "lcreg register SRC REF" in capsys.readouterr().out.replace("\n", " ")

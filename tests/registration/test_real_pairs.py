@@ -8,11 +8,12 @@ import json
 import numpy as np
 import pytest
 import torch
-from _shared_data import shared_data  # type: ignore[import-not-found]
 
 from lcreg.cli import main
 from lcreg.data.pairlists import read_pair_list
 from lcreg.metrics.functional import correspondence_rmse_sq
+
+from _shared_data import shared_data  # type: ignore[import-not-found]
 
 pytestmark = pytest.mark.data
 
