@@ -72,16 +72,17 @@ def cloud_voxel_size(points: np.ndarray, target: int = TARGET_POINTS, seed: int 
     Args:
         points: ``(N, 3)`` float, finite, non-zero extent.
         target: Points to keep at most after downsampling.
-        seed: Seed of the samples (spacing; clouds above 200,000 points are sampled for the count).
+        seed: Seed of the samples (clouds above 200,000 points are sampled for the spacing and the count).
 
     Returns:
         The voxel size in the points' unit.
     """
     rng = np.random.default_rng(seed)
-    spacing = median_spacing(points, seed)
+    sample = points if len(points) <= _SAMPLE else points[rng.choice(len(points), _SAMPLE, False)]
+    # Above 200,000 points the spacing of the sample (larger than the cloud's) is used: v_count dominates there.
+    spacing = median_spacing(sample, seed)
     extent = float(np.linalg.norm(np.ptp(points, axis=0)))
     low = max(SPACING_FACTOR * spacing, extent * 1e-6)
-    sample = points if len(points) <= _SAMPLE else points[rng.choice(len(points), _SAMPLE, False)]
     if len(sample) <= target or len(voxel_downsample(sample, low)) <= target:
         return low
     high = extent
