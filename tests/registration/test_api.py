@@ -112,3 +112,18 @@ def test_a_million_points_are_downsampled_first(pair):
     assert result.num_points[0] == len(dense) > 1_000_000 - 10_000
     assert result.used_points[0] <= 5000
     assert errors(result.transform, gt)[0] < 1.5
+
+
+@pytest.mark.parametrize("kind", ["pointnetlk", "fmr"])
+def test_learned_weights_from_a_checkpoint_or_an_export(pair, tmp_path, kind):
+    from _weights_files import exported, lightning_checkpoint, tiny_model  # type: ignore[import-not-found]
+
+    src, ref, _ = pair
+    model = tiny_model(kind)
+    checkpoint = lightning_checkpoint(model, tmp_path / "run.ckpt")
+    export = exported(model, tmp_path / "export")
+    by_ckpt = register(src, ref, kind, weights=str(checkpoint))
+    by_export = register(src, ref, kind, weights=str(export))
+    np.testing.assert_allclose(by_ckpt.transform, by_export.transform, atol=1e-5)  # the same network either way
+    with pytest.raises(MethodError, match="dvds"):
+        register(src, ref, "dvds", weights=str(checkpoint))  # weights of another method
