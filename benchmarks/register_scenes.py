@@ -112,9 +112,11 @@ def run_one(pairs: list[str], method: str, results: Path, extra: Sequence[str]) 
 def _summaries(folder: Path) -> list[dict[str, Any]]:
     rows = []
     for path in sorted(folder.glob("*.summary.json")):
-        data, _, _method = path.name.removesuffix(".summary.json").partition("__")
+        data, _, label = path.name.removesuffix(".summary.json").partition("__")
         summary = json.loads(path.read_text())
-        rows.append({"data": data.split(".part")[0], "part": path.name, "method": summary["method"], **summary})
+        tag = label.split(".part")[0].partition("@")[2]
+        method = summary["method"] + (f" ({tag})" if tag else "")
+        rows.append({**summary, "data": data.split(".part")[0], "part": path.name, "method": method})
     return rows
 
 
@@ -196,6 +198,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--data", nargs="+", help="only these data names (e.g. 3dmatch kitti00)")
     parser.add_argument("--out", help="write the Markdown table here")
     parser.add_argument("--results", help="results folder (default: runs/register_bench; a temporary one with --smoke)")
+    parser.add_argument("--tag", default="", help="suffix of the results files and method labels (with --extra)")
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more lcreg register options")
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
@@ -207,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.data and data not in args.data:
             continue
         for method in methods:
-            run_one(pairs, method, folder / f"{data}__{method.replace('+', '-')}.csv", args.extra)
+            run_one(pairs, method, folder / f"{data}__{method.replace('+', '-')}{args.tag}.csv", args.extra)
     text = f"Machine: {machine_line()}\n\n{table(folder)}\n"
     print(text)
     if args.out:

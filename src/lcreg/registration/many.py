@@ -212,9 +212,10 @@ def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "
         "pairs_with_gt": len(with_gt),
         "ms_per_pair": float(np.mean([float(r[f"{p}time_ms"]) for r in rows])) if rows else math.nan,
     }
-    if with_gt:
+    if with_gt:  # success from the errors (not the stored column): a resumed run may set other thresholds
+        hits = [float(r[f"{p}rre_deg"]) < thresholds.rre_deg and float(r[f"{p}rte"]) < thresholds.rte for r in with_gt]
         out |= {
-            "recall": float(np.mean([int(r[f"{p}success"]) for r in with_gt])),
+            "recall": float(np.mean(hits)),
             "rre_median_deg": _median([float(r[f"{p}rre_deg"]) for r in with_gt]),
             "rte_median": _median([float(r[f"{p}rte"]) for r in with_gt]),
             "rre_mean_deg": float(np.nanmean([float(r[f"{p}rre_deg"]) for r in with_gt])),
