@@ -157,7 +157,7 @@ def _variants(summary: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
 
 def _rows(data: str, method: str, s: dict[str, Any]) -> list[list[Any]]:
     rows = []
-    groups = s["groups"] if len(s["groups"]) > 1 or "" not in s["groups"] else {}
+    groups = s["groups"] if len(s["groups"]) > 1 else {}
     for name, g in [*groups.items(), ("all", s["overall"])]:
         recall = g.get("threedmatch_recall")
         scored = "-" if recall is None else f"{_cell(recall, True)} ({g.get('scored_pairs', 0)})"
@@ -198,6 +198,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--data", nargs="+", help="only these data names (e.g. 3dmatch kitti00)")
     parser.add_argument("--out", help="write the Markdown table here")
     parser.add_argument("--results", help="results folder (default: runs/register_bench; a temporary one with --smoke)")
+    parser.add_argument("--table-only", action="store_true", help="only rebuild the table from the results found")
     parser.add_argument("--tag", default="", help="suffix of the results files and method labels (with --extra)")
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more lcreg register options")
     add_smoke_argument(parser)
@@ -206,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     folder = out / ("smoke" if args.smoke else args.set)
     folder.mkdir(parents=True, exist_ok=True)
     methods = ["icp", "ransac+icp"] if args.smoke else args.methods
-    for data, pairs in datasets(args.set, out, args.smoke).items():
+    for data, pairs in ({} if args.table_only else datasets(args.set, out, args.smoke)).items():
         if args.data and data not in args.data:
             continue
         for method in methods:
