@@ -156,38 +156,19 @@ def _variants(summary: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
 
 
 def _rows(data: str, method: str, s: dict[str, Any]) -> list[list[Any]]:
-    rows = []
+    """Table rows of one summary: each scene (when several), then all pairs, then the mean of the scenes' recalls."""
     groups = s["groups"] if len(s["groups"]) > 1 else {}
-    for name, g in [*groups.items(), ("all", s["overall"])]:
+    only = next(iter(s["groups"]), "") if len(s["groups"]) == 1 else ""
+    rows = []
+    for name, g in [*groups.items(), (only or "all", s["overall"])]:
         recall = g.get("threedmatch_recall")
         scored = "-" if recall is None else f"{_cell(recall, True)} ({g.get('scored_pairs', 0)})"
-        rows.append(
-            [
-                data,
-                name or "all",
-                method,
-                g["pairs"],
-                _cell(g.get("recall"), True),
-                scored,
-                _cell(g.get("rre_median_deg")),
-                _cell(g.get("rte_median")),
-                f"{g['ms_per_pair']:.0f}",
-            ]
-        )
+        rre, rte = _cell(g.get("rre_median_deg")), _cell(g.get("rte_median"))
+        rows.append([data, name, method, g["pairs"], _cell(g.get("recall"), True), scored, rre, rte,
+                     f"{g['ms_per_pair']:.0f}"])  # fmt: skip
     if "threedmatch_recall_scene_mean" in s["overall"]:
-        rows.append(
-            [
-                data,
-                "mean of scenes",
-                method,
-                "",
-                "",
-                _cell(s["overall"]["threedmatch_recall_scene_mean"], True),
-                "",
-                "",
-                "",
-            ]
-        )
+        mean = _cell(s["overall"]["threedmatch_recall_scene_mean"], True)
+        rows.append([data, "mean of scenes", method, "", "", mean, "", "", ""])
     return rows
 
 
