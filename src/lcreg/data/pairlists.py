@@ -40,9 +40,8 @@ from lcreg.data.scenes import ScenePair
 from lcreg.data.threedmatch import (
     EXPECTED_LAYOUT,
     _layout_error,
-    _numbered_lines,
-    _parse_header,
     fragment_path,
+    read_blocks,
     read_gt_log,
     read_gt_overlap,
 )
@@ -155,26 +154,10 @@ def read_gt_info(path: str | Path) -> dict[tuple[int, int], np.ndarray]:
             the file and the line).
     """
     path = Path(path).expanduser()
-    lines = _numbered_lines(path)
-    if not lines:
-        raise DatasetLayoutError(f"{str(path)!r} holds no block ('i j n' + 6x6 matrix); {EXPECTED_LAYOUT}")
-    infos: dict[tuple[int, int], np.ndarray] = {}
-    num_fragments: int | None = None
-    for start in range(0, len(lines), 7):
-        header_line, header_tokens = lines[start]
-        i, j, n = _parse_header(path, header_line, header_tokens)
-        if num_fragments is not None and n != num_fragments:
-            raise _layout_error(path, header_line, f"header says n = {n}, earlier headers say n = {num_fragments}")
-        num_fragments = n
-        block = lines[start + 1 : start + 7]
-        if len(block) < 6:
-            raise _layout_error(path, header_line, f"block '{i} {j} {n}' has {len(block)} matrix rows, expected 6")
-        matrix = np.array([_parse_info_row(path, number, tokens) for number, tokens in block], dtype=np.float64)
-        _check_info(path, header_line, matrix)
-        if (i, j) in infos:
-            raise _layout_error(path, header_line, f"pair ({i}, {j}) is listed twice")
-        infos[(i, j)] = matrix
-    return infos
+    blocks, _ = read_blocks(path, 6, _parse_info_row)
+    for block in blocks:
+        _check_info(path, block.line, block.matrix)
+    return {(b.i, b.j): b.matrix for b in blocks}
 
 
 def _scene_root(scene_dir: Path) -> Path:

@@ -29,7 +29,7 @@ of at most 30 %, so select them with ``min_overlap=0`` (or ``0.1``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -43,10 +43,12 @@ __all__ = [
     "BENCHMARKS",
     "EXPECTED_LAYOUT",
     "SEVEN_SCENES_REDKITCHEN",
+    "Block",
     "GtLog",
     "SevenScenesDataModule",
     "fragment_path",
     "list_scenes",
+    "read_blocks",
     "read_gt_log",
     "read_gt_overlap",
     "threedmatch_pairs",
@@ -142,29 +144,58 @@ def read_gt_log(path: str | Path) -> GtLog:
             message names the file and the line).
     """
     path = Path(path).expanduser()
+    blocks, num_fragments = read_blocks(path, 4, _parse_row)
+    for block in blocks:
+        if np.abs(block.matrix[3] - _BOTTOM_ROW).max() > _BOTTOM_ROW_TOL:
+            raise _layout_error(
+                path, block.row_lines[3], f"last matrix row must be 0 0 0 1, got {block.matrix[3].tolist()}"
+            )
+    return GtLog(transforms={(b.i, b.j): b.matrix for b in blocks}, num_fragments=num_fragments)
+
+
+@dataclass(frozen=True)
+class Block:
+    """One block of a 3DMatch ``gt.log``/``gt.info``: header ``i j n`` (at ``line``) and its matrix."""
+
+    line: int
+    i: int
+    j: int
+    matrix: np.ndarray = field(repr=False)
+    row_lines: list[int] = field(repr=False)
+
+
+def read_blocks(
+    path: Path, size: int, parse_row: Callable[[Path, int, list[str]], list[float]]
+) -> tuple[list[Block], int]:
+    """The blocks of a ``gt.log`` (``size`` 4) or ``gt.info`` (6) file and the headers' ``n``, structure checked.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        DatasetLayoutError: No block, a truncated block, headers disagreeing on ``n`` or a repeated pair (naming the
+            file and line); ``parse_row`` raises for a malformed row.
+    """
     lines = _numbered_lines(path)
     if not lines:
-        raise DatasetLayoutError(f"{str(path)!r} holds no block ('i j n' + 4x4 matrix); {EXPECTED_LAYOUT}")
-    transforms: dict[tuple[int, int], np.ndarray] = {}
+        raise DatasetLayoutError(f"{str(path)!r} holds no block ('i j n' + {size}x{size} matrix); {EXPECTED_LAYOUT}")
+    blocks: list[Block] = []
+    seen: set[tuple[int, int]] = set()
     num_fragments: int | None = None
-    for start in range(0, len(lines), 5):
+    for start in range(0, len(lines), size + 1):
         header_line, header_tokens = lines[start]
         i, j, n = _parse_header(path, header_line, header_tokens)
         if num_fragments is not None and n != num_fragments:
             raise _layout_error(path, header_line, f"header says n = {n}, earlier headers say n = {num_fragments}")
         num_fragments = n
-        block = lines[start + 1 : start + 5]
-        if len(block) < 4:
-            raise _layout_error(path, header_line, f"block '{i} {j} {n}' has {len(block)} matrix rows, expected 4")
-        matrix = np.array([_parse_row(path, number, tokens) for number, tokens in block], dtype=np.float64)
-        if np.abs(matrix[3] - _BOTTOM_ROW).max() > _BOTTOM_ROW_TOL:
-            raise _layout_error(path, block[3][0], f"last matrix row must be 0 0 0 1, got {matrix[3].tolist()}")
-        if (i, j) in transforms:
+        rows = lines[start + 1 : start + 1 + size]
+        if len(rows) < size:
+            raise _layout_error(path, header_line, f"block '{i} {j} {n}' has {len(rows)} matrix rows, expected {size}")
+        matrix = np.array([parse_row(path, number, tokens) for number, tokens in rows], dtype=np.float64)
+        if (i, j) in seen:
             raise _layout_error(path, header_line, f"pair ({i}, {j}) is listed twice")
-        transforms[(i, j)] = matrix
-    if num_fragments is None:  # pragma: no cover - lines is non-empty, so a header was parsed
-        raise DatasetLayoutError(f"{str(path)!r} holds no block")
-    return GtLog(transforms=transforms, num_fragments=num_fragments)
+        seen.add((i, j))
+        blocks.append(Block(header_line, i, j, matrix, [number for number, _ in rows]))
+    assert num_fragments is not None  # lines is non-empty, so a header was parsed
+    return blocks, num_fragments
 
 
 def read_gt_overlap(path: str | Path) -> dict[tuple[int, int], float]:
