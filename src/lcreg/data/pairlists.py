@@ -23,7 +23,6 @@ list is detected from the path:
 from __future__ import annotations
 
 import csv
-import math
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field
@@ -116,19 +115,6 @@ class ListedPair:
 # ----------------------------------------------------------------------------------------------------- 3DMatch
 
 
-def _parse_info_row(path: Path, line: int, tokens: list[str]) -> list[float]:
-    """One row of a 6x6 ``gt.info`` matrix: six finite numbers."""
-    if len(tokens) != 6:
-        raise _layout_error(path, line, f"expected a matrix row of 6 numbers, got {' '.join(tokens)!r}")
-    try:
-        row = [float(token) for token in tokens]
-    except ValueError:
-        raise _layout_error(path, line, f"matrix row must hold numbers, got {' '.join(tokens)!r}") from None
-    if not all(math.isfinite(value) for value in row):
-        raise _layout_error(path, line, f"matrix row holds a non-finite value: {' '.join(tokens)!r}")
-    return row
-
-
 def _check_info(path: Path, line: int, matrix: np.ndarray) -> None:
     """A usable covariance: symmetric (relative ``1e-6``) with a positive ``[0, 0]`` (the number of points)."""
     if np.abs(matrix - matrix.T).max() > _SYMMETRY_RTOL * np.abs(matrix).max():
@@ -154,7 +140,7 @@ def read_gt_info(path: str | Path) -> dict[tuple[int, int], np.ndarray]:
             the file and the line).
     """
     path = Path(path).expanduser()
-    blocks, _ = read_blocks(path, 6, _parse_info_row)
+    blocks, _ = read_blocks(path, 6)
     for block in blocks:
         _check_info(path, block.line, block.matrix)
     return {(b.i, b.j): b.matrix for b in blocks}

@@ -29,7 +29,7 @@ of at most 30 %, so select them with ``min_overlap=0`` (or ``0.1``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -114,10 +114,10 @@ def _parse_header(path: Path, line: int, tokens: list[str]) -> tuple[int, int, i
     return i, j, n
 
 
-def _parse_row(path: Path, line: int, tokens: list[str]) -> list[float]:
-    """Parse one row of a 4x4 matrix."""
-    if len(tokens) != 4:
-        raise _layout_error(path, line, f"expected a matrix row of 4 numbers, got {' '.join(tokens)!r}")
+def _parse_row(path: Path, line: int, tokens: list[str], size: int) -> list[float]:
+    """Parse one row of a ``size x size`` matrix: ``size`` finite numbers."""
+    if len(tokens) != size:
+        raise _layout_error(path, line, f"expected a matrix row of {size} numbers, got {' '.join(tokens)!r}")
     try:
         row = [float(token) for token in tokens]
     except ValueError:
@@ -144,7 +144,7 @@ def read_gt_log(path: str | Path) -> GtLog:
             message names the file and the line).
     """
     path = Path(path).expanduser()
-    blocks, num_fragments = read_blocks(path, 4, _parse_row)
+    blocks, num_fragments = read_blocks(path, 4)
     for block in blocks:
         if np.abs(block.matrix[3] - _BOTTOM_ROW).max() > _BOTTOM_ROW_TOL:
             raise _layout_error(
@@ -164,15 +164,13 @@ class Block:
     row_lines: list[int] = field(repr=False)
 
 
-def read_blocks(
-    path: Path, size: int, parse_row: Callable[[Path, int, list[str]], list[float]]
-) -> tuple[list[Block], int]:
+def read_blocks(path: Path, size: int) -> tuple[list[Block], int]:
     """The blocks of a ``gt.log`` (``size`` 4) or ``gt.info`` (6) file and the headers' ``n``, structure checked.
 
     Raises:
         FileNotFoundError: ``path`` is not a file.
-        DatasetLayoutError: No block, a truncated block, headers disagreeing on ``n`` or a repeated pair (naming the
-            file and line); ``parse_row`` raises for a malformed row.
+        DatasetLayoutError: No block, a truncated block, a row that is not ``size`` finite numbers, headers
+            disagreeing on ``n`` or a repeated pair (naming the file and line).
     """
     lines = _numbered_lines(path)
     if not lines:
@@ -189,7 +187,7 @@ def read_blocks(
         rows = lines[start + 1 : start + 1 + size]
         if len(rows) < size:
             raise _layout_error(path, header_line, f"block '{i} {j} {n}' has {len(rows)} matrix rows, expected {size}")
-        matrix = np.array([parse_row(path, number, tokens) for number, tokens in rows], dtype=np.float64)
+        matrix = np.array([_parse_row(path, number, tokens, size) for number, tokens in rows], dtype=np.float64)
         if (i, j) in seen:
             raise _layout_error(path, header_line, f"pair ({i}, {j}) is listed twice")
         seen.add((i, j))
