@@ -39,7 +39,7 @@ from lcreg.data.scenes import ScenePair
 from lcreg.data.threedmatch import (
     EXPECTED_LAYOUT,
     _layout_error,
-    fragment_path,
+    pair_paths,
     read_blocks,
     read_gt_log,
     read_gt_overlap,
@@ -179,12 +179,7 @@ def _threedmatch_scene(scene_dir: Path) -> list[ListedPair]:
     overlaps = read_gt_overlap(overlap_file) if overlap_file.is_file() else {}
     pairs = []
     for (i, j), transform in gt.transforms.items():
-        path_ref, path_src = fragment_path(root, scene, i), fragment_path(root, scene, j)
-        for path in (path_ref, path_src):
-            if not path.is_file():
-                raise FileNotFoundError(
-                    f"fragment {str(path)!r} of gt.log pair ({i}, {j}) does not exist; {EXPECTED_LAYOUT}"
-                )
+        path_src, path_ref = pair_paths(root, scene, i, j)
         pairs.append(
             ListedPair(
                 path_src=path_src,

@@ -48,6 +48,7 @@ __all__ = [
     "SevenScenesDataModule",
     "fragment_path",
     "list_scenes",
+    "pair_paths",
     "read_blocks",
     "read_gt_log",
     "read_gt_overlap",
@@ -269,6 +270,21 @@ def fragment_path(root: str | Path, scene: str, index: int) -> Path:
     return Path(root).expanduser() / "fragments" / scene / f"cloud_bin_{index}.ply"
 
 
+def pair_paths(root: str | Path, scene: str, i: int, j: int) -> tuple[Path, Path]:
+    """``(source = fragment j, reference = fragment i)`` of gt.log pair ``(i, j)``, both checked to exist.
+
+    Raises:
+        FileNotFoundError: A fragment is missing (named, with the pair).
+    """
+    path_src, path_ref = fragment_path(root, scene, j), fragment_path(root, scene, i)
+    for path in (path_ref, path_src):
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"fragment {str(path)!r} of gt.log pair ({i}, {j}) does not exist; {EXPECTED_LAYOUT}"
+            )
+    return path_src, path_ref
+
+
 def _check_min_overlap(min_overlap: float) -> float:
     value = float(min_overlap)
     if not math.isfinite(value) or value >= 1.0:
@@ -330,12 +346,7 @@ def _scene_pairs(root: str | Path, scene: str, benchmark: Benchmark, min_overlap
                 )
             if overlap <= min_overlap:
                 continue
-        path_ref, path_src = fragment_path(root, scene, i), fragment_path(root, scene, j)
-        for path in (path_ref, path_src):
-            if not path.is_file():
-                raise FileNotFoundError(
-                    f"fragment {str(path)!r} of gt.log pair ({i}, {j}) does not exist; {EXPECTED_LAYOUT}"
-                )
+        path_src, path_ref = pair_paths(root, scene, i, j)
         pairs.append(
             ScenePair(
                 path_src=path_src,
