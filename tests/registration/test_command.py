@@ -88,41 +88,13 @@ def _pairs_csv(tmp_path, files, rows=3):
 def test_many_pairs_csv_scores_and_resumes(files, tmp_path, capsys):
     pairs = _pairs_csv(tmp_path, files)
     results = tmp_path / "res.csv"
-    main(
-        [
-            "register",
-            "--pairs",
-            str(pairs),
-            "--method",
-            "fgr+icp",
-            "--results",
-            str(results),
-            "--limit",
-            "1",
-            "--rte",
-            "0.05",
-            "--no-progress",
-        ]
-    )
+    common = ["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--rte", "0.05"]
+    main([*common, "--limit", "1", "--no-progress"])
     first = list(csv.DictReader(results.open()))
     assert len(first) == 1
     code, err = _exit_code(["--pairs", str(pairs), "--results", str(results)], capsys)
     assert code == 1 and "--resume" in err  # never overwrites earlier results
-    main(
-        [
-            "register",
-            "--pairs",
-            str(pairs),
-            "--method",
-            "fgr+icp",
-            "--results",
-            str(results),
-            "--resume",
-            "--rte",
-            "0.05",
-            "--no-progress",
-        ]
-    )
+    main([*common, "--resume"])
     rows = list(csv.DictReader(results.open()))
     assert len(rows) == 3 and rows[0] == first[0]
     assert all(r["success"] == "1" and float(r["rre_deg"]) < 1.0 for r in rows)
