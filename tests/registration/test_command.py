@@ -109,3 +109,16 @@ def test_top_level_help_points_to_register(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     assert "lcreg register SRC REF" in capsys.readouterr().out.replace("\n", " ")
+
+
+def test_user_thresholds_keep_the_standard_recall(files, tmp_path):
+    src, ref, gt = files
+    pairs = tmp_path / "pairs.csv"
+    moved = gt.copy()
+    moved[:3, 3] += 0.03  # a ground truth 3 cm off: a miss at --rte 0.01, a hit at the CSV standard (no RTE limit)
+    pairs.write_text(f"{src.name},{ref.name}," + " ".join(map(str, moved.reshape(-1))) + "\n")
+    results = tmp_path / "res.csv"
+    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--rte", "0.01"])
+    summary = json.loads(results.with_suffix(".summary.json").read_text())
+    assert summary["overall"]["recall"] == 0.0 and summary["overall"]["recall_standard"] == 1.0
+    assert summary["standard_thresholds"]["rte"] is None and summary["thresholds"]["rte"] == 0.01

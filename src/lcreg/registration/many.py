@@ -201,10 +201,19 @@ def _median(values: list[float]) -> float:
     return float(np.median(finite)) if finite else math.nan
 
 
-def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "") -> dict[str, Any]:
+def _recall(rows: list[dict[str, Any]], thresholds: Thresholds, p: str) -> float:
+    """Share of ``rows`` with RRE and RTE below ``thresholds`` (from the errors: a resumed run may set others)."""
+    return float(np.mean([float(r[f"{p}rre_deg"]) < thresholds.rre_deg and float(r[f"{p}rte"]) < thresholds.rte
+                          for r in rows]))  # fmt: skip
+
+
+def _group_scores(
+    rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "", standard: Thresholds | None = None
+) -> dict[str, Any]:
     """Scores of CSV rows (values as read back): counts, recall, medians, 3DMatch recall, ms/pair.
 
-    ``p="coarse_"`` scores the coarse step of a pipeline from its ``coarse_*`` columns.
+    ``p="coarse_"`` scores the coarse step of a pipeline from its ``coarse_*`` columns; ``standard`` adds
+    ``recall_standard``, the recall at the list kind's standard thresholds (when the user set others).
     """
     with_gt = [r for r in rows if r[f"{p}success"] != ""]
     out: dict[str, Any] = {
@@ -212,10 +221,11 @@ def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "
         "pairs_with_gt": len(with_gt),
         "ms_per_pair": float(np.mean([float(r[f"{p}time_ms"]) for r in rows])) if rows else math.nan,
     }
-    if with_gt:  # success from the errors (not the stored column): a resumed run may set other thresholds
-        hits = [float(r[f"{p}rre_deg"]) < thresholds.rre_deg and float(r[f"{p}rte"]) < thresholds.rte for r in with_gt]
+    if with_gt:
+        out |= {"recall": _recall(with_gt, thresholds, p)}
+        if standard is not None:
+            out |= {"recall_standard": _recall(with_gt, standard, p)}
         out |= {
-            "recall": float(np.mean(hits)),
             "rre_median_deg": _median([float(r[f"{p}rre_deg"]) for r in with_gt]),
             "rte_median": _median([float(r[f"{p}rte"]) for r in with_gt]),
             "rre_mean_deg": float(np.nanmean([float(r[f"{p}rre_deg"]) for r in with_gt])),
@@ -227,23 +237,40 @@ def _group_scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "
     return out
 
 
-def _scores(rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "") -> dict[str, Any]:
+def _scores(
+    rows: list[dict[str, Any]], thresholds: Thresholds, p: str = "", standard: Thresholds | None = None
+) -> dict[str, Any]:
     """``{"overall": ..., "groups": ...}`` (3DMatch: also the mean of the scenes' recalls)."""
     groups = sorted({r["group"] for r in rows})
-    per_group = {g: _group_scores([r for r in rows if r["group"] == g], thresholds, p) for g in groups}
-    overall = _group_scores(rows, thresholds, p)
+    per_group = {g: _group_scores([r for r in rows if r["group"] == g], thresholds, p, standard) for g in groups}
+    overall = _group_scores(rows, thresholds, p, standard)
     recalls = [s["threedmatch_recall"] for s in per_group.values() if "threedmatch_recall" in s]
     if recalls and len(per_group) > 1:
         overall["threedmatch_recall_scene_mean"] = float(np.mean(recalls))
     return {"overall": overall, "groups": per_group}
 
 
-def summarize(rows: list[dict[str, Any]], thresholds: Thresholds) -> dict[str, Any]:
-    """Scores of the results CSV rows; a pipeline's coarse step under ``"coarse"`` (same keys)."""
-    thresholds_out = {"rre_deg": thresholds.rre_deg, "rte": thresholds.rte if math.isfinite(thresholds.rte) else None}
-    out = {"thresholds": thresholds_out | {"rmse": thresholds.rmse}, **_scores(rows, thresholds)}
+def _thresholds_dict(thresholds: Thresholds) -> dict[str, float | None]:
+    rte = thresholds.rte if math.isfinite(thresholds.rte) else None
+    return {"rre_deg": thresholds.rre_deg, "rte": rte, "rmse": thresholds.rmse}
+
+
+def summarize(rows: list[dict[str, Any]], thresholds: Thresholds, standard: Thresholds | None = None) -> dict[str, Any]:
+    """Scores of the results CSV rows; a pipeline's coarse step under ``"coarse"`` (same keys).
+
+    Args:
+        rows: Rows of the results CSV (strings, as read back).
+        thresholds: The run's recall thresholds (``recall``).
+        standard: The list kind's standard thresholds, scored too (``recall_standard``) when they differ.
+    """
+    if standard is not None and (standard.rre_deg, standard.rte) == (thresholds.rre_deg, thresholds.rte):
+        standard = None
+    out: dict[str, Any] = {"thresholds": _thresholds_dict(thresholds)}
+    if standard is not None:
+        out["standard_thresholds"] = _thresholds_dict(standard)
+    out |= _scores(rows, thresholds, "", standard)
     if rows and all(r["coarse_time_ms"] != "" for r in rows):
-        out["coarse"] = _scores(rows, thresholds, "coarse_")
+        out["coarse"] = _scores(rows, thresholds, "coarse_", standard)
     return out
 
 
@@ -298,7 +325,8 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
             fh.flush()
             rows.append({k: str(v) for k, v in record.items()})
             _postfix(bar, rows)
-    summary = summarize(rows, thresholds) | {"method": method.name, "pairs_file": str(args.pairs)}
+    summary = summarize(rows, thresholds, default_thresholds(pairs))
+    summary |= {"method": method.name, "pairs_file": str(args.pairs)}
     summary_path = results.with_suffix(".summary.json")
     summary_path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     _print_summary(summary)
@@ -328,7 +356,21 @@ def _print_summary(summary: dict[str, Any]) -> None:
     t = summary["thresholds"]
     rte = "none" if t["rte"] is None else f"{t['rte']:g}"
     print(f"recall: RRE < {t['rre_deg']:g} deg and RTE < {rte}; 3DMatch recall: correspondence RMSE < {t['rmse']:g}")
-    header = ("group", "pairs", "recall", "3DMatch recall", "median RRE deg", "median RTE", "ms/pair")
+    if "standard_thresholds" in summary:
+        st = summary["standard_thresholds"]
+        print(
+            f"standard recall of this kind of list (recall_standard): RRE < {st['rre_deg']:g} deg and RTE < {st['rte']}"
+        )
+    header = (
+        "group",
+        "pairs",
+        "recall",
+        "standard recall",
+        "3DMatch recall",
+        "median RRE deg",
+        "median RTE",
+        "ms/pair",
+    )
     print(" | ".join(header))
     items = (
         [*summary["groups"].items(), ("all", summary["overall"])]
@@ -338,6 +380,7 @@ def _print_summary(summary: dict[str, Any]) -> None:
     for name, s in items:
         cells = [
             name or "all", s["pairs"], _format(s.get("recall", "-"), True),
+            _format(s.get("recall_standard", "-"), True),
             _format(s.get("threedmatch_recall", "-"), True), _format(s.get("rre_median_deg", "-")),
             _format(s.get("rte_median", "-")), f"{s['ms_per_pair']:.0f}",
         ]  # fmt: skip
