@@ -122,3 +122,24 @@ def test_user_thresholds_keep_the_standard_recall(files, tmp_path):
     summary = json.loads(results.with_suffix(".summary.json").read_text())
     assert summary["overall"]["recall"] == 0.0 and summary["overall"]["recall_standard"] == 1.0
     assert summary["standard_thresholds"]["rte"] is None and summary["thresholds"]["rte"] == 0.01
+
+
+def test_console_reports_dropped_nan_rows_in_one_line(tmp_path, pair):
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src, ref, _ = pair
+    src = src.copy()
+    src[:7, 0] = np.nan
+    np.save(tmp_path / "src.npy", src)
+    np.save(tmp_path / "ref.npy", ref)
+    lcreg = shutil.which("lcreg", path=str(Path(sys.executable).parent))
+    assert lcreg is not None
+    out = subprocess.run(
+        [lcreg, "register", "src.npy", "ref.npy", "--method", "fgr+icp"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert out.returncode == 0, out.stderr
+    assert "lcreg register: warning: points_src (src.npy): dropped 7 of 3000 points with NaN/Inf" in out.stderr
+    assert "(2993 points)" in out.stdout

@@ -183,8 +183,25 @@ def _one_pair(args: argparse.Namespace) -> None:
             show_registration(src, ref, result.transform)
 
 
+def _one_line_warnings() -> None:
+    """Warnings (NaN rows dropped, pairs skipped) as ``lcreg register: warning: ...`` lines, unless recorded."""
+    if warnings.showwarning is not getattr(warnings, "_showwarning_orig", None):
+        return  # someone records or formats warnings already (pytest, an embedding program): leave them alone
+
+    def show(message: Warning | str, category: type[Warning], *args: object, **kwargs: object) -> None:
+        sys.stderr.write(f"lcreg register: warning: {message}\n")
+
+    warnings.showwarning = show
+
+
 def run(argv: Sequence[str]) -> None:
     """Parse ``argv`` and run (errors raise; :func:`main` turns them into exit codes)."""
+    with warnings.catch_warnings():
+        _one_line_warnings()
+        _run(argv)
+
+
+def _run(argv: Sequence[str]) -> None:
     args = build_parser().parse_args(list(argv))
     _check_args(args)
     if args.pairs is not None:
