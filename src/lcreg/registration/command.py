@@ -183,22 +183,22 @@ def _one_pair(args: argparse.Namespace) -> None:
             show_registration(src, ref, result.transform)
 
 
-def _one_line_warnings() -> None:
-    """Warnings (NaN rows dropped, pairs skipped) as ``lcreg register: warning: ...`` lines, unless recorded."""
-    if warnings.showwarning is not getattr(warnings, "_showwarning_orig", None):
-        return  # someone records or formats warnings already (pytest, an embedding program): leave them alone
-
-    def show(message: Warning | str, category: type[Warning], *args: object, **kwargs: object) -> None:
-        sys.stderr.write(f"lcreg register: warning: {message}\n")
-
-    warnings.showwarning = show
+def _one_line(message: Warning | str, category: type[Warning], *args: object, **kwargs: object) -> str:
+    """``warnings.formatwarning`` of the command: ``lcreg register: warning: <message>`` (no source line)."""
+    return f"lcreg register: warning: {message}\n"
 
 
 def run(argv: Sequence[str]) -> None:
-    """Parse ``argv`` and run (errors raise; :func:`main` turns them into exit codes)."""
-    with warnings.catch_warnings():
-        _one_line_warnings()
+    """Parse ``argv`` and run (errors raise; :func:`main` turns them into exit codes).
+
+    Warnings (NaN rows dropped, pairs skipped) print as one line each; recording them (pytest) is unaffected.
+    """
+    previous = warnings.formatwarning
+    warnings.formatwarning = _one_line
+    try:
         _run(argv)
+    finally:
+        warnings.formatwarning = previous
 
 
 def _run(argv: Sequence[str]) -> None:
