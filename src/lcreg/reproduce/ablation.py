@@ -50,10 +50,11 @@ OBJECTIVES = {
 
 BUDGETS: dict[Preset, dict[str, RunBudget]] = {
     "smoke": {"dvds": RunBudget(steps=2, points=128, batch=2, checks=1)},
-    "cpu": {"dvds": RunBudget(steps=80, points=512, batch=16, checks=4)},
+    "cpu": {"dvds": RunBudget(steps=68, points=512, batch=16, checks=4)},
     "paper": {"dvds": RunBudget(epochs=200, points=1024, batch=16)},
 }
-"""Every variant gets the same budget (one group)."""
+"""Every variant gets the same budget (one group). ``cpu``: 16 variants × 3 seeds in about 2 h on the 2-core CPU
+(estimate from measured s/step in ``docs/reproducing.md``); ``paper``: the paper's 200 epochs at 1024 points."""
 
 
 def _variants() -> tuple[Variant, ...]:
@@ -95,9 +96,10 @@ def _claims() -> tuple[Claim, ...]:
 NOTES = (
     "Data: `--root` (default `../shared/data/modelnet40_mini`, a real subset of ModelNet40: 164 test objects of the "
     "first 20 categories, most of them airplanes) instead of the full ModelNet40 test set of those categories.",
-    "Budget: `cpu` trains a fraction of one epoch per run; the paper trains 200 epochs (`--budget paper`, for a GPU) "
-    "and stops early when the validation loss stalls for ten epochs; here the checkpoint is chosen on the "
-    "validation registration error (the label-free validation loss keeps falling while registration degrades).",
+    "Budget: `cpu` trains 68 steps of 16 pairs per run (about 1.5 passes over the 705 training objects of "
+    "modelnet40_mini); the paper trains 200 epochs (`--budget paper`, for a GPU) and stops early when the validation "
+    "loss stalls for ten epochs; here the checkpoint is chosen on the validation registration error (the label-free "
+    "validation loss keeps falling while registration degrades).",
     "|X1| = 64 and (λ1, λ2) = (0.5, 0.1) are model D (the paper repeats its row): trained once, shown three times.",
     "DVDs here has no BatchNorm and Adam lr 1e-4 (chosen on validation: `configs/models/dvds.yaml`); the paper "
     "does not state its optimiser settings. 'If not specified, hyper-parameters in each model are manually "

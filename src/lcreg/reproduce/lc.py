@@ -30,14 +30,16 @@ PAPER_BUDGET = RunBudget(epochs=200, points=1024)
 BUDGETS: dict[Preset, dict[str, RunBudget]] = {
     "smoke": dict.fromkeys(HOSTS, SMOKE),
     "cpu": {
-        "dcp": RunBudget(steps=120, points=256, batch=8),
-        "prnet": RunBudget(steps=40, points=256, batch=8),
-        "idam": RunBudget(steps=300, points=512, batch=8),
-        "deepgmr": RunBudget(steps=300, points=512, batch=8),
+        "dcp": RunBudget(steps=72, points=256, batch=8, checks=3),
+        "prnet": RunBudget(steps=20, points=256, batch=8, checks=2),
+        "idam": RunBudget(steps=220, points=512, batch=8, checks=4),
+        "deepgmr": RunBudget(steps=220, points=512, batch=8, checks=4),
     },
     "paper": dict.fromkeys(HOSTS, PAPER_BUDGET),
 }
-"""Per host: a CPU step of PRNet costs about 20 times one of IDAM, so the ``cpu`` budget differs per host."""
+"""Per host: a CPU step of PRNet (256 points) costs about 10 times one of IDAM (512 points), so the ``cpu`` budget
+differs per host: each host's 6 runs (X, LC + X × 3 seeds) take about half an hour, 2 h in all (estimate from measured
+s/step in ``docs/reproducing.md``)."""
 
 
 def _label(host: str) -> str:
@@ -87,8 +89,9 @@ NOTES = (
     "does not state the pair protocol of this table.",
     "LC: `configs/lc.yaml` (|X1| = |X2| = 64, weight 1, frozen FC metric, target pairing), the same for every host.",
     "Data: `--root` (default `../shared/data/modelnet40_mini`, a real subset of ModelNet40) instead of the full "
-    "ModelNet40. Budget: `cpu` trains a fraction of an epoch per host; `paper` trains 200 epochs (the paper's "
-    "protocol), at the hosts' original batch sizes.",
+    "ModelNet40. Budget: `cpu` trains 20 (PRNet) to 220 (IDAM, DeepGMR) steps of 8 pairs per run, 0.2 to 2.5 "
+    "passes over the 705 training objects of modelnet40_mini; `paper` trains 200 epochs (the paper's protocol) "
+    "at the hosts' original batch sizes.",
 )
 
 LC = Experiment(

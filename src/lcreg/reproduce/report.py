@@ -140,6 +140,8 @@ def _name(experiment: Experiment, comparison: Comparison) -> tuple[str, str]:
 
 def claims_table(experiment: Experiment, rows: Rows) -> str:
     """One line per (claim, metric): the verdict and each comparison's difference and spread."""
+    if not experiment.claims:
+        return "No claim compares only the variants of this run (see `--only`)."
     lines = []
     for metric, result in claim_results(experiment, rows):
         details = []
@@ -157,8 +159,8 @@ def _budget_lines(sweep: Sweep) -> list[str]:
     groups = list(dict.fromkeys(v.budget_group for v in sweep.experiment.variants))
     described = {g: budgets[g].describe() for g in groups}
     if len(set(described.values())) <= 1:
-        return [f"- Budget `{sweep.preset}`: {next(iter(described.values()), '–')} per run."]
-    return [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}" for g, d in described.items()]
+        return [f"- Budget `{sweep.preset}` per run: {next(iter(described.values()), '–')}."]
+    return [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}." for g, d in described.items()]
 
 
 def _pairs(rows: Rows, field: str) -> str:
