@@ -112,7 +112,8 @@ def _legend_handles(experiment: Experiment) -> list:
     from matplotlib.patches import Patch
 
     handles: list = [Patch(color=f"C{j}", alpha=0.85, label=name) for j, name in enumerate(experiment.series_names())]
-    handles.append(Line2D([], [], color="k", linewidth=2.2, label="paper (full ModelNet40)"))
+    if any(cell.paper is not None for cell in experiment.cells):
+        handles.append(Line2D([], [], color="k", linewidth=2.2, label="paper (full ModelNet40)"))
     seed = Line2D([], [], color="0.15", marker="o", markersize=3, linestyle="", label="one seed (bar: mean ± std)")
     return [*handles, seed]
 
