@@ -10,10 +10,12 @@ import pytest
 
 import lcreg.reproduce.sweep
 from lcreg.cli import main
+from lcreg.models.base import NonFiniteTrainingError
 from lcreg.reproduce import EXPERIMENTS, PLANNED
 from lcreg.reproduce.budgets import DataChoice, RunBudget
 from lcreg.reproduce.lc import LC
-from lcreg.reproduce.sweep import Sweep, run_sweep
+from lcreg.reproduce.report import render
+from lcreg.reproduce.sweep import METRICS, Sweep, failed_runs, finished_rows, run_sweep
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 pytest.importorskip("matplotlib")
@@ -145,3 +147,28 @@ def test_report_only_writes_the_table_of_what_is_finished(tmp_path: Path, capsys
     text = (tmp_path / "ablation.md").read_text()
     assert "Runs finished: 0 of 48" in text and "not run" in text
     assert not (tmp_path / "ablation.jsonl").exists() and not list(tmp_path.glob("*.png"))
+
+
+def test_a_diverged_run_is_recorded_as_failed_not_retried_and_left_out_of_the_means(tmp_path: Path) -> None:
+    calls: list[tuple[str, int]] = []
+    ok = _fake_train(calls)
+
+    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+        if seed == 1:
+            calls.append((name, seed))
+            raise NonFiniteTrainingError("10 consecutive steps had a non-finite loss")
+        return ok(name, budget, data, run_dir, seed)
+
+    sweep = Sweep(LC.select(["idam/X"]), "smoke", (0, 1), DataChoice(None), tmp_path)
+    run_sweep(sweep, train)
+    run_sweep(sweep, train)
+    assert calls == [("idam", 0), ("idam", 1)]
+    log = sweep.open_log()
+    assert finished_rows(sweep, log) == {"idam/X": [log.rows[0]]}
+    failed = failed_runs(sweep, log)
+    assert failed == ["idam/X seed 1: 10 consecutive steps had a non-finite loss"]
+    metrics = dict.fromkeys(METRICS, 1.0)
+    rows = {"idam/X": [{**log.rows[0], **metrics, "test_s": 0.0, "steps": 2, "num_test_pairs": 2, "num_val_pairs": 2}]}
+    assert f"- Failed (non-finite training loss, left out of the means): {failed[0]}" in render(
+        sweep, rows, "c", failed
+    )

@@ -24,7 +24,7 @@ from lcreg.reproduce.lc import LC
 from lcreg.reproduce.plots import plot_sweep
 from lcreg.reproduce.report import render
 from lcreg.reproduce.spec import Experiment
-from lcreg.reproduce.sweep import Sweep, finished_rows, run_sweep
+from lcreg.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
 
 __all__ = ["EXPERIMENTS", "PLANNED", "ReproduceUsageError", "build_parser", "main", "reproduce"]
 
@@ -121,7 +121,8 @@ def reproduce(
     else:
         log = run_sweep(sweep, progress=progress, rerun=not args.resume)
     rows = finished_rows(sweep, log)
-    written = [write_text(sweep.file_stem.with_suffix(".md"), render(sweep, rows, command))]
+    report = render(sweep, rows, command, failed_runs(sweep, log))
+    written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
     written += [sweep.log_path] if sweep.log_path.is_file() else []
     return written + plot_sweep(sweep, rows)
 

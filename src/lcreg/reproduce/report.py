@@ -168,8 +168,8 @@ def _pairs(rows: Rows, field: str) -> str:
     return "/".join(map(str, counts)) or "–"
 
 
-def header(sweep: Sweep, rows: Rows, command: str) -> list[str]:
-    """Title, command, budget, data, pair counts, seeds, finished runs and time, machine; the series."""
+def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -> list[str]:
+    """Title, command, budget, data, pair counts, seeds, finished (and failed) runs and time, machine; the series."""
     experiment = sweep.experiment
     done = sum(len(runs) for runs in rows.values())
     total = len(experiment.variants) * len(sweep.seeds)
@@ -186,6 +186,7 @@ def header(sweep: Sweep, rows: Rows, command: str) -> list[str]:
         f"{_pairs(rows, 'num_val_pairs')} validation pairs (the paper: the full ModelNet40).",
         f"- Seeds: {', '.join(map(str, sweep.seeds))} (mean ± sample std over seeds). Runs finished: {done} of "
         f"{total}; {hours:.2f} h of training and testing in all.",
+        *(f"- Failed (non-finite training loss, left out of the means): {run}" for run in failed),
         f"- Machine: {machine_line()}.",
         "",
         "Series:",
@@ -194,10 +195,10 @@ def header(sweep: Sweep, rows: Rows, command: str) -> list[str]:
     return lines
 
 
-def render(sweep: Sweep, rows: Rows, command: str) -> str:
-    """The whole report (Markdown, ends with a newline)."""
+def render(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -> str:
+    """The whole report (Markdown, ends with a newline); ``failed`` lists the runs that diverged."""
     experiment = sweep.experiment
-    parts = header(sweep, rows, command)
+    parts = header(sweep, rows, command, failed)
     parts += [
         "",
         "Ours: mean ± std over seeds; `ours / paper`: the ratio of the means (– where the paper prints "

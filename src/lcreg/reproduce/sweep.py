@@ -6,12 +6,14 @@ validated during training on the validation pairs carved out of the training obj
 lowest ``val/rre_mean_deg`` is kept (never the test set) and tested once on the deterministic test pairs (the same
 in every run: the data's pair seed is fixed). The row is appended to ``<out>/<experiment>.jsonl`` (flushed) as soon
 as the run ends; a rerun skips every (variant, seed) whose row is there for the same budget and data, so an
-interrupted sweep resumes with the next unfinished run.
+interrupted sweep resumes with the next unfinished run. A run whose training stops on non-finite losses
+(:class:`~lcreg.models.base.NonFiniteTrainingError`) is recorded as failed (a result of that variant, not retried)
+and the sweep goes on.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -20,10 +22,12 @@ from typing import Any
 import torch
 
 from lcreg.benchmarking import REPORT_COLUMNS, ResultLog, fit, load_weights, method, save_weights, timed
+from lcreg.checkpoints import one_line
+from lcreg.models.base import NonFiniteTrainingError
 from lcreg.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.reproduce.spec import Experiment, Rows, Variant
 
-__all__ = ["KEY_FIELDS", "METRICS", "Sweep", "Trainer", "finished_rows", "run_sweep", "train_and_test"]
+__all__ = ["KEY_FIELDS", "METRICS", "Sweep", "Trainer", "failed_runs", "finished_rows", "run_sweep", "train_and_test"]
 
 METRICS = tuple(key for key, _ in REPORT_COLUMNS)
 """Test metrics kept in every row (RMSE/MAE of R and t, RRE mean and median, the two recalls)."""
@@ -148,16 +152,34 @@ def run_sweep(
             if log.done(**key) and not rerun:
                 progress(f"{variant.key} seed {seed}: finished before, skipped")
                 continue
-            fields = (train or train_and_test)(variant.method, budget, sweep.data, sweep.run_dir(variant, seed), seed)
+            run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
+            try:
+                fields = run(seed)
+            except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
+                fields = {"failed": one_line(str(err), 300)}
             row = log.append({**key, "preset": sweep.preset, **fields})
-            progress(f"{variant.key} seed {seed}: RMSE(R) {row['rmse_r_deg']:.3f}°, {row['train_s']:.0f} s")
+            progress(f"{variant.key} seed {seed}: {_outcome(row)}")
     return log
 
 
-def finished_rows(sweep: Sweep, log: ResultLog, seeds: Sequence[int] | None = None) -> Rows:
-    """The rows of ``log`` that belong to ``sweep`` (its budget, data and seeds), by variant key."""
-    rows: dict[str, list[dict[str, Any]]] = {}
-    for variant in sweep.experiment.variants:
-        found = (log.find(**sweep.key(variant, seed)) for seed in (sweep.seeds if seeds is None else seeds))
-        rows[variant.key] = [row for row in found if row is not None]
-    return rows
+def _outcome(row: dict[str, Any]) -> str:
+    if "failed" in row:
+        return f"failed ({row['failed']})"
+    return f"RMSE(R) {row['rmse_r_deg']:.3f}°, {row['train_s']:.0f} s"
+
+
+def _rows_of(sweep: Sweep, log: ResultLog) -> dict[str, list[dict[str, Any]]]:
+    """The newest row of every (variant, seed) of ``sweep`` in ``log`` (its budget and data), by variant key."""
+    found = {v.key: [log.find(**sweep.key(v, seed)) for seed in sweep.seeds] for v in sweep.experiment.variants}
+    return {key: [row for row in rows if row is not None] for key, rows in found.items()}
+
+
+def finished_rows(sweep: Sweep, log: ResultLog) -> Rows:
+    """The successful runs of ``sweep`` in ``log`` by variant key (failed runs left out: see :func:`failed_runs`)."""
+    return {key: [r for r in rows if "failed" not in r] for key, rows in _rows_of(sweep, log).items()}
+
+
+def failed_runs(sweep: Sweep, log: ResultLog) -> list[str]:
+    """``"<variant> seed <k>: <why>"`` for every run of ``sweep`` whose training diverged (non-finite losses)."""
+    rows = _rows_of(sweep, log)
+    return [f"{key} seed {r['seed']}: {r['failed']}" for key, runs in rows.items() for r in runs if "failed" in r]
