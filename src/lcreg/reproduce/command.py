@@ -42,13 +42,14 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``lcreg reproduce``."""
     parser = argparse.ArgumentParser(
         prog="lcreg reproduce",
-        description="Rerun a table of the DVDs paper: train every variant x seed with a budget, choose each "
-        "checkpoint on the validation pairs, test it, and write a Markdown table (ours, the paper's, the ratio, the "
-        "paper's claims against the seed spread), a JSONL of every run and PNG plots. A rerun skips finished runs.",
+        description="Rerun a table of the DVDs paper: train every variant x seed with a budget, choose each\n"
+        "checkpoint on the validation pairs, test it, and write a Markdown table (ours, the paper's, the ratio,\n"
+        "the paper's claims against the seed spread), a JSONL of every run and PNG plots.\n"
+        "A rerun skips finished runs.",
         epilog="experiments:\n  ablation  models A-D, |X1| = 32/64/96, (λ1, λ2): paper objective and self-motion "
         "recipe\n  lc        X vs LC + X for DCP-v2, PRNet, IDAM, DeepGMR\n"
         f"  planned: {', '.join(PLANNED)}\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
-        "experiment on 2 CPU cores), paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
+        "experiment on 2 CPU cores),\n  paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(EXPERIMENTS)}")
@@ -57,7 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", help="output folder (default: runs/reproduce/<budget>)")
     parser.add_argument("--root", default=DEFAULT_ROOT, help="ModelNet40 folder (default: %(default)s; not smoke)")
     parser.add_argument("--protocol", default="unseen_objects", choices=("unseen_objects", "unseen_categories"))
-    parser.add_argument("--only", nargs="+", default=[], metavar="PATTERN", help="variant keys to run (fnmatch)")
+    parser.add_argument(
+        "--only", nargs="+", default=[], metavar="PATTERN", help="variant keys to run (fnmatch: 'paper/*', 'dcp/*')"
+    )
     parser.add_argument(
         "--resume",
         action=argparse.BooleanOptionalAction,
