@@ -79,16 +79,19 @@ class DataChoice:
     Attributes:
         root: ModelNet40 folder (official ``modelnet40_ply_hdf5_2048`` layout); ``None``: embedded synthetic shapes.
         protocol: ``"unseen_objects"`` (train and test on the first 20 categories) or ``"unseen_categories"``.
+        workers: DataLoader workers (``None``: the config's); 0 on a 2-core CPU, where a loader process only
+            competes with training.
     """
 
     root: str | None
     protocol: str = "unseen_objects"
+    workers: int | None = 0
 
     def overrides(self, budget: RunBudget) -> list[str]:
-        """Data arguments of a run: the budget's points and batch, the fixed pair seed, no loader workers."""
+        """Data arguments of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
         if self.root is None:
             return synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2)
-        values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": 0}
+        values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
         return cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch})
 
     def describe(self) -> str:

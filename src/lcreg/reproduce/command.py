@@ -89,7 +89,8 @@ def _data(preset: Preset, root: str, protocol: str) -> DataChoice:
         raise ReproduceUsageError(
             f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
         )
-    return DataChoice(str(Path(root).expanduser().resolve()), protocol)
+    workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
+    return DataChoice(str(Path(root).expanduser().resolve()), protocol, workers)
 
 
 def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
