@@ -293,6 +293,7 @@ def test_fit_overrides_set_a_step_budget() -> None:
 def test_markdown_table_format() -> None:
     assert markdown_table(["a", "b"], [[1, "x"], [2.5, None]]) == "| a | b |\n|---|---|\n| 1 | x |\n| 2.5 | None |"
     assert markdown_table(["a"]) == "| a |\n|---|"
+    assert markdown_table(["|X1|"], [["|X1| = 64"]]).splitlines()[-1] == "| \\|X1\\| = 64 |"  # pipes in cells escaped
 
 
 def test_format_mean_std() -> None:

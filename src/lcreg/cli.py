@@ -450,7 +450,8 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         save_config_kwargs={"overwrite": True},
         parser_kwargs={
             "description": "lcreg: train, test and compare registration networks (fit, validate, test, predict). "
-            "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`).",
+            "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`). To rerun the paper's "
+            "tables: `lcreg reproduce EXPERIMENT --budget smoke|cpu|paper` (`lcreg reproduce --help`).",
         },
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
@@ -470,6 +471,11 @@ def main(args: ArgsType = None) -> None:
         from lcreg.registration.command import main as register_main
 
         register_main([str(a) for a in argv[1:]])
+        return
+    if argv[:1] == ["reproduce"]:  # sweeps of fit runs behind one command, not a Lightning subcommand
+        from lcreg.reproduce.command import main as reproduce_main
+
+        reproduce_main([str(a) for a in argv[1:]])
         return
     _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
     if args is not None or _debug():

@@ -53,6 +53,7 @@ from lcreg.benchmarking.measure import (
 )
 from lcreg.benchmarking.options import Budget, add_smoke_argument, apply_smoke, key_values
 from lcreg.benchmarking.registry import (
+    ABLATION_CONFIGS,
     DATA_CONFIGS,
     METHODS,
     REFINE_CONFIG,
@@ -65,7 +66,14 @@ from lcreg.benchmarking.registry import (
     method,
     voxelize_overrides,
 )
-from lcreg.benchmarking.training import SELECTION_METRIC, FitResult, fit, fit_overrides, training_loss
+from lcreg.benchmarking.training import (
+    SELECTION_METRIC,
+    FitResult,
+    epoch_overrides,
+    fit,
+    fit_overrides,
+    training_loss,
+)
 from lcreg.benchmarking.writers import (
     REPORT_COLUMNS,
     ResultLog,
@@ -80,6 +88,7 @@ from lcreg.benchmarking.writers import (
 )
 
 __all__ = [
+    "ABLATION_CONFIGS",
     "DATA_CONFIGS",
     "METHODS",
     "REFINE_CONFIG",
@@ -110,6 +119,7 @@ __all__ = [
     "config_path",
     "data_config",
     "device_of",
+    "epoch_overrides",
     "fit",
     "fit_overrides",
     "format_mean_std",

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "ABLATION_CONFIGS",
     "DATA_CONFIGS",
     "METHODS",
     "REFINE_CONFIG",
@@ -34,6 +35,8 @@ VOXELIZE_CONFIG = "voxelize/lk27.yaml"
 _VOXELIZE_KEY = "model.init_args.voxel_grid"  # where VOXELIZE_CONFIG puts the grid, for overrides of its settings
 LC_CONFIG = "lc.yaml"
 """Local consistency appended to any model's loss terms."""
+SELF_MOTION_CONFIG = "self_motion.yaml"
+"""The label-free self-motion term appended to any model's loss terms (the recipe of ``dvds_selfsup``)."""
 MODELNET40 = "data/modelnet40.yaml"
 DCP_PROTOCOL = "data/dcp_protocol.yaml"
 
@@ -87,6 +90,27 @@ def _host(label: str, model: str, batch: int, lc: bool) -> MethodSpec:
     return MethodSpec(label, configs, True, lc_variant=None if lc else f"{model}_lc", overrides=_batch(batch))
 
 
+def _ablation(stem: str, recipe: bool) -> tuple[str, MethodSpec]:
+    """``ablation_<stem>`` (the paper's objective) or ``ablation_<stem>_selfsup`` (plus the self-motion term)."""
+    label = f"DVDs ablation {stem}" + (" + self-motion" if recipe else "")
+    configs = (f"ablation/{stem}.yaml", *((SELF_MOTION_CONFIG,) if recipe else ()))
+    return f"ablation_{stem}" + ("_selfsup" if recipe else ""), MethodSpec(label, configs, True)
+
+
+ABLATION_CONFIGS = (
+    "model_A",
+    "model_B",
+    "model_C",
+    "model_D",
+    "local_32",
+    "local_96",
+    "lambda_0.5_0.5",
+    "lambda_1_0.1",
+)
+"""The distinct rows of the paper's ablation table (``configs/ablation/<stem>.yaml``; ``local_64`` and
+``lambda_0.5_0.1`` are model D under another logger name, so they are not registered twice)."""
+
+
 def _classical(label: str, model: str, refine: str | None = None) -> MethodSpec:
     return MethodSpec(label, (f"models/{model}.yaml", MODELNET40), False, refine=refine)
 
@@ -114,6 +138,7 @@ METHODS: dict[str, MethodSpec] = {
     "fgr": _classical("FPFH + FGR", "fgr"),
     "ransac_icp": _classical("FPFH + RANSAC + ICP", "ransac", refine=REFINE_CONFIG),
     "fgr_icp": _classical("FPFH + FGR + ICP", "fgr", refine=REFINE_CONFIG),
+    **dict(_ablation(stem, recipe) for recipe in (False, True) for stem in ABLATION_CONFIGS),
     "ransac_icp_sevenscenes": MethodSpec(
         "FPFH + RANSAC + ICP", ("pipelines/ransac_icp_sevenscenes.yaml", DATA_CONFIGS["sevenscenes"]), False
     ),

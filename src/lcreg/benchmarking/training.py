@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from lcreg.models.base import RegistrationModule
     from lcreg.types import RegistrationBatch
 
-__all__ = ["SELECTION_METRIC", "FitResult", "fit", "fit_overrides", "training_loss"]
+__all__ = ["SELECTION_METRIC", "FitResult", "epoch_overrides", "fit", "fit_overrides", "training_loss"]
 
 SELECTION_METRIC = "val/rre_mean_deg"
 """Checkpoints of benchmark runs are chosen on the validation registration error (never the test set)."""
@@ -47,12 +47,36 @@ def fit_overrides(max_steps: int, val_every: int, run_dir: str | Path, name: str
         name: Logger name (``""``: directly under ``run_dir``).
         seed: ``seed_everything`` (initialisation and training order).
     """
-    return [
-        f"--seed_everything={seed}",
+    budget = [
         f"--trainer.max_steps={max_steps}",
         "--trainer.max_epochs=-1",
         f"--trainer.val_check_interval={val_every}",
         "--trainer.check_val_every_n_epoch=null",
+    ]
+    return [f"--seed_everything={seed}", *budget, *_quiet_run(run_dir, name)]
+
+
+def epoch_overrides(max_epochs: int, run_dir: str | Path, name: str = "", seed: int = 0) -> list[str]:
+    """``lcreg fit`` arguments of a run with an epoch budget (the papers' unit), validated after every epoch.
+
+    Args:
+        max_epochs: Training epochs (steps unbounded).
+        run_dir: Folder of the logs and checkpoints (``<run_dir>/<name>/version_k``).
+        name: Logger name (``""``: directly under ``run_dir``).
+        seed: ``seed_everything`` (initialisation and training order).
+    """
+    budget = [
+        "--trainer.max_steps=-1",
+        f"--trainer.max_epochs={max_epochs}",
+        "--trainer.val_check_interval=1.0",
+        "--trainer.check_val_every_n_epoch=1",
+    ]
+    return [f"--seed_everything={seed}", *budget, *_quiet_run(run_dir, name)]
+
+
+def _quiet_run(run_dir: str | Path, name: str) -> list[str]:
+    """No progress bar or model summary; logs and checkpoints under ``<run_dir>/<name>``."""
+    return [
         "--trainer.enable_progress_bar=false",
         "--trainer.enable_model_summary=false",
         f"--trainer.logger.init_args.save_dir={run_dir}",

@@ -41,8 +41,8 @@ REPORT_COLUMNS = (
 
 
 def markdown_row(cells: Sequence[object]) -> str:
-    """One Markdown table row; cells are written with ``str``."""
-    return "| " + " | ".join(str(cell) for cell in cells) + " |"
+    """One Markdown table row; cells are written with ``str``, a ``|`` inside a cell escaped (``|X1| = 64``)."""
+    return "| " + " | ".join(str(cell).replace("|", "\\|") for cell in cells) + " |"
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]] = ()) -> str:

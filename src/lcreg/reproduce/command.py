@@ -1,0 +1,152 @@
+"""``lcreg reproduce EXPERIMENT``: rerun a table of the paper, write ours beside the paper's numbers.
+
+``lcreg reproduce ablation --budget cpu --seeds 0 1 2 --out DIR`` trains every variant × seed that ``DIR`` does not
+hold yet (:mod:`lcreg.reproduce.sweep`), then writes ``DIR/<experiment>.md`` (:mod:`lcreg.reproduce.report`),
+``DIR/<experiment>.jsonl`` (every run) and ``DIR/<experiment>_rotation.png``, ``_translation.png``
+(:mod:`lcreg.reproduce.plots`). Dispatched by :func:`lcreg.cli.main` before LightningCLI, like ``lcreg register``.
+
+Errors print one line on stderr with exit code 2 (arguments); ``LCREG_DEBUG=1`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NoReturn
+
+from lcreg.benchmarking import write_text
+from lcreg.reproduce.ablation import ABLATION
+from lcreg.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
+from lcreg.reproduce.lc import LC
+from lcreg.reproduce.plots import plot_sweep
+from lcreg.reproduce.report import render
+from lcreg.reproduce.spec import Experiment
+from lcreg.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
+
+__all__ = ["EXPERIMENTS", "PLANNED", "ReproduceUsageError", "build_parser", "main", "reproduce"]
+
+EXPERIMENTS: dict[str, Experiment] = {"ablation": ABLATION, "lc": LC}
+"""The experiments ``lcreg reproduce`` runs, by name."""
+PLANNED = ("runtime", "robustness", "recall-curves")
+"""Experiments named by the command but not available yet."""
+
+
+class ReproduceUsageError(ValueError):
+    """A bad argument of ``lcreg reproduce`` (exit code 2 on the command line)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``lcreg reproduce``."""
+    parser = argparse.ArgumentParser(
+        prog="lcreg reproduce",
+        description="Rerun a table of the DVDs paper: train every variant x seed with a budget, choose each\n"
+        "checkpoint on the validation pairs, test it, and write a Markdown table (ours, the paper's, the ratio,\n"
+        "the paper's claims against the seed spread), a JSONL of every run and PNG plots.\n"
+        "A rerun skips finished runs.",
+        epilog="experiments:\n  ablation  models A-D, |X1| = 32/64/96, (λ1, λ2): paper objective and self-motion "
+        "recipe\n  lc        X vs LC + X for DCP-v2, PRNet, IDAM, DeepGMR\n"
+        f"  planned: {', '.join(PLANNED)}\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
+        "experiment on 2 CPU cores),\n  paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(EXPERIMENTS)}")
+    parser.add_argument("--budget", required=True, choices=PRESETS, help="training budget of every run")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: %(default)s)")
+    parser.add_argument("--out", help="output folder (default: runs/reproduce/<budget>)")
+    parser.add_argument("--root", default=DEFAULT_ROOT, help="ModelNet40 folder (default: %(default)s; not smoke)")
+    parser.add_argument("--protocol", default="unseen_objects", choices=("unseen_objects", "unseen_categories"))
+    parser.add_argument(
+        "--only", nargs="+", default=[], metavar="PATTERN", help="variant keys to run (fnmatch: 'paper/*', 'dcp/*')"
+    )
+    parser.add_argument(
+        "--resume",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="skip runs already in the JSONL (default); --no-resume reruns them (the newest row of a run counts)",
+    )
+    parser.add_argument("--report-only", action="store_true", help="write the table and plots from the JSONL only")
+    return parser
+
+
+def _experiment(name: str, only: Sequence[str]) -> Experiment:
+    if name in PLANNED:
+        raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(EXPERIMENTS)}")
+    if name not in EXPERIMENTS:
+        raise ReproduceUsageError(f"unknown experiment {name!r}; available: {', '.join(EXPERIMENTS)}")
+    try:
+        return EXPERIMENTS[name].select(only)
+    except ValueError as err:
+        raise ReproduceUsageError(str(err)) from None
+
+
+def _data(preset: Preset, root: str, protocol: str) -> DataChoice:
+    if preset == "smoke":
+        return DataChoice(None)
+    if not Path(root).expanduser().is_dir():
+        raise ReproduceUsageError(
+            f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
+        )
+    workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
+    return DataChoice(str(Path(root).expanduser().resolve()), protocol, workers)
+
+
+def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
+    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise ReproduceUsageError(f"--seeds must be distinct non-negative integers, got {list(seeds)}")
+    return tuple(seeds)
+
+
+def reproduce(
+    args: argparse.Namespace, command: str, progress: Callable[[str], None] = print, stem: str = ""
+) -> list[Path]:
+    """Run (or, with ``report_only``, only report) the sweep that parsed ``args`` describe.
+
+    Args:
+        args: Parsed arguments of :func:`build_parser`.
+        command: The command line written in the report.
+        progress: Called with one line per run.
+        stem: File stem of the outputs in ``--out`` (default: the experiment's name).
+
+    Returns:
+        The written files: the Markdown report, the JSONL (if any run finished) and the PNGs.
+
+    Raises:
+        ReproduceUsageError: Unknown or planned experiment, ``--only`` matching nothing, bad seeds, missing data.
+    """
+    experiment = _experiment(args.experiment, args.only)
+    out = Path(args.out or f"runs/reproduce/{args.budget}")
+    data = _data(args.budget, args.root, args.protocol)
+    sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+    if args.report_only:
+        log = sweep.open_log()
+    else:
+        log = run_sweep(sweep, progress=progress, rerun=not args.resume)
+    rows = finished_rows(sweep, log)
+    report = render(sweep, rows, command, failed_runs(sweep, log))
+    written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
+    written += [sweep.log_path] if sweep.log_path.is_file() else []
+    return written + plot_sweep(sweep, rows)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of ``lcreg reproduce`` (exit code 2 for arguments)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    command = "lcreg reproduce " + " ".join(argv)
+    if os.environ.get("LCREG_DEBUG", "") not in ("", "0"):
+        written = reproduce(args, command)
+    else:
+        try:
+            written = reproduce(args, command)
+        except ReproduceUsageError as err:
+            _fail(str(err))
+    for path in written:
+        print(f"wrote {path}")
+
+
+def _fail(message: str) -> NoReturn:
+    sys.stderr.write(f"lcreg reproduce: error: {message}\n")
+    raise SystemExit(2)
