@@ -10,8 +10,8 @@ embedded synthetic shapes; one pair at a time (batch 1), median over ``--repeats
 (synchronised on CUDA).
 Weights: random unless ``--ckpt key=path`` is given; the LK models' iteration counts (and so their time) depend on
 the weights, so the mean number of iterations is printed beside each figure. Ratios are against DVDs in the same
-process. The paper's figures (Titan Xp + E5-2620): DVDs 66/68/69, ICP 7/16/35, DCP 6/9/20, PointNetLK 70/73/75,
-FMR-Net 68/70/72, PCRNet 14/16/18, FGR 143/172/232, RANSAC 18/48/110.
+process. The paper's figures (Titan Xp + E5-2620) are ``lcreg.reproduce.paper.RUNTIME_MS``; ``lcreg reproduce
+runtime`` runs the same measurement over seeds with a report and a figure.
 """
 
 from __future__ import annotations
@@ -35,19 +35,11 @@ from lcreg.benchmarking import (
     registration_speed,
     write_text,
 )
+from lcreg.reproduce.paper import RUNTIME_MS, RUNTIME_POINTS
 
 DEFAULT_METHODS = ["dvds", "pointnetlk", "fmr", "pcrnet", "dcp", "icp", "fgr", "ransac"]
-PAPER = {
-    "dvds": (66, 68, 69),
-    "icp": (7, 16, 35),
-    "dcp": (6, 9, 20),
-    "pointnetlk": (70, 73, 75),
-    "fmr": (68, 70, 72),
-    "pcrnet": (14, 16, 18),
-    "fgr": (143, 172, 232),
-    "ransac": (18, 48, 110),
-}
-SIZES = (500, 1000, 2000)
+PAPER = RUNTIME_MS
+SIZES = RUNTIME_POINTS
 SMOKE = {"sizes": (64,), "pairs": 2, "repeats": 1}
 
 

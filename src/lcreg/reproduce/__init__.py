@@ -7,6 +7,7 @@
 * :mod:`~lcreg.reproduce.ablation`, :mod:`~lcreg.reproduce.lc`: the experiments, thin specs over the registry;
 * :mod:`~lcreg.reproduce.sweep`: train, select on validation, test, one resumable JSONL row per run
   (:func:`lcreg.benchmarking.fit`);
+* :mod:`~lcreg.reproduce.runtime`: the runtime table (nothing trained: ms per pair per method, points, seed);
 * :mod:`~lcreg.reproduce.report`, :mod:`~lcreg.reproduce.plots`: the Markdown table and the PNGs;
 * :mod:`~lcreg.reproduce.command`: the command line (dispatched by :func:`lcreg.cli.main`).
 """

@@ -23,15 +23,26 @@ from lcreg.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
 from lcreg.reproduce.lc import LC
 from lcreg.reproduce.plots import plot_sweep
 from lcreg.reproduce.report import render
+from lcreg.reproduce.runtime import (
+    RUNTIME,
+    RuntimeExperiment,
+    RuntimeRun,
+    measure_runtime,
+    plot_runtime,
+    render_runtime,
+)
 from lcreg.reproduce.spec import Experiment
 from lcreg.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
 
-__all__ = ["EXPERIMENTS", "PLANNED", "ReproduceUsageError", "build_parser", "main", "reproduce"]
+__all__ = ["EXPERIMENTS", "PLANNED", "TIMINGS", "ReproduceUsageError", "build_parser", "main", "reproduce"]
 
 EXPERIMENTS: dict[str, Experiment] = {"ablation": ABLATION, "lc": LC}
 """The experiments ``lcreg reproduce`` runs, by name."""
-PLANNED = ("runtime", "robustness", "recall-curves")
+TIMINGS = {"runtime": RUNTIME}
+"""Experiments that time registration instead of training (:mod:`lcreg.reproduce.runtime`)."""
+PLANNED = ("robustness", "recall-curves")
 """Experiments named by the command but not available yet."""
+AVAILABLE = (*EXPERIMENTS, *TIMINGS)
 
 
 class ReproduceUsageError(ValueError):
@@ -48,18 +59,27 @@ def build_parser() -> argparse.ArgumentParser:
         "A rerun skips finished runs.",
         epilog="experiments:\n  ablation  models A-D, |X1| = 32/64/96, (λ1, λ2): paper objective and self-motion "
         "recipe\n  lc        X vs LC + X for DCP-v2, PRNet, IDAM, DeepGMR\n"
+        "  runtime   ms per pair at 500/1000/2000 points of every method (nothing trained; CPU, and GPU if any)\n"
         f"  planned: {', '.join(PLANNED)}\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
         "experiment on 2 CPU cores),\n  paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(EXPERIMENTS)}")
+    parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(AVAILABLE)}")
     parser.add_argument("--budget", required=True, choices=PRESETS, help="training budget of every run")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: %(default)s)")
     parser.add_argument("--out", help="output folder (default: runs/reproduce/<budget>)")
     parser.add_argument("--root", default=DEFAULT_ROOT, help="ModelNet40 folder (default: %(default)s; not smoke)")
-    parser.add_argument("--protocol", default="unseen_objects", choices=("unseen_objects", "unseen_categories"))
     parser.add_argument(
-        "--only", nargs="+", default=[], metavar="PATTERN", help="variant keys to run (fnmatch: 'paper/*', 'dcp/*')"
+        "--protocol",
+        choices=("unseen_objects", "unseen_categories"),
+        help="ModelNet40 protocol (default: unseen_objects; runtime: unseen_categories, the paper's)",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        default=[],
+        metavar="PATTERN",
+        help="variant keys (fnmatch: 'paper/*', 'dcp/*'; runtime: method keys)",
     )
     parser.add_argument(
         "--resume",
@@ -71,18 +91,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _experiment(name: str, only: Sequence[str]) -> Experiment:
+def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment:
     if name in PLANNED:
-        raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(EXPERIMENTS)}")
-    if name not in EXPERIMENTS:
-        raise ReproduceUsageError(f"unknown experiment {name!r}; available: {', '.join(EXPERIMENTS)}")
+        raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(AVAILABLE)}")
+    if name not in AVAILABLE:
+        raise ReproduceUsageError(f"unknown experiment {name!r}; available: {', '.join(AVAILABLE)}")
     try:
-        return EXPERIMENTS[name].select(only)
+        return TIMINGS[name].select(only) if name in TIMINGS else EXPERIMENTS[name].select(only)
     except ValueError as err:
         raise ReproduceUsageError(str(err)) from None
 
 
-def _data(preset: Preset, root: str, protocol: str) -> DataChoice:
+def _data(preset: Preset, root: str, protocol: str | None) -> DataChoice:
     if preset == "smoke":
         return DataChoice(None)
     if not Path(root).expanduser().is_dir():
@@ -90,7 +110,7 @@ def _data(preset: Preset, root: str, protocol: str) -> DataChoice:
             f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
         )
     workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
-    return DataChoice(str(Path(root).expanduser().resolve()), protocol, workers)
+    return DataChoice(str(Path(root).expanduser().resolve()), protocol or "unseen_objects", workers)
 
 
 def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
@@ -118,6 +138,9 @@ def reproduce(
     """
     experiment = _experiment(args.experiment, args.only)
     out = Path(args.out or f"runs/reproduce/{args.budget}")
+    if isinstance(experiment, RuntimeExperiment):
+        data = _data(args.budget, args.root, args.protocol or "unseen_categories")
+        return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
     data = _data(args.budget, args.root, args.protocol)
     sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
     if args.report_only:
@@ -129,6 +152,14 @@ def reproduce(
     written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
     written += [sweep.log_path] if sweep.log_path.is_file() else []
     return written + plot_sweep(sweep, rows)
+
+
+def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
+    """Measure (or only report) the runtime experiment; the Markdown report, the JSONL and the PNG."""
+    log = run.open_log() if args.report_only else measure_runtime(run, progress=progress, rerun=not args.resume)
+    written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
+    written += [run.log_path] if run.log_path.is_file() else []
+    return written + plot_runtime(run, log)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

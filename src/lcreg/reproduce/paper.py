@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-__all__ = ["ABLATION", "LC_PLUS_X", "PAPER_METRICS", "PaperTable"]
+__all__ = ["ABLATION", "LC_PLUS_X", "PAPER_METRICS", "RUNTIME_MACHINE", "RUNTIME_MS", "RUNTIME_POINTS", "PaperTable"]
 
 PAPER_METRICS = ("rmse_r_deg", "mae_r_deg", "rmse_t", "mae_t")
 """The columns of both tables, in the paper's order: RMSE(R), MAE(R), RMSE(t), MAE(t)."""
@@ -57,3 +57,22 @@ LC_PLUS_X: PaperTable = _rows(
     }
 )
 """The paper's LC + X table (four hosts without and with local consistency)."""
+
+# Table "Running time comparisons for registering a point cloud pair (in milliseconds)" (\label{table3}), rows in the
+# paper's order, by registry key. Section "Efficiency": test pairs of the last 20 categories of ModelNet40 with
+# Gaussian noise; ICP, FGR and RANSAC run on the CPU, the learned methods on the GPU.
+RUNTIME_POINTS = (500, 1000, 2000)
+"""Points per cloud of the runtime table's columns."""
+RUNTIME_MS: Mapping[str, tuple[float, float, float]] = {
+    "icp": (7, 16, 35),
+    "pointnetlk": (70, 73, 75),
+    "dcp": (6, 9, 20),
+    "fgr": (143, 172, 232),
+    "ransac": (18, 48, 110),
+    "fmr": (68, 70, 72),
+    "pcrnet": (14, 16, 18),
+    "dvds": (66, 68, 69),
+}
+"""The paper's ms per pair at :data:`RUNTIME_POINTS` by method (``"dvds"`` is the paper's "Ours")."""
+RUNTIME_MACHINE = "2.10 GHz Intel Xeon E5-2620 (ICP, FGR, RANSAC) and NVIDIA Titan Xp (learned methods)"
+"""Where the paper's runtime table was measured (Section "Efficiency")."""
