@@ -193,7 +193,8 @@ def read_blocks(path: Path, size: int) -> tuple[list[Block], int]:
             raise _layout_error(path, header_line, f"pair ({i}, {j}) is listed twice")
         seen.add((i, j))
         blocks.append(Block(header_line, i, j, matrix, [number for number, _ in rows]))
-    assert num_fragments is not None  # lines is non-empty, so a header was parsed
+    if num_fragments is None:  # pragma: no cover - lines is non-empty, so a header was parsed
+        raise DatasetLayoutError(f"{str(path)!r} holds no block; {EXPECTED_LAYOUT}")
     return blocks, num_fragments
 
 

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lcreg.checks import check_rigid
+from lcreg.checks import check_rigid, check_transform
 from lcreg.registration.inputs import Cloud, CloudLike, as_cloud
 from lcreg.registration.methods import (
     Method,
@@ -103,10 +103,9 @@ class Registration:
 
 def _check_init(init: Any) -> np.ndarray:
     """``init`` as a ``(4, 4)`` float64 rigid motion (typed errors naming ``init``)."""
-    tensor = torch.as_tensor(np.asarray(init.detach().cpu() if isinstance(init, torch.Tensor) else init, float))
-    from lcreg.checks import check_transform
-
-    check_transform(tensor.reshape(-1, 4, 4) if tensor.numel() == 16 else tensor, "init")
+    array = init.detach().cpu().numpy() if isinstance(init, torch.Tensor) else init
+    tensor = torch.as_tensor(np.asarray(array, dtype=np.float64))
+    check_transform(tensor.reshape(1, 4, 4) if tensor.numel() == 16 else tensor, "init")  # typed: shape, NaN
     check_rigid(tensor.reshape(1, 4, 4), "init")
     return tensor.reshape(4, 4).numpy()
 

@@ -33,6 +33,7 @@ from lcreg.benchmarking import (
 )
 from lcreg.reproduce.budgets import DataChoice, Preset
 from lcreg.reproduce.paper import RUNTIME_MACHINE, RUNTIME_MS, RUNTIME_POINTS
+from lcreg.reproduce.sweep import OutputFiles
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -150,7 +151,7 @@ RUNTIME = RuntimeExperiment(
 
 
 @dataclass(frozen=True)
-class RuntimeRun:
+class RuntimeRun(OutputFiles):
     """The runtime experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl,png}``."""
 
     experiment: RuntimeExperiment
@@ -164,16 +165,6 @@ class RuntimeRun:
     def budget(self) -> RuntimeBudget:
         """The preset's budget."""
         return self.experiment.budgets[self.preset]
-
-    @property
-    def file_stem(self) -> Path:
-        """``<out>/<stem>`` (``stem`` defaults to the experiment's name)."""
-        return self.out / (self.stem or self.experiment.name)
-
-    @property
-    def log_path(self) -> Path:
-        """``<out>/<stem>.jsonl``."""
-        return self.file_stem.with_suffix(".jsonl")
 
     def devices(self) -> list[str]:
         """``["cpu"]``, plus ``"cuda"`` when the budget asks for it and a GPU is available."""

@@ -27,7 +27,17 @@ from lcreg.models.base import NonFiniteTrainingError
 from lcreg.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.reproduce.spec import Experiment, Rows, Variant
 
-__all__ = ["KEY_FIELDS", "METRICS", "Sweep", "Trainer", "failed_runs", "finished_rows", "run_sweep", "train_and_test"]
+__all__ = [
+    "KEY_FIELDS",
+    "METRICS",
+    "OutputFiles",
+    "Sweep",
+    "Trainer",
+    "failed_runs",
+    "finished_rows",
+    "run_sweep",
+    "train_and_test",
+]
 
 METRICS = tuple(key for key, _ in REPORT_COLUMNS)
 """Test metrics kept in every row (RMSE/MAE of R and t, RRE mean and median, the two recalls)."""
@@ -38,16 +48,18 @@ Trainer = Callable[[str, RunBudget, DataChoice, Path, int], dict[str, Any]]
 """``train(method, budget, data, run_dir, seed) -> row fields``: :func:`train_and_test` (tests pass a fake)."""
 
 
-@dataclass(frozen=True)
-class Sweep:
-    """An experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl}`` and PNGs."""
+class OutputFiles:
+    """Where an experiment run writes: ``<out>/<stem>`` plus ``.md``, ``.jsonl``, ``.png`` (shared by every run kind).
 
-    experiment: Experiment
-    preset: Preset
-    seeds: tuple[int, ...]
-    data: DataChoice
+    Attributes:
+        out: The output folder.
+        stem: File stem (``""``: the experiment's name).
+        experiment: The experiment (its ``name`` is the default stem).
+    """
+
     out: Path
-    stem: str = ""
+    stem: str
+    experiment: Any
 
     @property
     def file_stem(self) -> Path:
@@ -58,6 +70,18 @@ class Sweep:
     def log_path(self) -> Path:
         """``<out>/<stem>.jsonl``."""
         return self.file_stem.with_suffix(".jsonl")
+
+
+@dataclass(frozen=True)
+class Sweep(OutputFiles):
+    """An experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl}`` and PNGs."""
+
+    experiment: Experiment
+    preset: Preset
+    seeds: tuple[int, ...]
+    data: DataChoice
+    out: Path
+    stem: str = ""
 
     def run_dir(self, variant: Variant, seed: int) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``."""
