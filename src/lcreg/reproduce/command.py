@@ -20,9 +20,12 @@ from typing import NoReturn
 from lcreg.benchmarking import write_text
 from lcreg.reproduce.ablation import ABLATION
 from lcreg.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
+from lcreg.reproduce.conditions import EvalExperiment, EvalRun, run_conditions
 from lcreg.reproduce.lc import LC
 from lcreg.reproduce.plots import plot_sweep
+from lcreg.reproduce.recall_curves import RECALL_CURVES, plot_recall_curves, render_recall_curves
 from lcreg.reproduce.report import render
+from lcreg.reproduce.robustness import ROBUSTNESS, plot_robustness, render_robustness
 from lcreg.reproduce.runtime import (
     RUNTIME,
     RuntimeExperiment,
@@ -34,15 +37,30 @@ from lcreg.reproduce.runtime import (
 from lcreg.reproduce.spec import Experiment
 from lcreg.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
 
-__all__ = ["EXPERIMENTS", "PLANNED", "TIMINGS", "ReproduceUsageError", "build_parser", "main", "reproduce"]
+__all__ = [
+    "EVALUATIONS",
+    "EXPERIMENTS",
+    "PLANNED",
+    "TIMINGS",
+    "ReproduceUsageError",
+    "build_parser",
+    "main",
+    "reproduce",
+]
 
 EXPERIMENTS: dict[str, Experiment] = {"ablation": ABLATION, "lc": LC}
 """The experiments ``lcreg reproduce`` runs, by name."""
 TIMINGS = {"runtime": RUNTIME}
 """Experiments that time registration instead of training (:mod:`lcreg.reproduce.runtime`)."""
-PLANNED = ("robustness", "recall-curves")
+EVALUATIONS: dict[str, EvalExperiment] = {"robustness": ROBUSTNESS, "recall-curves": RECALL_CURVES}
+"""Experiments that evaluate trained models under test conditions (:mod:`lcreg.reproduce.conditions`)."""
+PLANNED: tuple[str, ...] = ()
 """Experiments named by the command but not available yet."""
-AVAILABLE = (*EXPERIMENTS, *TIMINGS)
+AVAILABLE = (*EXPERIMENTS, *TIMINGS, *EVALUATIONS)
+WRITERS = {
+    "robustness": (render_robustness, plot_robustness),
+    "recall-curves": (render_recall_curves, plot_recall_curves),
+}
 
 
 class ReproduceUsageError(ValueError):
@@ -60,7 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="experiments:\n  ablation  models A-D, |X1| = 32/64/96, (λ1, λ2): paper objective and self-motion "
         "recipe\n  lc        X vs LC + X for DCP-v2, PRNet, IDAM, DeepGMR\n"
         "  runtime   ms per pair at 500/1000/2000 points of every method (nothing trained; CPU, and GPU if any)\n"
-        f"  planned: {', '.join(PLANNED)}\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
+        "  robustness     recall vs Gaussian noise and vs partial visibility, every method on the same pairs\n"
+        "  recall-curves  recall vs rotation-error threshold: unseen objects, unseen categories, 7-Scenes, KITTI\n"
+        "                 (robustness and recall-curves train the learned methods once, shared in <out>/models.jsonl)"
+        "\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
         "experiment on 2 CPU cores),\n  paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -91,13 +112,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment:
+def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment | EvalExperiment:
     if name in PLANNED:
         raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(AVAILABLE)}")
     if name not in AVAILABLE:
         raise ReproduceUsageError(f"unknown experiment {name!r}; available: {', '.join(AVAILABLE)}")
     try:
-        return TIMINGS[name].select(only) if name in TIMINGS else EXPERIMENTS[name].select(only)
+        if name in TIMINGS:
+            return TIMINGS[name].select(only)
+        return EVALUATIONS[name].select(only) if name in EVALUATIONS else EXPERIMENTS[name].select(only)
     except ValueError as err:
         raise ReproduceUsageError(str(err)) from None
 
@@ -141,6 +164,10 @@ def reproduce(
     if isinstance(experiment, RuntimeExperiment):
         data = _data(args.budget, args.root, args.protocol or "unseen_categories")
         return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
+    if isinstance(experiment, EvalExperiment):
+        data = _data(args.budget, args.root, "unseen_categories")
+        run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+        return _evaluate(run, args, command, progress)
     data = _data(args.budget, args.root, args.protocol)
     sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
     if args.report_only:
@@ -160,6 +187,15 @@ def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Cal
     written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
     written += [run.log_path] if run.log_path.is_file() else []
     return written + plot_runtime(run, log)
+
+
+def _evaluate(run: EvalRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
+    """Train and evaluate (or only report) an evaluation experiment; the Markdown report, the JSONL and the PNG."""
+    log = run.open_log() if args.report_only else run_conditions(run, progress=progress, rerun=not args.resume)
+    render_report, plot = WRITERS[run.experiment.name]
+    written = [write_text(run.file_stem.with_suffix(".md"), render_report(run, log, command))]
+    written += [run.log_path] if run.log_path.is_file() else []
+    return written + plot(run, log)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
