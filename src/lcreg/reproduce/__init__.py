@@ -8,6 +8,9 @@
 * :mod:`~lcreg.reproduce.sweep`: train, select on validation, test, one resumable JSONL row per run
   (:func:`lcreg.benchmarking.fit`);
 * :mod:`~lcreg.reproduce.runtime`: the runtime table (nothing trained: ms per pair per method, points, seed);
+* :mod:`~lcreg.reproduce.conditions`: evaluation experiments (models trained once, shared; every method × seed ×
+  test condition on the same pairs, per-pair errors in the JSONL); :mod:`~lcreg.reproduce.robustness` (recall vs
+  noise and partial visibility) and :mod:`~lcreg.reproduce.recall_curves` (recall vs rotation threshold, scenes);
 * :mod:`~lcreg.reproduce.report`, :mod:`~lcreg.reproduce.plots`: the Markdown table and the PNGs;
 * :mod:`~lcreg.reproduce.command`: the command line (dispatched by :func:`lcreg.cli.main`).
 """
