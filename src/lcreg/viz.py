@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from lcreg.checks import TooFewPointsError, check_finite, check_float, check_rigid, check_shape
+from lcreg.figures import agg_figure
 from lcreg.geometry import se3
 
 if TYPE_CHECKING:
@@ -313,18 +314,11 @@ def plot_registration(
     _check_positive_int(max_points, "max_points")
     _check_positive_int(dpi, "dpi")
     out = None if path is None else _check_png_path(path)
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as err:  # pragma: no cover - matplotlib is in the dev and plot extras
-        raise ImportError("plot_registration needs matplotlib: pip install 'lcreg[plot]'") from err
-
     rng = np.random.default_rng(seed)
     src, ref = _subsample(src_all, max_points, rng), _subsample(ref_all, max_points, rng)
     after = _move(transform, src)
     limits = _limits(src, after, ref)
-    fig = Figure(figsize=_figure_size(_width_ratios(limits)), dpi=dpi, layout="constrained")
-    FigureCanvasAgg(fig)
+    fig = agg_figure(*_figure_size(_width_ratios(limits)), dpi, "plot_registration")
     _draw(fig, _layers(src, after, ref, rng), limits)
     labels = (_legend_label("source", len(src), len(src_all)), _legend_label("reference", len(ref), len(ref_all)))
     _legend(fig, labels)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 import lcreg.reproduce.sweep
+from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.models.base import NonFiniteTrainingError
 from lcreg.reproduce import EXPERIMENTS, PLANNED
@@ -19,17 +19,6 @@ from lcreg.reproduce.sweep import METRICS, Sweep, failed_runs, finished_rows, ru
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 pytest.importorskip("matplotlib")
-
-
-def _jsonl(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
-
-
-def _png_not_blank(path: Path) -> None:
-    from matplotlib.image import imread
-
-    image = imread(path)[..., :3]
-    assert image.shape[0] > 300 and image.std() > 0.05, path
 
 
 def _count_fits(monkeypatch: pytest.MonkeyPatch) -> list[str]:
@@ -50,7 +39,7 @@ def test_smoke_preset_writes_jsonl_markdown_with_paper_columns_and_plots(name: s
     out = tmp_path / "out"
     main(["reproduce", name, "--budget", "smoke", "--seeds", "0", "--out", str(out)])
     experiment = EXPERIMENTS[name]
-    rows = _jsonl(out / f"{name}.jsonl")
+    rows = read_jsonl(out / f"{name}.jsonl")
     assert sorted(r["variant"] for r in rows) == sorted(v.key for v in experiment.variants)
     assert all(r["preset"] == "smoke" and r["steps"] == 2 and r["num_test_pairs"] == 2 for r in rows)
     assert all(Path(r["weights"]).is_file() and not list(Path(r["weights"]).parent.rglob("*.ckpt")) for r in rows)
@@ -61,7 +50,7 @@ def test_smoke_preset_writes_jsonl_markdown_with_paper_columns_and_plots(name: s
     paper_value = f"{experiment.paper[experiment.cells[0].paper or ''].get('rmse_r_deg'):.3f}"
     assert paper_value in text.split("## MAE(R)")[0]
     for suffix in ("rotation", "translation"):
-        _png_not_blank(out / f"{name}_{suffix}.png")
+        assert_png_drawn(out / f"{name}_{suffix}.png")
     assert f"wrote {out / name}.md" in capsys.readouterr().out
 
 
@@ -88,7 +77,7 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path: Pa
     lines = log.read_text().splitlines()
     log.write_text("\n".join(lines[:1]) + "\n")  # interrupted after the first run
     main(args)
-    assert fits[3:] == ["idam_lc", "deepgmr"] and len(_jsonl(log)) == 3
+    assert fits[3:] == ["idam_lc", "deepgmr"] and len(read_jsonl(log)) == 3
 
 
 def _fake_train(calls: list[tuple[str, int]]) -> Any:
@@ -111,7 +100,7 @@ def test_resume_keys_on_budget_and_data_and_no_resume_reruns(tmp_path: Path) -> 
     run_sweep(Sweep(idam, "cpu", (0,), DataChoice("/m"), tmp_path), _fake_train(calls))  # another budget and data
     assert calls[3:] == [("idam", 0)]
     run_sweep(sweep, _fake_train(calls), rerun=True)
-    assert calls[4:] == [("idam", 0), ("idam", 1)] and len(_jsonl(sweep.log_path)) == 6
+    assert calls[4:] == [("idam", 0), ("idam", 1)] and len(read_jsonl(sweep.log_path)) == 6
 
 
 def _error(args: list[str], capsys) -> str:

@@ -1,4 +1,4 @@
-"""``lcreg reproduce robustness`` and ``recall-curves``: smoke runs end to end, shared models, resume, the conditions."""
+"""``lcreg reproduce robustness`` and ``recall-curves``: smoke end to end, shared models, resume, the conditions."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import torch
 
 import lcreg.reproduce.conditions as conditions
 import lcreg.reproduce.sweep
+from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
 from lcreg.benchmarking import METHODS
 from lcreg.cli import main
 from lcreg.reproduce.budgets import DataChoice
@@ -22,17 +23,6 @@ from lcreg.reproduce.robustness import ROBUSTNESS
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 pytest.importorskip("matplotlib")
-
-
-def _jsonl(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
-
-
-def _png_not_blank(path: Path) -> None:
-    from matplotlib.image import imread
-
-    image = imread(path)[..., :3]
-    assert image.shape[0] > 300 and image.std() > 0.05, path
 
 
 def _count(monkeypatch: pytest.MonkeyPatch, module: Any, name: str) -> list[str]:
@@ -64,7 +54,7 @@ def test_smoke_of_both_experiments_shares_the_trained_models_and_writes_every_ro
     out = tmp_path / "out"
     main(["reproduce", "robustness", "--budget", "smoke", "--seeds", "0", "--out", str(out)])
     assert sorted(fits) == sorted(ROBUSTNESS.learned())  # every learned method trained once, classical never
-    rows = _jsonl(out / "robustness.jsonl")
+    rows = read_jsonl(out / "robustness.jsonl")
     assert {(r["method"], r["seed"], r["condition"]) for r in rows} == _expected_rows(ROBUSTNESS, (0,))
     for r in rows:
         assert len(r["rre_deg"]) == len(r["rte"]) == r["pairs"] == 2
@@ -73,16 +63,16 @@ def test_smoke_of_both_experiments_shares_the_trained_models_and_writes_every_ro
     assert "## Gaussian noise σ on both clouds: recall (RRE < 2°, RTE < 0.01), %" in text
     assert "| σ 0 | σ 0.01 |" in text and "| 100% kept | 90% kept |" in text
     assert "no numbers in the LaTeX" in text and "| DVDs, self-motion recipe |" in text
-    _png_not_blank(out / "robustness.png")
+    assert_png_drawn(out / "robustness.png")
 
     main(["reproduce", "recall-curves", "--budget", "smoke", "--seeds", "0", "--out", str(out)])
     assert len(fits) == len(ROBUSTNESS.learned())  # recall-curves reused models.jsonl: nothing trained again
-    rows = _jsonl(out / "recall-curves.jsonl")
+    rows = read_jsonl(out / "recall-curves.jsonl")
     assert {(r["method"], r["seed"], r["condition"]) for r in rows} == _expected_rows(RECALL_CURVES, (0,))
     text = (out / "recall-curves.md").read_text()
     assert "| RRE < 1° | RRE < 2° | RRE < 5° | RRE < 10° | median RRE ° |" in text
     assert "recall (RRE < 15°, RTE < 0.3 m)" in text and "recall (RRE < 5°, RTE < 2 m)" in text
-    _png_not_blank(out / "recall-curves.png")
+    assert_png_drawn(out / "recall-curves.png")
     assert f"wrote {out / 'recall-curves.png'}" in capsys.readouterr().out
 
 
@@ -99,7 +89,7 @@ def test_a_rerun_evaluates_only_what_is_missing(tmp_path: Path, monkeypatch: pyt
     log.write_text("\n".join(lines[:-3]) + "\n")  # interrupted: the last three rows were not written
     main([*args, "--out", str(tmp_path)])
     assert len(evaluated) == 3 and fits == []
-    again, before = _jsonl(log)[-3:], [json.loads(x) for x in lines[-3:]]
+    again, before = read_jsonl(log)[-3:], [json.loads(x) for x in lines[-3:]]
     for row in (*again, *before):
         row.pop("ms_per_pair")
     assert again == before  # the same pairs and weights give the same per-pair errors
@@ -117,7 +107,7 @@ def test_a_method_whose_training_failed_is_reported_and_skipped(tmp_path: Path) 
     lines: list[str] = []
     log = run_conditions(run, progress=lines.append, train=diverging)
     assert log.rows == [] and any("no trained weights" in line for line in lines)
-    assert "failed" in _jsonl(tmp_path / "models.jsonl")[0]
+    assert "failed" in read_jsonl(tmp_path / "models.jsonl")[0]
 
 
 def test_conditions_are_deterministic_and_apply_the_stated_noise_and_crop(tmp_path: Path) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 from typing import Any
@@ -10,6 +9,7 @@ from typing import Any
 import pytest
 
 import lcreg.reproduce.runtime
+from _reproduce_outputs import read_jsonl  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.reproduce.paper import RUNTIME_MS, RUNTIME_POINTS
 from lcreg.reproduce.runtime import RUNTIME
@@ -20,10 +20,6 @@ pytest.importorskip("matplotlib")
 PAPER = Path(__file__).resolve().parents[3] / "shared" / "paper" / "dvds-paper.tex"
 LABELS = {"Ours": "dvds", "ICP": "icp", "PointNetLK": "pointnetlk", "DCP": "dcp", "FGR": "fgr", "RANSAC": "ransac"}
 LABELS |= {"FMR-Net": "fmr", "PCRNet": "pcrnet"}
-
-
-def _jsonl(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(line) for line in path.read_text().splitlines()]
 
 
 def _count_builds(monkeypatch: pytest.MonkeyPatch) -> list[str]:
@@ -52,7 +48,7 @@ def test_smoke_preset_writes_rows_report_with_paper_column_and_plot(tmp_path: Pa
     out = tmp_path / "out"
     args = ["reproduce", "runtime", "--budget", "smoke", "--seeds", "0", "--out", str(out)]
     main(args)
-    rows = _jsonl(out / "runtime.jsonl")
+    rows = read_jsonl(out / "runtime.jsonl")
     assert sorted(r["method"] for r in rows) == sorted(RUNTIME.methods)
     assert all(r["device"] == "cpu" and r["points"] == 500 and r["pairs"] == 1 and r["ms_per_pair"] > 0 for r in rows)
     text = (out / "runtime.md").read_text()
@@ -69,10 +65,10 @@ def test_smoke_preset_writes_rows_report_with_paper_column_and_plot(tmp_path: Pa
 
     builds.clear()  # resume: every row is there, nothing is built or measured again
     main(args)
-    assert builds == [] and len(_jsonl(out / "runtime.jsonl")) == len(rows)
+    assert builds == [] and len(read_jsonl(out / "runtime.jsonl")) == len(rows)
     main([*args[:-2], "--seeds", "0", "1", "--only", "icp", "--out", str(out)])  # only the missing seed
     assert builds == ["icp"]
-    new = _jsonl(out / "runtime.jsonl")[len(rows) :]
+    new = read_jsonl(out / "runtime.jsonl")[len(rows) :]
     assert [(r["method"], r["seed"]) for r in new] == [("icp", 1)]
     assert "Measurements finished: 2 of 2" in (out / "runtime.md").read_text()
 

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lcreg.benchmarking.writers import format_mean_std, markdown_table
+from lcreg.figures import agg_figure, save_png
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -506,15 +507,8 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
 
 def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smooth: float) -> Path:
     """Draw ``specs`` on an Agg canvas of :func:`figure_pixels` and write the PNG."""
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as err:  # pragma: no cover - matplotlib is in the dev and plot extras
-        raise ImportError("learning curves need matplotlib: pip install 'lcreg[plot]'") from err
-
     width, height = figure_pixels(len(specs))
-    fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
+    fig = agg_figure(width / DPI, height / DPI, DPI, "learning curves")
     axes = fig.subplots(math.ceil(len(specs) / COLUMNS), min(len(specs), COLUMNS), squeeze=False).ravel()
     colours = {label: f"C{i % 10}" for i, label in enumerate(runs)}
     for ax, spec in zip(axes, specs):
@@ -523,9 +517,7 @@ def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smoot
         ax.set_visible(False)
     drawn = [label for label in runs if any(label in labels for _, _, labels in specs)]
     _legend(fig, _title(title, runs, specs, smooth), runs, colours, drawn)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
-    return path
+    return save_png(fig, path)
 
 
 def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float = 0.0) -> list[Path]:

@@ -19,8 +19,7 @@ from __future__ import annotations
 import fnmatch
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import torch
 
@@ -42,7 +41,7 @@ from lcreg.metrics.functional import registration_recall
 from lcreg.models.base import RegistrationModule
 from lcreg.reproduce.budgets import PAIR_SEED, DataChoice, Preset, RunBudget
 from lcreg.reproduce.spec import Experiment, Variant
-from lcreg.reproduce.sweep import OutputFiles, Sweep, finished_rows, run_sweep
+from lcreg.reproduce.sweep import PresetRun, Sweep, finished_rows, run_sweep
 from lcreg.types import RegistrationBatch
 
 __all__ = [
@@ -179,20 +178,15 @@ class EvalExperiment:
 
 
 @dataclass(frozen=True)
-class EvalRun(OutputFiles):
+class EvalRun(PresetRun):
     """An evaluation experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl,png}``."""
 
     experiment: EvalExperiment
-    preset: Preset
-    seeds: tuple[int, ...]
-    data: DataChoice
-    out: Path
-    stem: str = ""
 
     @property
     def budget(self) -> EvalBudget:
         """The preset's budget."""
-        return self.experiment.budgets[self.preset]
+        return cast(EvalBudget, self.experiment.budgets[self.preset])
 
     def models(self) -> Sweep:
         """The training sweep of the learned methods (``<out>/models.jsonl``, shared by the experiments)."""

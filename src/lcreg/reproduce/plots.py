@@ -14,6 +14,7 @@ import statistics
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lcreg.figures import agg_figure, save_png
 from lcreg.reproduce.report import METRIC_TITLES, values
 from lcreg.reproduce.spec import Experiment, Rows
 from lcreg.reproduce.sweep import Sweep
@@ -128,15 +129,8 @@ def _figure_title(sweep: Sweep, rows: Rows) -> str:
 
 
 def _render(sweep: Sweep, rows: Rows, metrics: tuple[str, ...], path: Path) -> Path:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as err:  # pragma: no cover - matplotlib is in the dev and plot extras
-        raise ImportError("lcreg reproduce plots need matplotlib: pip install 'lcreg[plot]'") from err
-
     width = max(6.0, 0.75 * len(bar_positions(sweep.experiment)) + 2.0)
-    fig = Figure(figsize=(width, 2.9 * len(metrics) + 1.2), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
+    fig = agg_figure(width, 2.9 * len(metrics) + 1.2, DPI, "lcreg reproduce plots")
     for ax, metric in zip(fig.subplots(len(metrics), 1, squeeze=False).ravel(), metrics):
         _draw_panel(ax, sweep.experiment, rows, metric)
     handles = _legend_handles(sweep.experiment)
@@ -149,9 +143,7 @@ def _render(sweep: Sweep, rows: Rows, metrics: tuple[str, ...], path: Path) -> P
         title=_figure_title(sweep, rows),
     )
     legend.get_title().set_fontsize(9)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
-    return path
+    return save_png(fig, path)
 
 
 def plot_sweep(sweep: Sweep, rows: Rows) -> list[Path]:

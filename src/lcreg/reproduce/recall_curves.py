@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from lcreg.benchmarking import METHODS, ResultLog, format_mean_std, markdown_table
+from lcreg.figures import agg_figure, save_png
 from lcreg.reproduce.conditions import (
     Condition,
     EvalExperiment,
@@ -173,14 +174,10 @@ def _draw(ax: Axes, run: EvalRun, log: ResultLog, condition: Condition) -> None:
 
 def plot_recall_curves(run: EvalRun, log: ResultLog) -> list[Path]:
     """``<out>/recall-curves.png``: one panel per condition, a curve per method (mean over seeds, ± std band)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     conds = run.experiment.conditions
-    cols = 2
-    fig = Figure(figsize=(6.0 * cols, 4.3 * ((len(conds) + cols - 1) // cols)), dpi=DPI)
-    FigureCanvasAgg(fig)
-    axes = fig.subplots((len(conds) + cols - 1) // cols, cols, squeeze=False).ravel()
+    cols, rows = 2, (len(conds) + 1) // 2
+    fig = agg_figure(6.0 * cols, 4.3 * rows + 0.6, DPI, "lcreg reproduce plots")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax, condition in zip(axes, conds):
         _draw(ax, run, log, condition)
     for ax in axes[len(conds) :]:
@@ -190,8 +187,4 @@ def plot_recall_curves(run: EvalRun, log: ResultLog) -> list[Path]:
         f"{run.experiment.title}\n(preset {run.preset}, seeds {seeds}; band: ± std over seeds; dashed: classical)",
         fontsize=10,
     )
-    fig.tight_layout(rect=(0, 0, 1, 0.94))
-    path = run.file_stem.with_suffix(".png")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return [path]
+    return [save_png(fig, run.file_stem.with_suffix(".png"))]

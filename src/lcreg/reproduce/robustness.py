@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lcreg.benchmarking import METHODS, ResultLog, markdown_table
+from lcreg.figures import agg_figure, save_png
 from lcreg.reproduce.budgets import Preset, RunBudget
 from lcreg.reproduce.conditions import (
     Condition,
@@ -154,24 +155,16 @@ def _std(values: list[float]) -> float:
 
 def plot_robustness(run: EvalRun, log: ResultLog) -> list[Path]:
     """``<out>/robustness.png``: a row per criterion, a column per panel; lines are methods (mean ± std)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     panels = list(run.experiment.panels)
-    fig = Figure(figsize=(5.2 * len(panels), 4.0 * len(CRITERIA)), dpi=DPI)
-    FigureCanvasAgg(fig)
+    fig = agg_figure(5.2 * len(panels), 4.0 * len(CRITERIA) + 0.8, DPI, "lcreg reproduce plots")
     axes = fig.subplots(len(CRITERIA), len(panels), squeeze=False)
     for r, (rot, trans) in enumerate(CRITERIA):
         for c, panel in enumerate(panels):
             _draw(axes[r][c], run, log, panel, rot, trans)
     handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(5, max(1, len(labels))), fontsize=8, frameon=False)
-    fig.suptitle(
-        f"{run.experiment.title} (preset {run.preset}, seeds {', '.join(map(str, run.seeds))}; dashed: classical)",
-        fontsize=10,
+    fig.legend(
+        handles, labels, loc="outside lower center", ncols=min(5, max(1, len(labels))), fontsize=8, frameon=False
     )
-    fig.tight_layout(rect=(0, 0.07, 1, 0.96))
-    path = run.file_stem.with_suffix(".png")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return [path]
+    seeds = ", ".join(map(str, run.seeds))
+    fig.suptitle(f"{run.experiment.title} (preset {run.preset}, seeds {seeds}; dashed: classical)", fontsize=10)
+    return [save_png(fig, run.file_stem.with_suffix(".png"))]

@@ -31,9 +31,10 @@ from lcreg.benchmarking import (
     pair_batches,
     registration_speed,
 )
+from lcreg.figures import agg_figure, save_png
 from lcreg.reproduce.budgets import DataChoice, Preset
 from lcreg.reproduce.paper import RUNTIME_MACHINE, RUNTIME_MS, RUNTIME_POINTS
-from lcreg.reproduce.sweep import OutputFiles
+from lcreg.reproduce.sweep import PresetRun
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -151,20 +152,15 @@ RUNTIME = RuntimeExperiment(
 
 
 @dataclass(frozen=True)
-class RuntimeRun(OutputFiles):
+class RuntimeRun(PresetRun):
     """The runtime experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl,png}``."""
 
     experiment: RuntimeExperiment
-    preset: Preset
-    seeds: tuple[int, ...]
-    data: DataChoice
-    out: Path
-    stem: str = ""
 
     @property
     def budget(self) -> RuntimeBudget:
         """The preset's budget."""
-        return self.experiment.budgets[self.preset]
+        return cast(RuntimeBudget, self.experiment.budgets[self.preset])
 
     def devices(self) -> list[str]:
         """``["cpu"]``, plus ``"cuda"`` when the budget asks for it and a GPU is available."""
@@ -381,16 +377,10 @@ def plot_runtime(run: RuntimeRun, log: ResultLog) -> list[Path]:
     found = run.rows(log)
     if not any(found.values()):
         return []
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.lines import Line2D
-    except ImportError as err:  # pragma: no cover - matplotlib is in the dev and plot extras
-        raise ImportError("lcreg reproduce plots need matplotlib: pip install 'lcreg[plot]'") from err
+    from matplotlib.lines import Line2D
 
     devices = run.devices()
-    fig = Figure(figsize=(5.2 * len(devices) + 2.4, 4.6), dpi=DPI, layout="constrained")
-    FigureCanvasAgg(fig)
+    fig = agg_figure(5.2 * len(devices) + 2.4, 4.6, DPI, "lcreg reproduce plots")
     axes = fig.subplots(1, len(devices), squeeze=False).ravel()
     for ax, device in zip(axes, devices):
         _draw(ax, run, found, device)
@@ -414,7 +404,4 @@ def plot_runtime(run: RuntimeRun, log: ResultLog) -> list[Path]:
         f"{run.experiment.title}\nbudget {run.preset}, {run.budget.describe()}, seeds {seeds}; lower is better",
         fontsize=9,
     )
-    path = run.file_stem.with_suffix(".png")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
-    return [path]
+    return [save_png(fig, run.file_stem.with_suffix(".png"))]

@@ -31,6 +31,7 @@ __all__ = [
     "KEY_FIELDS",
     "METRICS",
     "OutputFiles",
+    "PresetRun",
     "Sweep",
     "Trainer",
     "failed_runs",
@@ -70,6 +71,32 @@ class OutputFiles:
     def log_path(self) -> Path:
         """``<out>/<stem>.jsonl``."""
         return self.file_stem.with_suffix(".jsonl")
+
+
+@dataclass(frozen=True)
+class PresetRun(OutputFiles):
+    """One experiment under one preset, seeds and data (base of the runtime and evaluation runs).
+
+    Attributes:
+        experiment: The experiment; its ``budgets`` map every preset to the budget of this run kind.
+        preset: The budget preset.
+        seeds: Seeds (mean ± std over them).
+        data: The data every run reads.
+        out: The output folder.
+        stem: File stem (``""``: the experiment's name).
+    """
+
+    experiment: Any
+    preset: Preset
+    seeds: tuple[int, ...]
+    data: DataChoice
+    out: Path
+    stem: str = ""
+
+    @property
+    def budget(self) -> Any:
+        """The preset's budget."""
+        return self.experiment.budgets[self.preset]
 
 
 @dataclass(frozen=True)
