@@ -59,6 +59,9 @@ def test_smoke_of_both_experiments_shares_the_trained_models_and_writes_every_ro
     for r in rows:
         assert len(r["rre_deg"]) == len(r["rte"]) == r["pairs"] == 2
         assert (r["weights"] is None) == (not METHODS[r["method"]].learned)
+    errors = {(r["method"], r["condition"]): r["rre_deg"] for r in rows}
+    for name in ROBUSTNESS.methods:  # a 100 % crop keeps the clean pairs, and every method is deterministic
+        assert errors[(name, "partial/1")] == errors[(name, "noise/0")], name
     text = (out / "robustness.md").read_text()
     assert "## Gaussian noise σ on both clouds: recall (RRE < 2°, RTE < 0.01), %" in text
     assert "| σ 0 | σ 0.01 |" in text and "| 100% kept | 90% kept |" in text
