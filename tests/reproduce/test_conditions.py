@@ -149,3 +149,17 @@ def test_only_selects_methods_and_bad_patterns_are_one_line(tmp_path: Path, caps
         main(["reproduce", "recall-curves", "--budget", "smoke", "--only", "geotransformer", "--out", str(tmp_path)])
     assert info.value.code == 2
     assert "--only 'geotransformer' matches no method of recall-curves" in capsys.readouterr().err
+
+
+def test_a_method_missing_seeds_is_labelled_with_how_many_were_evaluated(tmp_path: Path) -> None:
+    from lcreg.reproduce.conditions import method_label
+
+    run = EvalRun(ROBUSTNESS, "smoke", (0, 1), DataChoice(None), tmp_path)
+    log = run.open_log()
+    noise = ROBUSTNESS.conditions[0]
+    for method, seed in (("dcp", 0), ("pointnetlk", 0), ("pointnetlk", 1), ("icp", None)):
+        log.append({**run.key(method, seed, noise), "rre_deg": [1.0], "rte": [0.0], "pairs": 1})
+    assert method_label(run, log, "dcp", [noise]) == "DCP-v2 (1 of 2 seeds)"
+    assert method_label(run, log, "pointnetlk", [noise]) == "PointNetLK"
+    assert method_label(run, log, "icp", [noise]) == "ICP point-to-point"  # classical: run once, not per seed
+    assert method_label(run, log, "pointnetlk", ROBUSTNESS.conditions[:2]) == "PointNetLK (0 of 2 seeds)"

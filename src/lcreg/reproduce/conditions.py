@@ -51,6 +51,7 @@ __all__ = [
     "EvalBudget",
     "EvalExperiment",
     "EvalRun",
+    "method_label",
     "percent_cell",
     "recall_of",
     "report_header",
@@ -341,6 +342,14 @@ def seed_values(
     """``value(row)`` for every finished seed of (``method``, ``condition``) in ``log``."""
     rows = [log.find(**run.key(method, seed, condition)) for seed in run.seeds_of(method)]
     return [value(r) for r in rows if r is not None]
+
+
+def method_label(run: EvalRun, log: ResultLog, method: str, conditions: Sequence[Condition]) -> str:
+    """The method's label, with ``" (k of n seeds)"`` when some of its seeds are not evaluated on ``conditions``."""
+    expected = len(run.seeds_of(method))
+    done = min((len(seed_values(run, log, method, c, lambda r: 0)) for c in conditions), default=expected)
+    label = METHODS[method].label
+    return label if done == expected else f"{label} ({done} of {expected} seeds)"
 
 
 def percent_cell(values: Sequence[float]) -> str:

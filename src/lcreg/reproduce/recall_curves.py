@@ -27,6 +27,7 @@ from lcreg.reproduce.conditions import (
     Condition,
     EvalExperiment,
     EvalRun,
+    method_label,
     percent_cell,
     recall_of,
     report_header,
@@ -135,7 +136,8 @@ def _table(run: EvalRun, log: ResultLog, condition: Condition) -> str:
         if scene:
             cells.append(percent_cell(seed_values(run, log, name, condition, lambda r: recall_of(r, *scene))))
         pairs = {r["pairs"] for s in run.seeds_of(name) if (r := log.find(**run.key(name, s, condition)))}
-        rows.append([f"{METHODS[name].label}" + (f" ({pairs.pop()} pairs)" if len(pairs) == 1 else ""), *cells])
+        label = method_label(run, log, name, [condition])
+        rows.append([label + (f", {pairs.pop()} pairs" if len(pairs) == 1 else ""), *cells])
     return markdown_table(header, rows)
 
 
@@ -159,7 +161,7 @@ def _draw(ax: Axes, run: EvalRun, log: ResultLog, condition: Condition) -> None:
         mean = stack.mean(axis=0)
         style = "-" if METHODS[name].learned else "--"
         colour = f"C{i % 10}" if not name.startswith("ransac_icp") else "black"
-        ax.plot(thresholds, mean, style, color=colour, linewidth=1.3, label=METHODS[name].label)
+        ax.plot(thresholds, mean, style, color=colour, linewidth=1.3, label=method_label(run, log, name, [condition]))
         if len(stack) > 1:
             std = stack.std(axis=0, ddof=1)
             ax.fill_between(thresholds, mean - std, mean + std, color=colour, alpha=0.15, linewidth=0)

@@ -25,6 +25,7 @@ from lcreg.reproduce.conditions import (
     EvalBudget,
     EvalExperiment,
     EvalRun,
+    method_label,
     percent_cell,
     recall_of,
     report_header,
@@ -99,7 +100,7 @@ def _table(run: EvalRun, log: ResultLog, panel: str, rot: float, trans: float) -
     conds = [c for c in exp.conditions if c.panel == panel]
     rows = [
         [
-            METHODS[m].label,
+            method_label(run, log, m, conds),
             *(percent_cell(seed_values(run, log, m, c, lambda r: recall_of(r, rot, trans))) for c in conds),
         ]
         for m in exp.methods
@@ -132,7 +133,7 @@ def _draw(ax: Axes, run: EvalRun, log: ResultLog, panel: str, rot: float, trans:
             xs,
             means,
             yerr=stds,
-            label=METHODS[name].label,
+            label=method_label(run, log, name, conds),
             color=f"C{i}",
             linestyle=style,
             marker="o",
