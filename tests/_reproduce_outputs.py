@@ -1,10 +1,12 @@
-"""Reading what ``lcreg reproduce`` wrote: JSONL rows and a check that a PNG is a drawn figure."""
+"""Helpers of the ``lcreg reproduce`` tests: JSONL rows, a drawn-PNG check, counting calls of a patched function."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -18,3 +20,16 @@ def assert_png_drawn(path: Path) -> None:
 
     image = imread(path)[..., :3]
     assert image.shape[0] > 300 and image.std() > 0.05, path
+
+
+def count_calls(monkeypatch: pytest.MonkeyPatch, module: Any, name: str) -> list[str]:
+    """Patch ``module.name`` to record its first argument (a name, or the argument's type name) on every call."""
+    calls: list[str] = []
+    real = getattr(module, name)
+
+    def counting(first: Any, *args: Any, **kwargs: Any) -> Any:
+        calls.append(first if isinstance(first, str) else type(first).__name__)
+        return real(first, *args, **kwargs)
+
+    monkeypatch.setattr(module, name, counting)
+    return calls

@@ -8,7 +8,7 @@ from typing import Any
 import pytest
 
 import lcreg.reproduce.sweep
-from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
+from _reproduce_outputs import assert_png_drawn, count_calls, read_jsonl  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.models.base import NonFiniteTrainingError
 from lcreg.reproduce import EXPERIMENTS, PLANNED
@@ -19,19 +19,6 @@ from lcreg.reproduce.sweep import METRICS, Sweep, failed_runs, finished_rows, ru
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 pytest.importorskip("matplotlib")
-
-
-def _count_fits(monkeypatch: pytest.MonkeyPatch) -> list[str]:
-    """Record every training run (the harness's ``fit``) the sweep starts."""
-    calls: list[str] = []
-    real = lcreg.reproduce.sweep.fit
-
-    def counting(name: str, *args: Any, **kwargs: Any) -> Any:
-        calls.append(name)
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(lcreg.reproduce.sweep, "fit", counting)
-    return calls
 
 
 @pytest.mark.parametrize("name", list(EXPERIMENTS))
@@ -55,7 +42,7 @@ def test_smoke_preset_writes_jsonl_markdown_with_paper_columns_and_plots(name: s
 
 
 def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path: Path, monkeypatch) -> None:
-    fits = _count_fits(monkeypatch)
+    fits = count_calls(monkeypatch, lcreg.reproduce.sweep, "fit")
     args = [
         "reproduce",
         "lc",

@@ -13,7 +13,7 @@ import torch
 
 import lcreg.reproduce.conditions as conditions
 import lcreg.reproduce.sweep
-from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
+from _reproduce_outputs import assert_png_drawn, count_calls, read_jsonl  # type: ignore[import-not-found]
 from lcreg.benchmarking import METHODS
 from lcreg.cli import main
 from lcreg.reproduce.budgets import DataChoice
@@ -23,19 +23,6 @@ from lcreg.reproduce.robustness import ROBUSTNESS
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 pytest.importorskip("matplotlib")
-
-
-def _count(monkeypatch: pytest.MonkeyPatch, module: Any, name: str) -> list[str]:
-    """Record the first argument of every call of ``module.name``."""
-    calls: list[str] = []
-    real = getattr(module, name)
-
-    def counting(first: Any, *args: Any, **kwargs: Any) -> Any:
-        calls.append(first if isinstance(first, str) else type(first).__name__)
-        return real(first, *args, **kwargs)
-
-    monkeypatch.setattr(module, name, counting)
-    return calls
 
 
 def _expected_rows(experiment: Any, seeds: tuple[int, ...]) -> set[tuple[str, int | None, str]]:
@@ -50,7 +37,7 @@ def _expected_rows(experiment: Any, seeds: tuple[int, ...]) -> set[tuple[str, in
 def test_smoke_of_both_experiments_shares_the_trained_models_and_writes_every_row(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
 ) -> None:
-    fits = _count(monkeypatch, lcreg.reproduce.sweep, "fit")
+    fits = count_calls(monkeypatch, lcreg.reproduce.sweep, "fit")
     out = tmp_path / "out"
     main(["reproduce", "robustness", "--budget", "smoke", "--seeds", "0", "--out", str(out)])
     assert sorted(fits) == sorted(ROBUSTNESS.learned())  # every learned method trained once, classical never
@@ -85,8 +72,8 @@ def test_a_rerun_evaluates_only_what_is_missing(tmp_path: Path, monkeypatch: pyt
     log = tmp_path / "robustness.jsonl"
     lines = log.read_text().splitlines()
     assert len(lines) == 2 * len(ROBUSTNESS.conditions)
-    evaluated = _count(monkeypatch, conditions, "evaluate")
-    fits = _count(monkeypatch, lcreg.reproduce.sweep, "fit")
+    evaluated = count_calls(monkeypatch, conditions, "evaluate")
+    fits = count_calls(monkeypatch, lcreg.reproduce.sweep, "fit")
     main([*args, "--out", str(tmp_path)])
     assert evaluated == [] and fits == []
     log.write_text("\n".join(lines[:-3]) + "\n")  # interrupted: the last three rows were not written

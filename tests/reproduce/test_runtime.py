@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 import lcreg.reproduce.runtime
-from _reproduce_outputs import read_jsonl  # type: ignore[import-not-found]
+from _reproduce_outputs import count_calls, read_jsonl  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.reproduce.paper import RUNTIME_MS, RUNTIME_POINTS
 from lcreg.reproduce.runtime import RUNTIME
@@ -22,18 +21,6 @@ LABELS = {"Ours": "dvds", "ICP": "icp", "PointNetLK": "pointnetlk", "DCP": "dcp"
 LABELS |= {"FMR-Net": "fmr", "PCRNet": "pcrnet"}
 
 
-def _count_builds(monkeypatch: pytest.MonkeyPatch) -> list[str]:
-    calls: list[str] = []
-    real = lcreg.reproduce.runtime.build
-
-    def counting(name: str, *args: Any, **kwargs: Any) -> Any:
-        calls.append(name)
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(lcreg.reproduce.runtime, "build", counting)
-    return calls
-
-
 @pytest.mark.skipif(not PAPER.is_file(), reason=f"the paper's source is not at {PAPER}")
 def test_paper_runtime_figures_are_the_latex_rows_in_order() -> None:
     table = next(t for t in PAPER.read_text(encoding="utf-8").split("\\begin{table") if "\\label{table3}" in t)
@@ -44,7 +31,7 @@ def test_paper_runtime_figures_are_the_latex_rows_in_order() -> None:
 
 
 def test_smoke_preset_writes_rows_report_with_paper_column_and_plot(tmp_path: Path, monkeypatch, capsys) -> None:
-    builds = _count_builds(monkeypatch)
+    builds = count_calls(monkeypatch, lcreg.reproduce.runtime, "build")
     out = tmp_path / "out"
     args = ["reproduce", "runtime", "--budget", "smoke", "--seeds", "0", "--out", str(out)]
     main(args)

@@ -100,15 +100,13 @@ class PresetRun(OutputFiles):
 
 
 @dataclass(frozen=True)
-class Sweep(OutputFiles):
-    """An experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl}`` and PNGs."""
+class Sweep(PresetRun):
+    """An experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl}`` and PNGs.
+
+    Its :attr:`budget` maps budget groups to :class:`RunBudget`; :meth:`Experiment.budget` gives a variant's.
+    """
 
     experiment: Experiment
-    preset: Preset
-    seeds: tuple[int, ...]
-    data: DataChoice
-    out: Path
-    stem: str = ""
 
     def run_dir(self, variant: Variant, seed: int) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``."""
