@@ -63,6 +63,14 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--refine", action="store_true", help="every learned row also with ICP refinement")
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--protocol", default="unseen_objects", choices=["unseen_objects", "unseen_categories"])
+    parser.add_argument("--split", default="test", choices=["val", "test"], help="val: choose settings; test: report")
+    parser.add_argument(
+        "--model-args",
+        nargs="*",
+        default=[],
+        metavar="NAME=VALUE",
+        help="constructor arguments of every learned row, e.g. eval_iterations=5 (YAML values)",
+    )
     parser.add_argument("--num-points", type=int, default=1024)
     parser.add_argument("--noise-sigma", type=float, nargs="+", default=[0.0], help="one table per sigma")
     parser.add_argument("--batch-size", type=int, default=16)
@@ -99,10 +107,20 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
-def learned(method: str, checkpoint: str | None, seed: int | None, refine: bool) -> RegistrationModule:
-    """``method`` with a checkpoint's weights (or seeded untrained), optionally with ICP refinement."""
+def learned(
+    method: str, checkpoint: str | None, seed: int | None, refine: bool, model_args: Sequence[str] = ()
+) -> RegistrationModule:
+    """``method`` with a checkpoint's weights (or seeded untrained), optionally with ICP refinement.
+
+    ``model_args`` (``NAME=VALUE``) override constructor arguments that are not weights, e.g. ``eval_iterations``.
+    """
     configs = [REFINE_CONFIG] if refine else []
     overrides = [] if seed is None else [f"--seed_everything={seed}"]
+    for item in model_args:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--model-args expects NAME=VALUE, got {item!r}")
+        overrides.append(f"--model.init_args.{name}={value}")
     return build(method, checkpoint, configs=configs, overrides=overrides)
 
 
@@ -110,23 +128,31 @@ def table(args: argparse.Namespace, sigma: float) -> str:
     """The Markdown table (rows, then mean ± std rows) at noise ``sigma``."""
     options = {"protocol": args.protocol, "noise_sigma": sigma, "seed": args.seed}
     batches, source = pair_batches(
-        args.root, pairs=args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
+        args.root, args.split, args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
     )
     reports: list[EvaluationReport] = []
     groups: list[tuple[list[EvaluationReport], str]] = []
     for refine in (False, True) if args.refine else (False,):
         tag = " + ICP" if refine else ""
         trained = [
-            evaluate(learned(args.method, c, None, refine), batches, f"{args.method} (trained, {Path(c).name}){tag}")
+            evaluate(
+                learned(args.method, c, None, refine, args.model_args),
+                batches,
+                f"{args.method} (trained, {Path(c).name}){tag}",
+            )
             for c in args.ckpt
         ]
         untrained = [
-            evaluate(learned(args.method, None, s, refine), batches, f"{args.method} (untrained, seed {s}){tag}")
+            evaluate(
+                learned(args.method, None, s, refine, args.model_args),
+                batches,
+                f"{args.method} (untrained, seed {s}){tag}",
+            )
             for s in args.init_seeds
         ]
         for spec in args.extra:
             label, method, ckpt = spec.split("=", 2)
-            reports.append(evaluate(learned(method, ckpt, None, refine), batches, f"{label}{tag}"))
+            reports.append(evaluate(learned(method, ckpt, None, refine, args.model_args), batches, f"{label}{tag}"))
         reports += [*trained, *untrained]
         seeds = ", ".join(str(s) for s in args.init_seeds)
         groups += [(trained, f"{args.method} trained{tag}, mean ± std over {len(trained)} checkpoint(s)")]
@@ -138,7 +164,7 @@ def table(args: argparse.Namespace, sigma: float) -> str:
     for r in reports:
         print(f"{r.name}: mean IC-LK/ICP iterations {r.extra['mean_iterations']:.2f}", flush=True)
     header = (
-        f"{source}, {reports[0].num_pairs} test pairs, {args.num_points} points, noise sigma {sigma}, "
+        f"{source}, {reports[0].num_pairs} {args.split} pairs, {args.num_points} points, noise sigma {sigma}, "
         f"batch {args.batch_size}, {machine_line()}\n"
     )
     rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)

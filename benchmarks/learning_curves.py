@@ -74,6 +74,15 @@ VARIANTS: dict[str, Variant] = {
             "--trainer.gradient_clip_val=1.0",
         ),
     ),
+    "pointnetlk_nobn": Variant(
+        "pointnetlk",
+        overrides=(
+            "--model.init_args.batch_norm=false",
+            "--model.init_args.jacobian=analytic",
+            "--model.init_args.optimizer.init_args.lr=0.0001",
+            "--trainer.gradient_clip_val=1.0",
+        ),
+    ),
 }
 SMOKE = {"steps": 2, "val_every": 1, "seeds": [0], "variants": ["model_D", "selfsup"]}
 

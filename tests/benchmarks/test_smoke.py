@@ -22,6 +22,7 @@ RUNS = {
     "bench_runtime": [],
     "compare_methods": [],
     "eval_modelnet40_dvds": [],
+    "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],
     "eval_scenes": [],
     "eval_scenes --tune": ["--tune"],
     "kill_resume": [],  # five lcreg processes, about 30 s: the real kill -9 and resume
@@ -64,3 +65,11 @@ def test_bad_input_matrix_smoke_has_no_cryptic_or_silent_case(tmp_path: Path) ->
     out = tmp_path / "matrix.md"
     load("bad_input_matrix").main(["--smoke", "--out", str(out)])
     assert "cryptic 0, silent 0" in out.read_text().splitlines()[0]
+
+
+def test_eval_model_args_reach_the_constructor_and_malformed_ones_are_refused() -> None:
+    learned = load("eval_modelnet40_dvds").learned
+    assert learned("dvds", None, 0, False, ["eval_iterations=3"]).eval_iterations == 3
+    assert learned("dvds", None, 0, False).eval_iterations is None
+    with pytest.raises(ValueError, match="NAME=VALUE"):
+        learned("dvds", None, 0, False, ["eval_iterations"])
