@@ -16,7 +16,8 @@ Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed 
 model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
 ``configs/dvds_modelnet40.yaml``); the label-free recipe adds :class:`~lcreg.models.loss_terms.SelfMotionLoss`
 (``configs/dvds_selfsup_modelnet40.yaml``); PointNetLK is the supervised control (analytic Jacobian, lr 1e-4,
-gradient clipping 1, as in issue 12's table).
+gradient clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without BatchNorm (like the DVDs
+encoder: the solve then sees the same function as the training pass).
 """
 
 from __future__ import annotations
