@@ -12,9 +12,11 @@ weights (the seeds of one recipe, each chosen on validation: reported one by one
 config's initialisation for each ``--init-seeds`` seed (mean ± std); ``--extra`` rows (any registry method with a
 checkpoint); Open3D point-to-point ICP (``configs/icp.yaml`` with the gate set to each ``--icp-distances`` value, 50
 iterations) and any ``--classical`` registry method (e.g. ``ransac_icp``: FPFH + RANSAC + ICP). ``--refine`` adds
-every learned row again with ICP refinement (``configs/refine/icp.yaml``).
-Pairs: ModelNet40DataModule(protocol) test split, seed 1234 (the configs' default), 1024 points, Euler U[0, 45°],
-t U[-0.5, 0.5], independent samplings; one table per ``--noise-sigma`` (Gaussian, clip 0.05).
+every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--model-args NAME=VALUE ...`` sets
+constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
+the same table on the validation pairs, to choose such settings before the one test run.
+Pairs: ModelNet40DataModule(protocol) ``--split`` split (default test), seed 1234 (the configs' default), 1024
+points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings; one table per ``--noise-sigma`` (Gaussian, clip 0.05).
 """
 
 from __future__ import annotations
@@ -104,6 +106,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         ]
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
+    try:
+        model_overrides(args.model_args)  # refuse a malformed item before any data is read
+    except ValueError as error:
+        parser.error(str(error))
     return args
 
 
@@ -116,12 +122,22 @@ def learned(
     """
     configs = [REFINE_CONFIG] if refine else []
     overrides = [] if seed is None else [f"--seed_everything={seed}"]
+    return build(method, checkpoint, configs=configs, overrides=[*overrides, *model_overrides(model_args)])
+
+
+def model_overrides(model_args: Sequence[str]) -> list[str]:
+    """``NAME=VALUE`` items as ``--model.init_args.NAME=VALUE`` overrides (values kept as YAML text).
+
+    Raises:
+        ValueError: An item without ``=`` or without a name.
+    """
+    values = {}
     for item in model_args:
         name, sep, value = item.partition("=")
         if not sep or not name:
             raise ValueError(f"--model-args expects NAME=VALUE, got {item!r}")
-        overrides.append(f"--model.init_args.{name}={value}")
-    return build(method, checkpoint, configs=configs, overrides=overrides)
+        values[name] = value
+    return cli_args("model", values)
 
 
 def table(args: argparse.Namespace, sigma: float) -> str:
