@@ -22,13 +22,14 @@ points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings; one table per `
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from lcreg.benchmarking import (
     add_smoke_argument,
     build,
     cli_args,
+    key_values,
     machine_line,
     mean_std_row,
     output_path,
@@ -106,38 +107,21 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         ]
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
-    try:
-        model_overrides(args.model_args)  # refuse a malformed item before any data is read
-    except ValueError as error:
-        parser.error(str(error))
+    args.model_args = key_values(args.model_args, "--model-args")
     return args
 
 
 def learned(
-    method: str, checkpoint: str | None, seed: int | None, refine: bool, model_args: Sequence[str] = ()
+    method: str, checkpoint: str | None, seed: int | None, refine: bool, model_args: Mapping[str, str] | None = None
 ) -> RegistrationModule:
     """``method`` with a checkpoint's weights (or seeded untrained), optionally with ICP refinement.
 
-    ``model_args`` (``NAME=VALUE``) override constructor arguments that are not weights, e.g. ``eval_iterations``.
+    ``model_args`` (``{name: YAML text}``) override constructor arguments that are not weights, e.g.
+    ``eval_iterations``.
     """
     configs = [REFINE_CONFIG] if refine else []
     overrides = [] if seed is None else [f"--seed_everything={seed}"]
-    return build(method, checkpoint, configs=configs, overrides=[*overrides, *model_overrides(model_args)])
-
-
-def model_overrides(model_args: Sequence[str]) -> list[str]:
-    """``NAME=VALUE`` items as ``--model.init_args.NAME=VALUE`` overrides (values kept as YAML text).
-
-    Raises:
-        ValueError: An item without ``=`` or without a name.
-    """
-    values = {}
-    for item in model_args:
-        name, sep, value = item.partition("=")
-        if not sep or not name:
-            raise ValueError(f"--model-args expects NAME=VALUE, got {item!r}")
-        values[name] = value
-    return cli_args("model", values)
+    return build(method, checkpoint, configs=configs, overrides=[*overrides, *cli_args("model", model_args or {})])
 
 
 def table(args: argparse.Namespace, sigma: float) -> str:

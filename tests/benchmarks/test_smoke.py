@@ -68,8 +68,9 @@ def test_bad_input_matrix_smoke_has_no_cryptic_or_silent_case(tmp_path: Path) ->
 
 
 def test_eval_model_args_reach_the_constructor_and_malformed_ones_are_refused() -> None:
-    learned = load("eval_modelnet40_dvds").learned
-    assert learned("dvds", None, 0, False, ["eval_iterations=3"]).eval_iterations == 3
-    assert learned("dvds", None, 0, False).eval_iterations is None
-    with pytest.raises(ValueError, match="NAME=VALUE"):
-        learned("dvds", None, 0, False, ["eval_iterations"])
+    script = load("eval_modelnet40_dvds")
+    args = script.parse(["--ckpt", "x.ckpt", "--model-args", "eval_iterations=3"])
+    assert script.learned("dvds", None, 0, False, args.model_args).eval_iterations == 3
+    assert script.learned("dvds", None, 0, False).eval_iterations is None
+    with pytest.raises(SystemExit, match="key=value"):
+        script.parse(["--ckpt", "x.ckpt", "--model-args", "eval_iterations"])
