@@ -2,13 +2,24 @@
 
     python benchmarks/learning_curves.py --root ../shared/data/modelnet40_mini --points 1024 --steps 500 \
         --val-every 50 --seeds 0 1 2 --run-dir runs/learning_curves --out docs/results/learning_curves.md
+    python benchmarks/learning_curves.py --root ../shared/data/modelnet40_mini --points 1024 --steps 3000 \
+        --val-every 50 --patience 8 --val-pairs 4 --seeds 0 1 2 --variants selfsup --run-dir runs/converge/lc
     python benchmarks/learning_curves.py --smoke      # seconds, embedded shapes, 2 steps
 
 Every (variant, seed) is one ``lcreg fit`` (:func:`lcreg.benchmarking.fit`) that first validates its initial weights
 (step 0), then validates every ``--val-every`` steps; checkpoints are chosen on ``val/rre_mean_deg``. Each run's
 ``metrics.csv`` (losses, the IC-LK Jacobian diagnostics ``train/j_*``, validation registration) is kept under
 ``--run-dir/<variant>/seed<k>``. Finished runs are listed in ``<run-dir>/runs.jsonl`` and skipped on a rerun, so a
-long study can be run in chunks. ``--out x.md`` writes the summary table of every finished run of the chosen
+long study can be run in chunks.
+
+**Converge budget** (``--patience P``): each run trains until the validation error
+(:data:`lcreg.benchmarking.CONVERGE_METRIC`, the mean of min(RRE, 5°)) has not improved for ``P`` validations, capped
+by ``--steps``; the best checkpoint is chosen on the same metric. ``--val-pairs K`` draws K validation pairs from
+every validation object (``val_pairs_per_object``: 4 gives 312 pairs on ``modelnet40_mini``), so one failed pair
+moves the criterion by at most 5° / 312. A run that was cut off (killed, session over) resumes from its
+``last.ckpt`` on the next call with the same arguments, early-stopping state included.
+
+``--out x.md`` writes the summary table of every finished run of the chosen
 variants (:func:`lcreg.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``, ``x_jacobian.png``,
 ... by :func:`lcreg.benchmarking.plot_curves`, as ``benchmarks/plot_learning_curves.py`` draws them).
 
@@ -29,10 +40,13 @@ from pathlib import Path
 from typing import NamedTuple
 
 from lcreg.benchmarking import (
+    CONVERGE_METRIC,
+    SELECTION_METRIC,
     ResultLog,
     add_smoke_argument,
     apply_smoke,
     cli_args,
+    converge_overrides,
     fit,
     fit_overrides,
     load_runs,
@@ -75,6 +89,14 @@ VARIANTS: dict[str, Variant] = {
             "--trainer.gradient_clip_val=1.0",
         ),
     ),
+    "selfsup_lr3e-5": Variant("dvds_selfsup", overrides=("--model.init_args.optimizer.init_args.lr=3e-05",)),
+    "selfsup_steplr": Variant(
+        "dvds_selfsup",
+        overrides=(
+            '--model.init_args.lr_scheduler={"class_path": "torch.optim.lr_scheduler.StepLR", '
+            '"init_args": {"step_size": 5, "gamma": 0.5}}',
+        ),
+    ),
     "pointnetlk_nobn": Variant(
         "pointnetlk",
         overrides=(
@@ -86,6 +108,9 @@ VARIANTS: dict[str, Variant] = {
     ),
 }
 SMOKE = {"steps": 2, "val_every": 1, "seeds": [0], "variants": ["model_D", "selfsup"]}
+KEY = ("variant", "seed", "points", "steps", "budget")
+"""A run's identity in ``runs.jsonl``: ``budget`` is ``None`` for a fixed step budget (the rows of earlier versions),
+``"converge p<P> v<K>"`` for a converge run."""
 
 
 def data_overrides(args: argparse.Namespace) -> list[str]:
@@ -93,27 +118,50 @@ def data_overrides(args: argparse.Namespace) -> list[str]:
     if args.root is None:
         return synthetic_overrides(pairs=4, num_points=64, batch_size=2)
     values = {"root": args.root, "num_points": args.points, "batch_size": args.batch, "num_workers": 0}
+    if args.val_pairs != 1:
+        values["val_pairs_per_object"] = args.val_pairs
     return cli_args("data", values)
 
 
+def budget_key(args: argparse.Namespace) -> str | None:
+    """``None`` for a fixed step budget, ``"converge p<P> v<K>"`` for a converge run (see :data:`KEY`)."""
+    return None if args.patience is None else f"converge p{args.patience} v{args.val_pairs}"
+
+
+def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> list[str]:
+    """The step budget of every run: fixed, or until ``--patience`` validations bring no improvement."""
+    if args.patience is None:
+        return fit_overrides(args.steps, args.val_every, run_dir, name="", seed=seed)
+    return converge_overrides(args.steps, args.val_every, args.patience, run_dir, name="", seed=seed)
+
+
 def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
-    """Train ``name`` from seed ``seed`` unless ``log`` lists it as finished; append its row when done."""
-    if log.done(variant=name, seed=seed, points=args.points, steps=args.steps):
+    """Train ``name`` from seed ``seed`` unless ``log`` lists it as finished; append its row when done.
+
+    A converge run that was cut off resumes from its ``last.ckpt``.
+    """
+    key = {"variant": name, "seed": seed, "points": args.points, "steps": args.steps, "budget": budget_key(args)}
+    if log.done(**key):
         print(f"{name} seed {seed}: done before, skipped", flush=True)
         return
     variant = VARIANTS[name]
     run_dir = Path(args.run_dir) / name
     overrides = [
         *data_overrides(args),
-        *fit_overrides(args.steps, args.val_every, run_dir, name="", seed=seed),
+        *training_overrides(args, run_dir, seed),
         f"--trainer.logger.init_args.version=seed{seed}",
         *variant.overrides,
     ]
-    result = fit(variant.method, overrides, variant.configs, validate_first=True)
+    converge = args.patience is not None
+    monitor = CONVERGE_METRIC if converge else SELECTION_METRIC
+    result = fit(variant.method, overrides, variant.configs, validate_first=True, monitor=monitor, resume=converge)
     metrics = Path(result.trainer.log_dir or run_dir) / "metrics.csv"
-    row = {"variant": name, "seed": seed, "metrics_csv": str(metrics), "best_checkpoint": str(result.best_checkpoint)}
-    log.append({**row, "seconds": round(result.seconds, 1), "steps": args.steps, "points": args.points})
-    print(f"{name} seed {seed}: {result.seconds:.0f} s, {metrics}", flush=True)
+    stopped = result.trainer.global_step
+    row = {**key, "metrics_csv": str(metrics), "best_checkpoint": str(result.best_checkpoint)}
+    log.append(
+        {**row, "seconds": round(result.seconds, 1), "stopped_step": stopped, "early_stopped": stopped < args.steps}
+    )
+    print(f"{name} seed {seed}: {result.seconds:.0f} s, stopped at step {stopped}, {metrics}", flush=True)
 
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -123,6 +171,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--batch", type=int, default=16)
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--val-every", type=int, default=50)
+    parser.add_argument(
+        "--patience", type=int, default=None, help="converge budget: stop after this many validations without gain"
+    )
+    parser.add_argument("--val-pairs", type=int, default=1, help="validation pairs per validation object")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--run-dir", default="runs/learning_curves")
@@ -136,8 +188,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = parse(argv)
-    log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=("variant", "seed", "points", "steps"))
-    print(f"{args.points} points, {args.steps} steps, seeds {args.seeds}; {machine_line()}", flush=True)
+    log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=KEY)
+    budget = budget_key(args) or "fixed budget"
+    print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine_line()}", flush=True)
     for name in args.variants:
         for seed in args.seeds:
             run(args, name, seed, log)
@@ -150,10 +203,13 @@ def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     """Summary table and learning-curve PNGs of the finished runs of ``args.variants`` at this budget."""
     files: dict[str, list[str]] = {}
     for row in log.rows:
-        if row["variant"] in args.variants and (row["points"], row["steps"]) == (args.points, args.steps):
+        wanted = (args.points, args.steps, budget_key(args))
+        if row["variant"] in args.variants and (row["points"], row["steps"], row.get("budget")) == wanted:
             files.setdefault(row["variant"], []).append(row["metrics_csv"])
     runs = load_runs(files)
-    head = f"{args.points} points, {args.steps} steps, batch {args.batch}; {machine_line()}; runs: {args.run_dir}"
+    budget = budget_key(args) or "fixed budget"
+    head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line()}"
+    head += f"; runs: {args.run_dir}"
     write_text(out, "\n".join([head, "", summary_table(runs), ""]))
     for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):
         print(f"wrote {path}", flush=True)

@@ -13,6 +13,7 @@ import yaml
 
 import lcreg.evaluation
 from lcreg.benchmarking import (
+    CONVERGE_METRIC,
     DATA_CONFIGS,
     METHODS,
     REFINE_CONFIG,
@@ -22,22 +23,26 @@ from lcreg.benchmarking import (
     CheckpointMismatchError,
     CheckpointNotFoundError,
     CheckpointReadError,
+    FitResult,
     ResultLog,
     build,
     cli_args,
     cli_arguments,
     config_dir,
     config_path,
+    converge_overrides,
     fit,
     fit_overrides,
     format_mean_std,
     key_values,
+    last_checkpoint,
     load_weights,
     markdown_table,
     method,
     output_path,
     pair_batches,
     peak_rss_increase_mib,
+    read_metrics,
     registration_speed,
     save_weights,
     synthetic_overrides,
@@ -194,6 +199,37 @@ def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Pat
 def test_fit_refuses_a_config_that_does_not_select_on_validation_rre(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="val/rre_mean_deg"):
         fit("icp", fit_overrides(1, 1, tmp_path))
+
+
+def test_converge_stops_after_patience_validations_without_improvement(tmp_path: Path) -> None:
+    # min_delta 1000: no later validation counts as an improvement, so the run stops after 1 + patience checks.
+    run = converge_overrides(max_steps=20, val_every=1, patience=2, run_dir=tmp_path, name="c", min_delta=1000.0)
+    result = fit("dvds", [*run, *TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32)], monitor=CONVERGE_METRIC)
+    assert result.trainer.global_step == 3
+    assert "val_rre_clip5_deg" in result.best_checkpoint.name and result.best_checkpoint.is_file()
+    with pytest.raises(ValueError, match="patience"):
+        converge_overrides(10, 1, 0, tmp_path)
+    with pytest.raises(ValueError, match=CONVERGE_METRIC):  # a plain run's checkpoint selects on the mean RRE
+        fit("dvds", [*fit_overrides(1, 1, tmp_path), *TINY_DVDS, *synthetic_overrides(2, 32)], monitor=CONVERGE_METRIC)
+
+
+def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path: Path) -> None:
+    data = [*TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32), "--trainer.logger.init_args.version=seed0"]
+
+    def converge(steps: int) -> FitResult:
+        run = converge_overrides(max_steps=steps, val_every=2, patience=50, run_dir=tmp_path, name="r")
+        return fit("dvds", [*run, *data], validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+
+    first = converge(2)
+    log_dir = Path(first.trainer.log_dir or "")
+    assert first.trainer.global_step == 2 and last_checkpoint(log_dir) is not None
+    second = converge(4)  # the same run, continued: steps 3 and 4 only
+    assert second.trainer.global_step == 4 and Path(second.trainer.log_dir or "") == log_dir
+    assert (log_dir / "metrics.segment1.csv").is_file()
+    curve = read_metrics(log_dir / "metrics.csv")["val/rre_clip5_deg"]
+    # Untrained (step 0) and after 2 steps (logged at step 1) from the first segment, after 4 steps from the second.
+    assert list(curve.steps) == [0, 1, 3]
+    assert last_checkpoint(tmp_path / "nothing") is None
 
 
 # --- timing --------------------------------------------------------------------------------------------------------

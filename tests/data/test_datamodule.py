@@ -61,6 +61,43 @@ def test_deterministic_pairs_repeat_across_calls_and_instances(shapes: tuple) ->
         ds[len(ds)]
 
 
+def test_several_pairs_per_object_keep_the_first_pairs_and_add_new_ones(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    one = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7)
+    three = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7, pairs_per_object=3)
+    assert (len(one), len(three), three.num_objects) == (6, 18, 6)
+    for i in range(len(one)):  # the first S pairs are the one-pair-per-object pairs, unchanged
+        _assert_same(one[i], three[i])
+    objects = torch.as_tensor(points)
+    for i in (0, 6, 12, 17):
+        pair = three[i]
+        assert pair["index"].item() == i
+        # Each cloud is a sampling of object i % S (normalised copies: compare shapes after centring).
+        src = pair["points_src"] - pair["points_src"].mean(0)
+        dist = torch.cdist(src[None], (objects - objects.mean(1, keepdim=True)))  # (S, N, P) after broadcasting
+        nearest = dist.min(-1).values.mean(-1)
+        assert int(nearest.argmin()) == i % 6
+    assert not torch.equal(three[0]["transform_ref_src"], three[6]["transform_ref_src"])  # new motion per pair
+    _assert_same(three[-1], three[17])
+    with pytest.raises(IndexError, match="18 pairs"):
+        three[18]
+    for bad in (0, -1, 2.5, True, "2"):
+        with pytest.raises(ValueError, match="pairs_per_object"):
+            PairDataset(points, normals, PROTOCOL, pairs_per_object=bad)  # type: ignore[arg-type]
+
+
+def test_datamodule_draws_several_validation_pairs_per_object() -> None:
+    dm = _small_module(val_pairs_per_object=3)
+    dm.setup("fit")
+    assert dm.val_set is not None and dm.train_set is not None
+    assert (len(dm.val_set), dm.val_set.num_objects, len(dm.train_set)) == (12, 4, 12)
+    batches = list(dm.val_dataloader())
+    assert torch.equal(torch.cat([b.index for b in batches]), torch.arange(12))
+    assert dm.hparams["val_pairs_per_object"] == 3
+    with pytest.raises(ValueError, match="val_pairs_per_object"):
+        _small_module(val_pairs_per_object=0)
+
+
 def test_training_pairs_vary_but_follow_the_global_seed(shapes: tuple) -> None:
     points, normals, _ = shapes
     ds = PairDataset(points, normals, PROTOCOL, deterministic=False)

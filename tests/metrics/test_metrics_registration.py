@@ -3,6 +3,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
@@ -16,6 +17,7 @@ from lcreg.metrics.registration import (
     NumFailed,
     PerPairErrors,
     RegistrationRecall,
+    RotationErrorClippedMean,
     RotationErrorMean,
     RotationErrorMedian,
     TranslationErrorMean,
@@ -33,6 +35,7 @@ KEYS = [
     "mae_t",
     "rre_mean_deg",
     "rre_median_deg",
+    "rre_clip5_deg",
     "rte_mean",
     "recall_r2_t0p01",
     "recall_r5_t0p05",
@@ -107,6 +110,7 @@ def test_failure_policy(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
     assert out["mae_t"] == pytest.approx((0.1 + 0.4 + 0.005 + 0.7) / 12)
     assert out["rre_mean_deg"] == pytest.approx((10 + 20 + 180) / 4)
     assert out["rre_median_deg"] == pytest.approx(15.0)
+    assert out["rre_clip5_deg"] == pytest.approx((0 + 5 + 5 + 5) / 4)  # the failure counts as the clip, 5 deg
     assert out["rte_mean"] == pytest.approx((0.1 + math.sqrt(0.08) + 0.005 + 0.5) / 4)
     assert out["recall_r2_t0p01"] == pytest.approx(1 / 4)  # the failure counts in the denominator
     assert all(math.isfinite(v) for v in out.values())
@@ -289,3 +293,28 @@ def test_bad_recall_thresholds_are_a_value_error_naming_the_argument(bad: object
         check_recall_thresholds(bad)
     with pytest.raises(ValueError, match="`recall_thresholds`"):
         registration_metrics(recall_thresholds=bad)  # type: ignore[arg-type]
+
+
+def test_clipped_mean_matches_numpy_and_bounds_one_failure() -> None:
+    gen = torch.Generator().manual_seed(0)
+    angles = torch.rand(50, 3, generator=gen, dtype=torch.float64) * 8.0  # 0-8 deg per axis: some above the clip
+    gt = torch.stack([transform([0, 0, 0], [0, 0, 0]) for _ in range(50)])
+    pred = torch.stack([transform(a.tolist(), [0, 0, 0]) for a in angles])
+    metric = RotationErrorClippedMean(clip_deg=5.0)
+    metric.update(pred, gt)
+    rre = np.degrees(Rotation.from_matrix(pred[:, :3, :3].numpy()).magnitude())
+    assert float(metric.compute()) == pytest.approx(np.minimum(rre, 5.0).mean(), abs=1e-6)
+    assert (rre > 5.0).any() and (rre < 5.0).any()
+    # One failed pair moves the clipped mean by at most clip / pairs, the plain mean by far more.
+    clipped, plain = RotationErrorClippedMean(clip_deg=5.0), RotationErrorMean()
+    failed = torch.cat([pred, torch.full((1, 4, 4), float("nan"), dtype=torch.float64)])
+    for metric in (clipped, plain):
+        metric.update(failed, torch.cat([gt, gt[:1]]))
+    assert float(clipped.compute()) - np.minimum(rre, 5.0).mean() * 50 / 51 == pytest.approx(5.0 / 51, abs=1e-6)
+    assert float(plain.compute()) > rre.mean() + 3.0
+
+
+@pytest.mark.parametrize("clip", [0.0, -1.0, float("nan"), float("inf"), True])
+def test_clipped_mean_refuses_a_bad_clip(clip: float) -> None:
+    with pytest.raises(ValueError, match="clip_deg"):
+        RotationErrorClippedMean(clip_deg=clip)

@@ -67,11 +67,14 @@ from lcreg.benchmarking.registry import (
     voxelize_overrides,
 )
 from lcreg.benchmarking.training import (
+    CONVERGE_METRIC,
     SELECTION_METRIC,
     FitResult,
+    converge_overrides,
     epoch_overrides,
     fit,
     fit_overrides,
+    last_checkpoint,
     training_loss,
 )
 from lcreg.benchmarking.writers import (
@@ -89,6 +92,7 @@ from lcreg.benchmarking.writers import (
 
 __all__ = [
     "ABLATION_CONFIGS",
+    "CONVERGE_METRIC",
     "DATA_CONFIGS",
     "METHODS",
     "REFINE_CONFIG",
@@ -117,6 +121,7 @@ __all__ = [
     "cli_arguments",
     "config_dir",
     "config_path",
+    "converge_overrides",
     "data_config",
     "device_of",
     "epoch_overrides",
@@ -124,6 +129,7 @@ __all__ = [
     "fit_overrides",
     "format_mean_std",
     "key_values",
+    "last_checkpoint",
     "load_runs",
     "load_weights",
     "machine_line",

@@ -150,7 +150,12 @@ VALIDATION = CurveFigure(
     "validation",
     "validation registration",
     (
-        Panel("rotation error (RRE)", ("val/rre_mean_deg", "val/rre_median_deg"), "degrees", ("mean", "median")),
+        Panel(
+            "rotation error (RRE)",
+            ("val/rre_mean_deg", "val/rre_median_deg", "val/rre_clip5_deg"),
+            "degrees",
+            ("mean", "median", "mean of min(RRE, 5°)"),
+        ),
         Panel("translation error (RTE)", ("val/rte_mean",), "mean RTE"),
         Panel(
             "recall",
@@ -187,6 +192,7 @@ LOSS_ORDER = ("loss", "global", "lc", "recon", "normal")
 SUMMARY_KEYS = (
     "val/rre_mean_deg",
     "val/rre_median_deg",
+    "val/rre_clip5_deg",
     "val/rte_mean",
     "val/recall_r5_t0p05",
     "val/recall_r2_t0p01",
@@ -215,21 +221,33 @@ def _series(points: Mapping[int, float]) -> Series:
     return Series(steps, np.array([points[s] for s in steps], dtype=np.float64))
 
 
+def segments(path: Path) -> list[Path]:
+    """``path`` preceded by the segments of a resumed run, in the order they were written.
+
+    They are the ``metrics.segment<n>.csv`` beside a ``metrics.csv`` (:func:`lcreg.resume.keep_previous_metrics`).
+    """
+    if path.name != "metrics.csv":
+        return [path]
+    numbered = {p.stem.removeprefix("metrics.segment"): p for p in path.parent.glob("metrics.segment*.csv")}
+    return [numbered[n] for n in sorted((n for n in numbered if n.isdigit()), key=int)] + [path]
+
+
 def _read_points(path: Path) -> dict[str, dict[int, float]]:
-    """Finite values by column and step (a repeated step keeps its last value)."""
+    """Finite values by column and step over the run's :func:`segments` (a repeated step keeps its last value)."""
     points: dict[str, dict[int, float]] = {}
-    with path.open(newline="", encoding="utf-8") as fh:
-        for row in csv.DictReader(fh):
-            step = int(float(row["step"]))
-            for key, text in row.items():
-                if key in (None, "epoch", "step") or not text or not math.isfinite(value := float(text)):
-                    continue
-                points.setdefault(key, {})[step] = value
+    for part in segments(path):
+        with part.open(newline="", encoding="utf-8") as fh:
+            for row in csv.DictReader(fh):
+                step = int(float(row["step"]))
+                for key, text in row.items():
+                    if key in (None, "epoch", "step") or not text or not math.isfinite(value := float(text)):
+                        continue
+                    points.setdefault(key, {})[step] = value
     return points
 
 
 def read_metrics(path: str | Path) -> Metrics:
-    """The series of one ``metrics.csv`` by canonical key.
+    """The series of one ``metrics.csv`` (with the segments of a resumed run before it) by canonical key.
 
     Of ``train/x_step``, ``train/x`` and ``train/x_epoch`` the first logged one is kept, as ``train/x``; empty
     cells and non-finite values are skipped.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -19,10 +20,23 @@ if TYPE_CHECKING:
     from lcreg.models.base import RegistrationModule
     from lcreg.types import RegistrationBatch
 
-__all__ = ["SELECTION_METRIC", "FitResult", "epoch_overrides", "fit", "fit_overrides", "training_loss"]
+__all__ = [
+    "CONVERGE_METRIC",
+    "SELECTION_METRIC",
+    "FitResult",
+    "converge_overrides",
+    "epoch_overrides",
+    "fit",
+    "fit_overrides",
+    "last_checkpoint",
+    "training_loss",
+]
 
 SELECTION_METRIC = "val/rre_mean_deg"
 """Checkpoints of benchmark runs are chosen on the validation registration error (never the test set)."""
+CONVERGE_METRIC = "val/rre_clip5_deg"
+"""Checkpoints and early stopping of ``converge`` runs: the mean of ``min(RRE, 5°)`` over the validation pairs
+(:class:`lcreg.metrics.registration.RotationErrorClippedMean`): one failed pair moves it by at most 5° / pairs."""
 
 
 def training_loss(model: RegistrationModule, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
@@ -74,6 +88,55 @@ def epoch_overrides(max_epochs: int, run_dir: str | Path, name: str = "", seed: 
     return [f"--seed_everything={seed}", *budget, *_quiet_run(run_dir, name)]
 
 
+def converge_overrides(
+    max_steps: int,
+    val_every: int,
+    patience: int,
+    run_dir: str | Path,
+    name: str = "",
+    seed: int = 0,
+    monitor: str = CONVERGE_METRIC,
+    min_delta: float = 0.0,
+) -> list[str]:
+    """``lcreg fit`` arguments of a run trained until its validation error stops improving, capped by a step limit.
+
+    :func:`fit_overrides` plus Lightning's ``EarlyStopping`` (stop after ``patience`` validations without an
+    improvement of more than ``min_delta``) and a ``ModelCheckpoint`` that keeps the best checkpoint on the same
+    ``monitor`` (both minimise it). Both callbacks keep their state in ``last.ckpt``, so a run resumed with
+    :func:`fit` (``resume=True``) goes on counting where it stopped.
+
+    Args:
+        max_steps: Step cap (optimiser steps).
+        val_every: Validate every this many training steps.
+        patience: Validations without improvement before stopping (>= 1).
+        run_dir: Folder of the logs and checkpoints.
+        name: Logger name.
+        seed: ``seed_everything``.
+        monitor: Validation metric to minimise (default :data:`CONVERGE_METRIC`).
+        min_delta: Smallest decrease that counts as an improvement, in the metric's unit.
+
+    Raises:
+        ValueError: If ``patience`` < 1 or ``min_delta`` < 0.
+    """
+    if patience < 1 or min_delta < 0:
+        raise ValueError(f"`patience` must be >= 1 and `min_delta` >= 0, got {patience} and {min_delta}")
+    stem = monitor.replace("/", "_")
+    stop = {"monitor": monitor, "mode": "min", "patience": patience, "min_delta": min_delta}
+    best = {"monitor": monitor, "mode": "min", "filename": f"step{{step:06d}}-{stem}{{{monitor}:.4f}}"}
+    best["auto_insert_metric_name"] = False  # type: ignore[assignment]
+    callbacks = [
+        {"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stop},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": best},
+    ]
+    return [*fit_overrides(max_steps, val_every, run_dir, name, seed), f"--trainer.callbacks={json.dumps(callbacks)}"]
+
+
+def last_checkpoint(log_dir: str | Path) -> Path | None:
+    """``<log_dir>/checkpoints/last.ckpt`` if a run in ``log_dir`` left one (the state to resume from)."""
+    path = Path(log_dir) / "checkpoints" / "last.ckpt"
+    return path if path.is_file() else None
+
+
 def _quiet_run(run_dir: str | Path, name: str) -> list[str]:
     """No progress bar or model summary; logs and checkpoints under ``<run_dir>/<name>``."""
     return [
@@ -97,7 +160,12 @@ class FitResult:
 
 
 def fit(
-    name: str, overrides: Sequence[str] = (), configs: Sequence[str | Path] = (), validate_first: bool = False
+    name: str,
+    overrides: Sequence[str] = (),
+    configs: Sequence[str | Path] = (),
+    validate_first: bool = False,
+    monitor: str = SELECTION_METRIC,
+    resume: bool = False,
 ) -> FitResult:
     """Train method ``name`` as ``lcreg fit`` would (its configs, then ``overrides``, e.g. :func:`fit_overrides`).
 
@@ -106,24 +174,35 @@ def fit(
         overrides: CLI arguments after the configs.
         configs: Extra config files after the method's own.
         validate_first: Validate the initial weights before training, so the run's ``metrics.csv`` starts with a
-            step-0 validation row (learning curves start at the untrained model).
+            step-0 validation row (learning curves start at the untrained model). Not repeated when resuming.
+        monitor: The metric the checkpoint callback must select on (:data:`CONVERGE_METRIC` with
+            :func:`converge_overrides`).
+        resume: Continue from the run folder's ``last.ckpt`` when there is one (model, optimiser, scheduler,
+            loops, early-stopping state, position in the training stream); the earlier ``metrics.csv`` is kept as
+            ``metrics.segment<n>.csv``. Without one the run starts from scratch.
 
     Raises:
-        ValueError: If the config's checkpoint callback does not select on :data:`SELECTION_METRIC`.
+        ValueError: If the config's checkpoint callback does not select on ``monitor``.
         RuntimeError: If training wrote no best checkpoint.
     """
     from lcreg.models.base import RegistrationModule
+    from lcreg.resume import keep_previous_metrics
 
     cli = build_cli_for(name, configs, overrides)
     callback = cli.trainer.checkpoint_callback
-    monitor = getattr(callback, "monitor", None)
-    if monitor != SELECTION_METRIC:
-        raise ValueError(f"{name}: the checkpoint callback monitors {monitor!r}, not {SELECTION_METRIC}")
+    selected = getattr(callback, "monitor", None)
+    if selected != monitor:
+        raise ValueError(f"{name}: the checkpoint callback monitors {selected!r}, not {monitor}")
     if not isinstance(cli.model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
         raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
-    if validate_first:
+    log_dir = Path(cli.trainer.log_dir or cli.trainer.default_root_dir)
+    start = last_checkpoint(log_dir) if resume else None
+    if start is not None:
+        keep_previous_metrics(log_dir)
+    elif validate_first:
         cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
-    _, seconds = timed(partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule))
+    run = partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule, ckpt_path=start)
+    _, seconds = timed(run)
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")

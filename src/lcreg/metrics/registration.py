@@ -42,6 +42,7 @@ __all__ = [
     "NumFailed",
     "PerPairErrors",
     "RegistrationRecall",
+    "RotationErrorClippedMean",
     "RotationErrorMean",
     "RotationErrorMedian",
     "TranslationErrorMean",
@@ -213,6 +214,32 @@ class RotationErrorMedian(_PairErrorMetric):
         return torch.quantile(self._rotation(), 0.5)
 
 
+class RotationErrorClippedMean(_PairErrorMetric):
+    """Mean of ``min(RRE, clip_deg)`` in degrees: the model-selection error of long training runs.
+
+    A pair that fails counts as ``clip_deg`` however far off it is, so one failed pair moves the value by at most
+    ``clip_deg / pairs`` (the plain mean moves by up to ``180 / pairs``), while pairs below the clip count with their
+    exact error (the median ignores them once they are below it). It ranks checkpoints by accuracy and failure
+    rate at once.
+
+    Args:
+        clip_deg: Clip in degrees (> 0); 5 is the looser recall threshold of the object protocol.
+        **kwargs: Forwarded to ``torchmetrics.Metric``.
+    """
+
+    higher_is_better = False
+
+    def __init__(self, clip_deg: float = 5.0, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        if not _positive_number(clip_deg):
+            raise ValueError(f"`clip_deg` must be a finite number > 0, got {clip_deg!r}")
+        self.clip_deg = float(clip_deg)
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar clipped mean in degrees (failed pairs count as ``clip_deg``)."""
+        return self._rotation().clamp(max=self.clip_deg).mean()
+
+
 class TranslationErrorMean(_PairErrorMetric):
     """Mean translation error (RTE) ``||t_pred - t_gt||`` in point units."""
 
@@ -332,7 +359,8 @@ def registration_metrics(prefix: str = "", recall_thresholds: Sequence[tuple[flo
     """The standard metric collection logged by every registration model.
 
     Keys (after ``prefix``): ``rmse_r_deg``, ``mae_r_deg`` (DCP Euler), ``rmse_t``, ``mae_t``, ``rre_mean_deg``,
-    ``rre_median_deg``, ``rte_mean``, ``recall_r2_t0p01`` (2 degrees and 0.01) and ``recall_r5_t0p05``
+    ``rre_median_deg``, ``rre_clip5_deg`` (mean of ``min(RRE, 5°)``, :class:`RotationErrorClippedMean`),
+    ``rte_mean``, ``recall_r2_t0p01`` (2 degrees and 0.01) and ``recall_r5_t0p05``
     (5 degrees and 0.05), then one :func:`recall_key` per extra pair of ``recall_thresholds`` (e.g.
     ``recall_r15_t0p3``; a pair already listed adds nothing). Module names cannot contain ``.``, hence ``0p01``
     for 0.01.
@@ -364,6 +392,7 @@ def registration_metrics(prefix: str = "", recall_thresholds: Sequence[tuple[flo
             "mae_t": TranslationMAE(),
             "rre_mean_deg": RotationErrorMean(),
             "rre_median_deg": RotationErrorMedian(),
+            "rre_clip5_deg": RotationErrorClippedMean(clip_deg=5.0),
             "rte_mean": TranslationErrorMean(),
             **{key: RegistrationRecall(rot_thr_deg=rot, trans_thr=trans) for key, (rot, trans) in recalls.items()},
         },
