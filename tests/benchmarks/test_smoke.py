@@ -35,7 +35,7 @@ RUNS = {
     "tune_classical": [],
 }
 
-CHECKED_ELSEWHERE = {"bench_geometry"}  # test_bench_geometry.py runs its --smoke and checks its values
+CHECKED_ELSEWHERE = {"bench_geometry", "train_queue"}  # their own test files run their --smoke and check it
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 

@@ -1,0 +1,168 @@
+"""The training queue (``benchmarks/train_queue.toml``): status, run the pending jobs in order, copy their results.
+
+    python benchmarks/train_queue.py status
+    python benchmarks/train_queue.py run --section cpu --runs /work/runs/converge    # one thread, nice, in order
+    python benchmarks/train_queue.py run --section gpu --max-minutes 9                # resumable chunks on a GPU
+    python benchmarks/train_queue.py sync                                             # copy finished rows to commit
+    python benchmarks/train_queue.py --smoke                                          # seconds: a tiny queue
+
+Every job is one resumable command (``{runs}``: its run folder under ``--runs``, ``{results}``: its folder under
+``--results``). ``run`` starts the pending jobs of a section one at a time with ``OMP_NUM_THREADS=1`` under ``nice``
+(on a GPU, with ``--max-minutes`` the command is stopped at that limit and resumes on the next call). When a command
+exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (wall time, machine) is written
+there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs of a long
+job can be committed as they land.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import tomllib
+
+from lcreg.benchmarking import add_smoke_argument, machine_line
+
+REPO = Path(__file__).resolve().parents[1]
+RESULT_FILES = ("runs.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
+"""Small files copied from a job's run folder (never checkpoints)."""
+SMOKE_QUEUE = """
+[[job]]
+id = "smoke"
+section = "cpu"
+what = "two-step learning curve on the embedded shapes"
+command = "python benchmarks/learning_curves.py --smoke --variants selfsup --patience 2 --val-pairs 2 --run-dir {runs}"
+cpu_hours = 0.01
+"""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One queued command (see ``benchmarks/train_queue.toml``)."""
+
+    id: str
+    section: str
+    what: str
+    command: str
+    cpu_hours: float = 0.0
+    cap_hours: float | None = None
+    gpu_hours: float = 0.0
+
+    def argv(self, runs: Path, results: Path) -> list[str]:
+        """The command's arguments with ``{runs}``/``{results}`` filled in and ``python`` as this interpreter."""
+        words = shlex.split(self.command.format(runs=runs / self.id, results=results / self.id))
+        return [sys.executable if words[0] == "python" else words[0], *words[1:]]
+
+
+def load_jobs(path: Path) -> list[Job]:
+    """The jobs of a queue file, in order.
+
+    Raises:
+        ValueError: If a job lacks a field, has an unknown one, or two jobs share an id.
+    """
+    jobs = []
+    for entry in tomllib.loads(path.read_text(encoding="utf-8")).get("job", []):
+        try:
+            jobs.append(Job(**entry))
+        except TypeError as err:
+            raise ValueError(f"{path}: job {entry.get('id', '?')!r}: {err}") from None
+    ids = [job.id for job in jobs]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{path}: job ids must be unique, got {ids}")
+    return jobs
+
+
+def sync(job: Job, runs: Path, results: Path) -> int:
+    """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many."""
+    source, target, count = runs / job.id, results / job.id / "runs", 0
+    for pattern in RESULT_FILES:
+        for path in source.rglob(pattern) if source.is_dir() else ():
+            destination = target / path.relative_to(source)
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, destination)
+            count += 1
+    return count
+
+
+def status_line(job: Job, results: Path) -> str:
+    """``id  section  done|pending (<k> runs finished)  estimate  what``."""
+    done = (results / job.id / "DONE.json").is_file()
+    log = results / job.id / "runs" / "runs.jsonl"
+    finished = len(log.read_text(encoding="utf-8").splitlines()) if log.is_file() else 0
+    state = "done" if done else f"pending ({finished} runs finished)"
+    hours = f"{job.gpu_hours} GPU-h" if job.section == "gpu" else f"{job.cpu_hours} CPU-h (cap {job.cap_hours})"
+    return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
+
+
+def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> bool:
+    """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    argv = ["nice", "-n", "5", *job.argv(runs, results)]
+    (results / job.id).mkdir(parents=True, exist_ok=True)
+    print(f"queue: {job.id}: {shlex.join(argv)}", flush=True)
+    start = time.monotonic()
+    try:
+        code = subprocess.run(
+            argv, cwd=REPO, env=env, timeout=None if max_minutes is None else max_minutes * 60
+        ).returncode
+    except subprocess.TimeoutExpired:
+        print(f"queue: {job.id}: stopped after {max_minutes} min; it resumes on the next call", flush=True)
+        sync(job, runs, results)
+        return False
+    copied = sync(job, runs, results)
+    if code != 0:
+        print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
+        return False
+    done = {"seconds": round(time.monotonic() - start, 1), "machine": machine_line(), "files": copied}
+    (results / job.id / "DONE.json").write_text(json.dumps(done) + "\n", encoding="utf-8")
+    print(f"queue: {job.id}: done in {done['seconds']:.0f} s", flush=True)
+    return True
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("action", nargs="?", choices=("status", "run", "sync"), default="status")
+    parser.add_argument("--queue", type=Path, default=REPO / "benchmarks" / "train_queue.toml")
+    parser.add_argument("--section", choices=("cpu", "gpu"), default="cpu")
+    parser.add_argument("--only", nargs="+", default=None, help="job ids")
+    parser.add_argument("--runs", type=Path, default=REPO / "runs" / "queue", help="run folders (checkpoints)")
+    parser.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "converge")
+    parser.add_argument("--max-minutes", type=float, default=None, help="stop a command after this long (resumes)")
+    add_smoke_argument(parser)
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    if args.smoke:
+        scratch = Path(tempfile.mkdtemp(prefix="lcreg-queue-"))
+        (scratch / "train_queue.toml").write_text(SMOKE_QUEUE, encoding="utf-8")
+        args.queue, args.runs, args.results = scratch / "train_queue.toml", scratch / "runs", scratch
+        args.action = "run"
+    jobs = [job for job in load_jobs(args.queue) if args.only is None or job.id in args.only]
+    if args.action == "status":
+        for job in jobs:
+            print(status_line(job, args.results))
+        return
+    for job in jobs:
+        if args.action == "sync":
+            print(f"queue: {job.id}: {sync(job, args.runs, args.results)} result files copied")
+        elif job.section == args.section and not (args.results / job.id / "DONE.json").is_file():
+            if not run_job(job, args.runs, args.results, args.max_minutes):
+                sys.exit(1)
+    if args.smoke:
+        print(status_line(jobs[0], args.results))
+
+
+if __name__ == "__main__":
+    main()

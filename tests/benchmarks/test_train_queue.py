@@ -1,0 +1,62 @@
+"""The training queue: the committed queue file is valid and each command parses; a run marks a job done."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+
+from tests.benchmarks.test_smoke import BENCHMARKS, load
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+
+def test_committed_queue_jobs_are_valid_and_their_arguments_parse(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    jobs = queue.load_jobs(BENCHMARKS / "train_queue.toml")
+    assert jobs and {job.section for job in jobs} <= {"cpu", "gpu"}
+    assert any(job.section == "gpu" for job in jobs) and any(job.section == "cpu" for job in jobs)
+    for job in jobs:
+        argv = job.argv(tmp_path / "runs", tmp_path / "results")
+        script = Path(argv[1])
+        assert script.parent.name == "benchmarks" and (BENCHMARKS / script.name).is_file(), job.id
+        args = load(script.stem).parse(argv[2:])  # a typo in a queued command fails here, not hours later
+        assert str(tmp_path / "runs" / job.id) in shlex.join(argv), job.id
+        assert args.patience is not None and args.val_pairs > 1, f"{job.id}: queued runs use the converge budget"
+
+
+def test_queue_refuses_bad_files(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    bad = tmp_path / "q.toml"
+    bad.write_text('[[job]]\nid = "a"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\nhours = 1\n')
+    with pytest.raises(ValueError, match="job 'a'"):
+        queue.load_jobs(bad)
+    job = '[[job]]\nid = "a"\nsection = "cpu"\nwhat = "x"\ncommand = "{c}"\n'
+    bad.write_text(job.format(c="true") * 2)
+    with pytest.raises(ValueError, match="unique"):
+        queue.load_jobs(bad)
+
+
+def test_run_marks_only_a_successful_job_done(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text(
+        '[[job]]\nid = "ok"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"import pathlib; '
+        "p = pathlib.Path('{runs}'); p.mkdir(parents=True); (p / 'runs.jsonl').write_text('{{}}\\\\n')\\\"\"\n"
+        '[[job]]\nid = "fails"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"raise SystemExit(3)\\""\n'
+    )
+    args = ["--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+    with pytest.raises(SystemExit):
+        queue.main(["run", *args])
+    done = json.loads((tmp_path / "res" / "ok" / "DONE.json").read_text())
+    assert done["files"] == 1 and (tmp_path / "res" / "ok" / "runs" / "runs.jsonl").is_file()
+    assert not (tmp_path / "res" / "fails" / "DONE.json").exists()
+    queue.main(["run", "--only", "ok", *args])  # a done job is not run again (its folder exists: mkdir would fail)
+
+
+def test_smoke_runs_a_converge_learning_curve_through_the_queue(capsys: pytest.CaptureFixture[str]) -> None:
+    load("train_queue").main(["--smoke"])
+    out = capsys.readouterr().out
+    assert "smoke" in out and " done " in out
