@@ -7,7 +7,6 @@ import shlex
 from pathlib import Path
 
 import pytest
-
 from tests.benchmarks.test_smoke import BENCHMARKS, load
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
