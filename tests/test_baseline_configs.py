@@ -66,3 +66,25 @@ def test_every_host_rejects_an_lc_module_of_the_wrong_width(host: str) -> None:
     wrong = LocalConsistencyLoss(LocalConsistency(feature_dim=7, num_local_points=64))
     with pytest.raises(ValueError, match=rf"built for 7 features, the encoder has {width}"):
         model_cls(loss_terms=[wrong])
+
+
+def documented_fit_command(host: str) -> list[str]:
+    """The ``lcreg fit`` arguments in the header comment of ``configs/models/<host>.yaml`` (``\\`` continuations
+    joined, ``configs/...`` paths made absolute)."""
+    header = [line.removeprefix("#").strip() for line in (CONFIGS / "models" / f"{host}.yaml").read_text().splitlines()]
+    start = next(i for i, line in enumerate(header) if line.startswith("lcreg fit "))
+    command = header[start]
+    while command.endswith("\\"):
+        start += 1
+        command = f"{command[:-1]} {header[start]}"
+    args = command.split()[2:]
+    return [str(CONFIGS.parent / arg) if arg.startswith("configs/") else arg for arg in args]
+
+
+def test_deepgmr_documented_command_trains_on_deepgmr_pairs() -> None:
+    # Regression (issue 23): the header's command omitted data/dcp_protocol.yaml, so a user copying it trained on two
+    # independent clean samplings, not on DeepGMR's same-points pairs with independent noise.
+    cli = build_cli(documented_fit_command("deepgmr"), run=False)
+    assert type(cli.model).__name__ == "DeepGMR"
+    protocol = cli.datamodule.pair_protocol
+    assert (protocol.independent_sampling, protocol.noise_sigma, protocol.noise_clip) == (False, 0.01, 0.05)
