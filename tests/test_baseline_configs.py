@@ -81,10 +81,11 @@ def documented_fit_command(host: str) -> list[str]:
     return [str(CONFIGS.parent / arg) if arg.startswith("configs/") else arg for arg in args]
 
 
-def test_deepgmr_documented_command_trains_on_deepgmr_pairs() -> None:
-    # Regression (issue 23): the header's command omitted data/dcp_protocol.yaml, so a user copying it trained on two
-    # independent clean samplings, not on DeepGMR's same-points pairs with independent noise.
-    cli = build_cli(documented_fit_command("deepgmr"), run=False)
-    assert type(cli.model).__name__ == "DeepGMR"
+@pytest.mark.parametrize("host", ["dcp", "prnet", "idam", "deepgmr"])
+def test_documented_command_of_a_dcp_family_host_trains_on_its_pairs(host: str) -> None:
+    # Regression (issue 23): the headers' commands omitted data/dcp_protocol.yaml, so a user copying them trained on two
+    # independent clean samplings (the DVDs protocol), not on the same-points pairs with noise these hosts train on.
+    cli = build_cli(documented_fit_command(host), run=False)
+    assert type(cli.model).__name__.lower().startswith(host.removesuffix("v2"))
     protocol = cli.datamodule.pair_protocol
     assert (protocol.independent_sampling, protocol.noise_sigma, protocol.noise_clip) == (False, 0.01, 0.05)

@@ -146,3 +146,38 @@ def test_epoch_sampler_order_and_seeds_follow_seed_and_epoch_and_resume_mid_epoc
     assert list(resumed) == epoch1[4:]
     assert list(resumed) == epoch1  # the skip applies to one iteration only
     assert EpochSampler(6, seed=6).seed != sampler.seed and list(EpochSampler(6, seed=6)) != epoch0
+
+
+def test_ckpt_path_best_tests_the_checkpoint_the_latest_run_chose_on_validation(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: `lcreg test --ckpt_path best` failed (Lightning's `best` needs a fit in the same process)."""
+    run = _fit(tmp_path / "runs", "--trainer.max_epochs=2")
+    (tmp_path / "runs" / "lcreg" / "version_1").mkdir()  # e.g. an earlier `lcreg test` run: no checkpoints
+    state = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["callbacks"]
+    (recorded,) = [v["best_model_path"] for k, v in state.items() if k.startswith("ModelCheckpoint")]
+    assert Path(recorded).is_file() and Path(recorded).parent == run / "checkpoints"
+    outputs = [f"--trainer.logger.init_args.save_dir={tmp_path / 'runs'}", f"--trainer.default_root_dir={tmp_path}"]
+    with caplog.at_level("INFO"):
+        main(["test", *RUN, *outputs, "--ckpt_path", "best"])
+    assert f"--ckpt_path best is {recorded} (chosen on validation)" in caplog.text
+    assert any((tmp_path / "runs" / "lcreg").glob("version_*/test_per_pair.csv"))
+    with pytest.raises(ValueError, match="`fit` resumes with `last`"):
+        _fit(tmp_path / "runs", "--ckpt_path", "best")
+
+
+def test_ckpt_path_best_without_a_recorded_choice_names_the_file(tmp_path: Path) -> None:
+    from lcreg.resume import best_checkpoint_of
+
+    last = tmp_path / "last.ckpt"
+    torch.save({"state_dict": {}, "callbacks": {"ModelCheckpoint{'monitor': 'x'}": {"best_model_path": ""}}}, last)
+    with pytest.raises(CheckpointNotFoundError, match="recorded no checkpoint chosen on validation") as err:
+        best_checkpoint_of(last)
+    assert str(last) in str(err.value)
+    moved = tmp_path / "moved.ckpt"
+    moved.write_bytes(b"x")
+    torch.save({"state_dict": {}, "callbacks": {"ModelCheckpoint": {"best_model_path": "/gone/moved.ckpt"}}}, last)
+    assert best_checkpoint_of(last) == moved  # a run folder moved since: the file of that name beside last.ckpt
+    moved.unlink()
+    with pytest.raises(CheckpointNotFoundError, match="no longer exists"):
+        best_checkpoint_of(last)

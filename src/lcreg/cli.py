@@ -31,7 +31,8 @@ one (:mod:`lcreg.resume`), and the run keeps logging in that folder (the earlier
 validation and every epoch (:class:`lcreg.callbacks.LatestCheckpoint`; list one in ``trainer.callbacks`` to change the
 cadence) with the RNG states (:class:`lcreg.callbacks.RngState`) and the position in the training stream, so the
 resumed run computes what the uninterrupted one would have. An explicit ``--ckpt_path FILE`` works for every
-subcommand; ``last`` with nothing to resume is an error.
+subcommand; ``last`` with nothing to resume is an error. ``validate``/``test``/``predict --ckpt_path best`` take the
+checkpoint that same run chose on validation (recorded in its ``last.ckpt``). ``fit`` prints its run folder.
 
 Checkpoints are checked before Lightning reads them: read weights-only (no pickled code runs; Lightning also loads
 them with ``weights_only=True``), refused with one line naming the file when missing, damaged, not a Lightning
@@ -160,11 +161,15 @@ class LcregCLI(LightningCLI):
     :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a
     :class:`~lcreg.callbacks.TimedProgressBar` (a TQDM bar redrawn at most every 0.5 s, at every step on a CPU); always
     adds :class:`~lcreg.callbacks.RngState`. ``lcreg predict`` writes ``predictions.npz``
-    (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory. ``--ckpt_path`` is resolved (``last``)
-    and checked before anything is built (see the module docstring).
+    (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory. ``--ckpt_path`` is resolved (``last``,
+    ``best``) and checked before anything is built (see the module docstring).
     """
 
     _checkpoint_keys: list[str] | None = None
+
+    def before_fit(self) -> None:
+        """Say where the run logs and checkpoints (the folder changes with every run: ``version_<k>``)."""
+        rank_zero_info(f"lcreg: this run logs to {self.trainer.log_dir}")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
         """Parse ``args`` (:func:`build_cli` reads ``sys.argv``, so Lightning's warning about both does not apply)."""
@@ -200,11 +205,16 @@ class LcregCLI(LightningCLI):
             from lcreg.weights import resolve
 
             resolve(config["weights"])
-        if not path or path in ("best", "hpc", "registry") or str(path).startswith("registry:"):
+        if not path or path in ("hpc", "registry") or str(path).startswith("registry:"):
             return
         if path == "last":
             path = self._resolve_last(subcommand)
             config["ckpt_path"] = path
+        elif path == "best" and subcommand != "fit":
+            path = self._resolve_best(subcommand)
+            config["ckpt_path"] = path
+        elif path == "best":
+            raise ConfigValueError("`--ckpt_path best` is for validate/test/predict; `fit` resumes with `last`")
         checkpoint = read_checkpoint(path)
         if isinstance(class_path, str):
             check_class(path, checkpoint, class_path)
@@ -224,6 +234,14 @@ class LcregCLI(LightningCLI):
             if kept is not None:
                 rank_zero_info(f"lcreg: the earlier metrics of this run are kept in {kept}")
         return str(last.path)
+
+    def _resolve_best(self, subcommand: str) -> str:
+        """The checkpoint chosen on validation by the run ``last`` means (:func:`lcreg.resume.best_checkpoint_of`)."""
+        from lcreg.resume import best_checkpoint_of, find_last_checkpoint
+
+        best = best_checkpoint_of(find_last_checkpoint(self.config[subcommand]["trainer"]).path)
+        rank_zero_info(f"lcreg: --ckpt_path best is {best} (chosen on validation)")
+        return str(best)
 
     def _merge_hparams(self, subcommand: str, checkpoint: dict[str, Any]) -> None:
         """The model arguments saved in the checkpoint override the config's (LightningCLI's behaviour).

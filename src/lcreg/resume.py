@@ -18,7 +18,7 @@ from typing import Any
 
 from lcreg.checkpoints import CheckpointNotFoundError
 
-__all__ = ["LastCheckpoint", "find_last_checkpoint", "keep_previous_metrics"]
+__all__ = ["LastCheckpoint", "best_checkpoint_of", "find_last_checkpoint", "keep_previous_metrics"]
 
 LAST = "last.ckpt"
 _VERSION = re.compile(r"^version_(\d+)$")
@@ -90,6 +90,32 @@ def find_last_checkpoint(trainer: Any) -> LastCheckpoint:
         if (folder / "checkpoints" / LAST).is_file():
             return LastCheckpoint(folder / "checkpoints" / LAST, number)
     raise CheckpointNotFoundError(root / "version_*" / "checkpoints" / LAST, "nothing to resume (no such file)")
+
+
+def best_checkpoint_of(last: Path) -> Path:
+    """The checkpoint chosen on validation by the run whose latest state is ``last`` (``--ckpt_path best``).
+
+    It is the ``best_model_path`` that the run's first ``ModelCheckpoint`` recorded in ``last`` (the default one
+    monitors ``val/rre_mean_deg``); a run folder moved since is followed (the file of that name beside ``last``).
+
+    Raises:
+        CheckpointNotFoundError: ``last`` records no best checkpoint (no validation ran yet), or its file is gone.
+        lcreg.checkpoints.CheckpointError: ``last`` itself cannot be read.
+    """
+    from lcreg.checkpoints import read_checkpoint
+
+    states = read_checkpoint(last).get("callbacks") or {}
+    recorded = [
+        str(state.get("best_model_path") or "")
+        for key, state in states.items()
+        if str(key).startswith("ModelCheckpoint") and isinstance(state, dict)
+    ]
+    if not recorded or not recorded[0]:
+        raise CheckpointNotFoundError(last, "the run recorded no checkpoint chosen on validation (did it validate?)")
+    for candidate in (Path(recorded[0]), last.parent / Path(recorded[0]).name):
+        if candidate.is_file():
+            return candidate
+    raise CheckpointNotFoundError(recorded[0], f"the best checkpoint recorded in {last} no longer exists")
 
 
 def _existing(last: LastCheckpoint) -> LastCheckpoint:

@@ -15,7 +15,7 @@ import lcreg
 import lcreg.weights as weights_module
 from lcreg.baselines.pointnetlk import PointNetLK
 from lcreg.benchmarking import pair_batches
-from lcreg.metrics.functional import rotation_error_deg
+from lcreg.metrics.functional import registration_recall, rotation_error_deg, translation_error
 from lcreg.models.base import RegistrationModule
 from lcreg.models.dvds import DVDs
 from lcreg.weights import (
@@ -310,30 +310,60 @@ def test_shipped_file_is_slim_strict_and_matches_its_card(name: str) -> None:
     assert hashlib.sha256(data).hexdigest() in card and f"{len(data)} bytes" in card, "refresh the card: --card"
 
 
-PAIRS = 64
 UNTRAINED_SEEDS = (0, 1, 2, 3, 4)
 
 
-def _rotation_errors(model: RegistrationModule, batches: list) -> torch.Tensor:  # type: ignore[type-arg]
-    errors = [rotation_error_deg(model.register(b.points_src, b.points_ref).transform_ref_src, b.transform_ref_src)
-              for b in batches]  # fmt: skip
-    return torch.cat(errors)
+def _errors(model: RegistrationModule, batches: list) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[type-arg]
+    """Rotation (degrees) and translation errors of ``model`` on every pair of ``batches``."""
+    rre, rte = [], []
+    for b in batches:
+        transform = model.register(b.points_src, b.points_ref).transform_ref_src
+        rre.append(rotation_error_deg(transform, b.transform_ref_src))
+        rte.append(translation_error(transform, b.transform_ref_src))
+    return torch.cat(rre), torch.cat(rte)
+
+
+def _summary(rre: torch.Tensor, rte: torch.Tensor) -> dict[str, float]:
+    """Mean and median RRE (degrees, lower is better) and recall at (2°, 0.01) (higher is better)."""
+    recall = registration_recall(rre, rte, 2.0, 0.01)
+    return {"mean RRE": float(rre.mean()), "median RRE": float(rre.median()), "recall (2°, 0.01)": float(recall)}
+
+
+# Measured on this test (2-core CPU): the dvds-modelnet40 of issue 12 has mean RRE 2.684° against 4.956 ± 2.462° for
+# the untrained seeds, within their spread. Strict: once converged weights ship and pass, the mark must go.
+NOT_YET_BEYOND_THE_SPREAD = {"dvds-modelnet40": "the issue-12 weights are within the untrained spread (issue 23)"}
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("name", pretrained_names())
-def test_shipped_weights_register_real_pairs_better_than_untrained(name: str) -> None:
-    """Mean and median rotation error on the first 64 real modelnet40_mini test pairs (1024 points) below those of
-    the same network untrained, for each of 5 seeds: fewer failures (the mean) and more precision (the median)."""
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=pytest.mark.xfail(reason=NOT_YET_BEYOND_THE_SPREAD[n], strict=True))
+        if n in NOT_YET_BEYOND_THE_SPREAD
+        else n
+        for n in pretrained_names()
+    ],
+)
+def test_shipped_weights_register_real_pairs_better_than_untrained_beyond_the_spread(name: str) -> None:
+    """On all 164 real modelnet40_mini test pairs (1024 points), the shipped weights beat the same network
+    untrained by more than the spread of 5 initialisations: mean and median RRE below (mean - std) of the untrained
+    seeds', recall at (2°, 0.01) above (mean + std). Not the luckiest seed on a subset: the seeds' distribution."""
     _shipped(name)
     root = shared_data("modelnet40_mini")
-    batches, _ = pair_batches(str(root), "test", pairs=PAIRS, num_points=1024, batch_size=32)
-    trained = _rotation_errors(pretrained(name), batches)
+    batches, _ = pair_batches(str(root), "test", num_points=1024, batch_size=41)
+    assert sum(len(b.points_src) for b in batches) == 164
+    trained = _summary(*_errors(pretrained(name), batches))
     weights = read_weights(name)
     cls = resolve_class(weights.class_path)
+    seeds = []
     for seed in UNTRAINED_SEEDS:
         torch.manual_seed(seed)
-        untrained = _rotation_errors(cls(**weights.init_args), batches)
-        for stat in (torch.mean, torch.median):
-            mine, theirs = float(stat(trained)), float(stat(untrained))
-            assert mine < theirs, f"{name} {stat.__name__}: {mine:.3f} deg trained, {theirs:.3f} untrained seed {seed}"
+        seeds.append(_summary(*_errors(cls(**weights.init_args), batches)))
+    report, worse = [], []
+    for stat, mine in trained.items():
+        values = torch.tensor([s[stat] for s in seeds], dtype=torch.float64)
+        mean, std = float(values.mean()), float(values.std())
+        better = mine > mean + std if stat.startswith("recall") else mine < mean - std
+        report.append(f"{stat}: {mine:.4g} trained, untrained {mean:.4g} ± {std:.4g} ({len(seeds)} seeds)")
+        worse += [] if better else [stat]
+    assert not worse, f"{name}: not beyond the spread on {worse}; " + "; ".join(report)
