@@ -148,3 +148,20 @@ def test_a_diverged_run_is_recorded_as_failed_not_retried_and_left_out_of_the_me
     assert f"- Failed (non-finite training loss, left out of the means): {failed[0]}" in render(
         sweep, rows, "c", failed
     )
+
+
+def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stopped(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from lcreg.benchmarking import CONVERGE_METRIC
+    from lcreg.reproduce.ablation import ABLATION
+
+    # min_delta is 0: on 2 synthetic validation pairs the run may stop early or reach the cap; both are recorded.
+    budget = RunBudget(steps=4, points=64, batch=2, checks=4, patience=1, val_pairs=2)
+    experiment = replace(ABLATION.select(["paper/model_A"]), budgets={"smoke": {"dvds": budget}})
+    sweep = Sweep(experiment, "smoke", (0,), DataChoice(None), tmp_path)
+    run_sweep(sweep)
+    (row,) = read_jsonl(sweep.log_path)
+    assert row["selected_on"] == CONVERGE_METRIC and "val_rre_clip5_deg" in row["selected"]
+    assert row["num_val_pairs"] == 2 * 2 and row["steps"] <= 4
+    assert row["stopped_early"] == (row["steps"] < 4) and row["best_val_rre_mean_deg"] is None

@@ -123,3 +123,31 @@ def test_plots_draw_bars_in_series_colours_and_paper_lines(tmp_path: Path) -> No
 def test_bar_positions_leave_a_gap_between_blocks() -> None:
     x = bar_positions(ABLATION)
     assert x[("models", "D")] == 3.0 and x[("local size |X1|", "|X1| = 32")] == pytest.approx(4.6)
+
+
+def test_converge_budgets_stop_early_select_on_the_clipped_error_and_draw_more_validation_pairs(
+    tmp_path: Path,
+) -> None:
+    from lcreg.benchmarking import CONVERGE_METRIC, SELECTION_METRIC
+
+    with pytest.raises(ValueError, match="step cap"):
+        RunBudget(epochs=3, patience=2)
+    with pytest.raises(ValueError, match="positive"):
+        RunBudget(steps=10, patience=0)
+    budget = RunBudget(steps=3000, points=512, batch=16, checks=60, patience=6, val_pairs=4)
+    assert budget.converge and budget.monitor == CONVERGE_METRIC and budget.val_every == 50
+    assert budget.describe().endswith("until 6 validations bring no gain (4 pairs per validation object)")
+    args = budget.fit_overrides(tmp_path, seed=1)
+    assert "--trainer.max_steps=3000" in args and any("EarlyStopping" in a and '"patience": 6' in a for a in args)
+    assert "--data.init_args.val_pairs_per_object=4" in DataChoice("/m").overrides(budget)
+    plain = RunBudget(steps=68)
+    assert not plain.converge and plain.monitor == SELECTION_METRIC
+    assert not any("val_pairs_per_object" in a for a in DataChoice("/m").overrides(plain))
+
+
+def test_every_experiment_has_a_converge_budget() -> None:
+    from lcreg.reproduce import EXPERIMENTS
+
+    for name, experiment in EXPERIMENTS.items():
+        assert "converge" in experiment.budgets, name
+    assert {b.patience for b in LC.budgets["converge"].values()} == {6, 8}

@@ -10,7 +10,7 @@ label-free self-motion term, ``ablation_<stem>_selfsup``), side by side with the
 
 from __future__ import annotations
 
-from lcreg.reproduce.budgets import Preset, RunBudget
+from lcreg.reproduce.budgets import CONVERGE_LK, Preset, RunBudget
 from lcreg.reproduce.claims import Claim, Comparison
 from lcreg.reproduce.paper import ABLATION as PAPER
 from lcreg.reproduce.spec import Cell, Experiment, Variant
@@ -51,10 +51,12 @@ OBJECTIVES = {
 BUDGETS: dict[Preset, dict[str, RunBudget]] = {
     "smoke": {"dvds": RunBudget(steps=2, points=128, batch=2, checks=1)},
     "cpu": {"dvds": RunBudget(steps=68, points=512, batch=16, checks=4)},
+    "converge": {"dvds": CONVERGE_LK},
     "paper": {"dvds": RunBudget(epochs=200, points=1024, batch=16)},
 }
 """Every variant gets the same budget (one group). ``cpu``: 16 variants × 3 seeds in about 2 h on the 2-core CPU
-(estimate from measured s/step in ``docs/reproducing.md``); ``paper``: the paper's 200 epochs at 1024 points."""
+(estimate from measured s/step in ``docs/reproducing.md``); ``converge``: :data:`~lcreg.reproduce.budgets.CONVERGE_LK`
+(until validation stops improving); ``paper``: the paper's 200 epochs at 1024 points."""
 
 
 def _variants() -> tuple[Variant, ...]:

@@ -82,7 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
         "  recall-curves  recall vs rotation-error threshold: unseen objects, unseen categories, 7-Scenes, KITTI\n"
         "                 (robustness and recall-curves train the learned methods once, shared in <out>/models.jsonl)"
         "\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
-        "experiment on 2 CPU cores),\n  paper (the paper's 200 epochs, for a GPU); see docs/reproducing.md",
+        "experiment on 2 CPU cores),\n  converge (each run until its validation error stops improving, resumable; "
+        "many CPU-hours:\n  benchmarks/train_queue.toml), paper (the paper's 200 epochs, for a GPU); see "
+        "docs/reproducing.md",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(AVAILABLE)}")

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from lcreg.benchmarking import METHODS
-from lcreg.reproduce.budgets import Preset, RunBudget
+from lcreg.reproduce.budgets import CONVERGE_EPOCHS_OF_8, CONVERGE_SMALL_BATCH, Preset, RunBudget
 from lcreg.reproduce.claims import Claim, Comparison
 from lcreg.reproduce.paper import LC_PLUS_X as PAPER
 from lcreg.reproduce.spec import Cell, Experiment, Rows, Variant
@@ -34,6 +34,12 @@ BUDGETS: dict[Preset, dict[str, RunBudget]] = {
         "prnet": RunBudget(steps=20, points=256, batch=8, checks=2),
         "idam": RunBudget(steps=220, points=512, batch=8, checks=4),
         "deepgmr": RunBudget(steps=220, points=512, batch=8, checks=4),
+    },
+    "converge": {
+        "dcp": CONVERGE_SMALL_BATCH,
+        "prnet": CONVERGE_SMALL_BATCH,
+        "idam": CONVERGE_EPOCHS_OF_8,
+        "deepgmr": CONVERGE_EPOCHS_OF_8,
     },
     "paper": dict.fromkeys(HOSTS, PAPER_BUDGET),
 }

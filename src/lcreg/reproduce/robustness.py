@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 
 from lcreg.benchmarking import METHODS, ResultLog, markdown_table
 from lcreg.figures import agg_figure, save_png
-from lcreg.reproduce.budgets import Preset, RunBudget
+from lcreg.reproduce.budgets import CONVERGE_LK, CONVERGE_SMALL_BATCH, Preset, RunBudget
 from lcreg.reproduce.conditions import (
     Condition,
     EvalBudget,
@@ -51,6 +51,7 @@ _LK = RunBudget(steps=48, points=512, batch=16, checks=3)
 BUDGETS: dict[Preset, EvalBudget] = {
     "smoke": EvalBudget({"*": RunBudget(steps=2, points=64, batch=2, checks=1)}, points=160, pairs=2, scene_pairs=1),
     "cpu": EvalBudget({"*": _LK, "dcp": RunBudget(steps=30, points=256, batch=8, checks=2)}, points=1024),
+    "converge": EvalBudget({"*": CONVERGE_LK, "dcp": CONVERGE_SMALL_BATCH}, points=1024),
     "paper": EvalBudget({"*": RunBudget(epochs=200, points=1024)}, points=1024),
 }
 """``cpu``: 48 steps × 16 pairs × 512 points per learned method (DCP-v2: 30 × 8 × 256, its step costs 4 times more),

@@ -138,6 +138,7 @@ RUNTIME = RuntimeExperiment(
     budgets={
         "smoke": RuntimeBudget(points=(500,), pairs=1, repeats=1, cuda=False),
         "cpu": RuntimeBudget(points=RUNTIME_POINTS, pairs=4, repeats=3),
+        "converge": RuntimeBudget(points=RUNTIME_POINTS, pairs=4, repeats=3),  # nothing is trained: as cpu
         "paper": RuntimeBudget(points=RUNTIME_POINTS, pairs=16, repeats=10),
     },
     notes=(

@@ -137,7 +137,8 @@ def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path
         as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
         the pair counts, the sizes and the times.
     """
-    result = fit(name, [*budget.fit_overrides(run_dir, seed), *data.overrides(budget)])
+    overrides = [*budget.fit_overrides(run_dir, seed), *data.overrides(budget)]
+    result = fit(name, overrides, monitor=budget.monitor, resume=budget.converge)
     best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
     load_weights(result.model, result.best_checkpoint)
     test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
@@ -154,7 +155,10 @@ def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path
         "test_s": round(test_s, 1),
         "selected": result.best_checkpoint.name,
         "weights": str(weights),
-        "best_val_rre_mean_deg": None if best_val is None else float(best_val),
+        "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
+        "selected_on": budget.monitor,
+        "best_val": None if best_val is None else float(best_val),
+        "stopped_early": budget.converge and int(result.trainer.global_step) < (budget.steps or 0),
         "metrics_csv": str(Path(result.trainer.log_dir or run_dir) / "metrics.csv"),
         "num_val_pairs": len(dm.val_set),
         "num_test_pairs": len(dm.test_set),
