@@ -34,8 +34,10 @@ import tomllib
 from lcreg.benchmarking import add_smoke_argument, machine_line
 
 REPO = Path(__file__).resolve().parents[1]
-RESULT_FILES = ("runs.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
+RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
 """Small files copied from a job's run folder (never checkpoints)."""
+LCREG_MAIN = "import sys; from lcreg.cli import main; sys.argv[0] = 'lcreg'; main()"
+"""``lcreg`` as a ``python -c`` program (the console script of whichever lcreg the interpreter imports)."""
 SMOKE_QUEUE = """
 [[job]]
 id = "smoke"
@@ -59,9 +61,15 @@ class Job:
     gpu_hours: float = 0.0
 
     def argv(self, runs: Path, results: Path) -> list[str]:
-        """The command's arguments with ``{runs}``/``{results}`` filled in and ``python`` as this interpreter."""
-        words = shlex.split(self.command.format(runs=runs / self.id, results=results / self.id))
-        return [sys.executable if words[0] == "python" else words[0], *words[1:]]
+        """The command's arguments with ``{runs}``/``{results}`` filled in (``python`` and ``lcreg`` as written)."""
+        return shlex.split(self.command.format(runs=runs / self.id, results=results / self.id))
+
+    def executable(self, runs: Path, results: Path) -> list[str]:
+        """:meth:`argv` run by this interpreter: ``python`` is it, ``lcreg`` is ``python -c <lcreg.cli.main>``, so
+        the code imported is that of the interpreter's path (the worktree's ``src`` with ``PYTHONPATH``)."""
+        words = self.argv(runs, results)
+        head = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}.get(words[0], words[:1])
+        return [*head, *words[1:]]
 
 
 def load_jobs(path: Path) -> list[Job]:
@@ -97,8 +105,8 @@ def sync(job: Job, runs: Path, results: Path) -> int:
 def status_line(job: Job, results: Path) -> str:
     """``id  section  done|pending (<k> runs finished)  estimate  what``."""
     done = (results / job.id / "DONE.json").is_file()
-    log = results / job.id / "runs" / "runs.jsonl"
-    finished = len(log.read_text(encoding="utf-8").splitlines()) if log.is_file() else 0
+    logs = [p for p in (results / job.id / "runs").glob("*.jsonl") if p.name != "models.jsonl"]
+    finished = sum(len(p.read_text(encoding="utf-8").splitlines()) for p in logs)
     state = "done" if done else f"pending ({finished} runs finished)"
     hours = f"{job.gpu_hours} GPU-h" if job.section == "gpu" else f"{job.cpu_hours} CPU-h (cap {job.cap_hours})"
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
@@ -107,7 +115,7 @@ def status_line(job: Job, results: Path) -> str:
 def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> bool:
     """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    argv = ["nice", "-n", "5", *job.argv(runs, results)]
+    argv = ["nice", "-n", "5", *job.executable(runs, results)]
     (results / job.id).mkdir(parents=True, exist_ok=True)
     print(f"queue: {job.id}: {shlex.join(argv)}", flush=True)
     start = time.monotonic()

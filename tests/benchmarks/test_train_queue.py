@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import json
 import shlex
+import sys
 from pathlib import Path
 
 import pytest
 from tests.benchmarks.test_smoke import BENCHMARKS, load
+
+from lcreg.reproduce.command import build_parser
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -19,10 +22,14 @@ def test_committed_queue_jobs_are_valid_and_their_arguments_parse(tmp_path: Path
     assert any(job.section == "gpu" for job in jobs) and any(job.section == "cpu" for job in jobs)
     for job in jobs:
         argv = job.argv(tmp_path / "runs", tmp_path / "results")
+        assert str(tmp_path / "runs" / job.id) in shlex.join(argv), job.id
+        if argv[:2] == ["lcreg", "reproduce"]:  # a typo in a queued command fails here, not hours later
+            args = build_parser().parse_args(argv[2:])
+            assert args.budget in ("converge", "paper"), f"{job.id}: queued sweeps use converge or paper budgets"
+            continue
         script = Path(argv[1])
         assert script.parent.name == "benchmarks" and (BENCHMARKS / script.name).is_file(), job.id
-        args = load(script.stem).parse(argv[2:])  # a typo in a queued command fails here, not hours later
-        assert str(tmp_path / "runs" / job.id) in shlex.join(argv), job.id
+        args = load(script.stem).parse(argv[2:])
         assert args.patience is not None and args.val_pairs > 1, f"{job.id}: queued runs use the converge budget"
 
 
@@ -59,3 +66,16 @@ def test_smoke_runs_a_converge_learning_curve_through_the_queue(capsys: pytest.C
     load("train_queue").main(["--smoke"])
     out = capsys.readouterr().out
     assert "smoke" in out and " done " in out
+
+
+def test_an_lcreg_job_runs_the_interpreters_lcreg_and_its_results_are_copied(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    command = "lcreg reproduce ablation --budget smoke --seeds 0 --only paper/model_A --out {runs}"
+    file.write_text(f'[[job]]\nid = "abl"\nsection = "cpu"\nwhat = "x"\ncommand = "{command}"\n')
+    (job,) = queue.load_jobs(file)
+    assert job.executable(tmp_path, tmp_path)[:2] == [sys.executable, "-c"]
+    queue.main(["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")])
+    copied = tmp_path / "res" / "abl" / "runs"
+    assert (copied / "ablation.jsonl").is_file() and (copied / "ablation.md").is_file()
+    assert not list(copied.rglob("*.pt")) and not list(copied.rglob("*.ckpt"))  # weights stay in the run folder

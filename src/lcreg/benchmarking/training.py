@@ -102,8 +102,8 @@ def converge_overrides(
 
     :func:`fit_overrides` plus Lightning's ``EarlyStopping`` (stop after ``patience`` validations without an
     improvement of more than ``min_delta``) and a ``ModelCheckpoint`` that keeps the best checkpoint on the same
-    ``monitor`` (both minimise it). Both callbacks keep their state in ``last.ckpt``, so a run resumed with
-    :func:`fit` (``resume=True``) goes on counting where it stopped.
+    ``monitor`` (both minimise it). Both callbacks keep their state in ``last.ckpt``, and the run logs to the fixed
+    folder ``<run_dir>/<name>/run``, so a run resumed with :func:`fit` (``resume=True``) goes on where it stopped.
 
     Args:
         max_steps: Step cap (optimiser steps).
@@ -128,7 +128,9 @@ def converge_overrides(
         {"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stop},
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": best},
     ]
-    return [*fit_overrides(max_steps, val_every, run_dir, name, seed), f"--trainer.callbacks={json.dumps(callbacks)}"]
+    # A fixed logger version: a resumed run finds its last.ckpt in the same folder (a later override may rename it).
+    fixed = ["--trainer.logger.init_args.version=run", f"--trainer.callbacks={json.dumps(callbacks)}"]
+    return [*fit_overrides(max_steps, val_every, run_dir, name, seed), *fixed]
 
 
 def last_checkpoint(log_dir: str | Path) -> Path | None:
