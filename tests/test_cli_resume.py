@@ -99,6 +99,8 @@ def test_a_listed_latest_checkpoint_sets_the_cadence() -> None:
     assert latest.every_n_train_steps == 7 and sum(isinstance(c, RngState) for c in callbacks) == 1
     (best,) = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
     assert best.monitor == "val/rre_mean_deg" and not best.save_last  # LatestCheckpoint alone writes last.ckpt
+    # After Lightning's own reordering, last.ckpt is written after the ModelCheckpoint has taken the validation in.
+    assert callbacks.index(latest) > callbacks.index(best)
     with pytest.raises(ValueError, match=">= 0"):
         LatestCheckpoint(every_n_train_steps=-1)
 
@@ -181,3 +183,26 @@ def test_ckpt_path_best_without_a_recorded_choice_names_the_file(tmp_path: Path)
     moved.unlink()
     with pytest.raises(CheckpointNotFoundError, match="no longer exists"):
         best_checkpoint_of(last)
+
+
+@pytest.mark.parametrize("listed", [False, True], ids=["default", "listed"])
+def test_last_checkpoint_records_the_best_checkpoint_of_the_same_validation(tmp_path: Path, listed: bool) -> None:
+    """Before: last.ckpt was saved before the ModelCheckpoint saw the validation, so it named the previous best
+    (deleted once a better one was saved): `--ckpt_path best` then pointed at a missing file, and a resumed run
+    compared against a stale best score."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from lcreg.callbacks import LatestCheckpoint
+    from lcreg.cli import build_cli
+
+    cadence = ["--trainer.callbacks=[{class_path: lcreg.callbacks.LatestCheckpoint}]"] if listed else []
+    outputs = [f"--trainer.logger.init_args.save_dir={tmp_path}", f"--trainer.default_root_dir={tmp_path}"]
+    cli = build_cli(["fit", *RUN, *outputs, "--trainer.max_epochs=3", *cadence], run=True)
+    callbacks = cli.trainer.callbacks
+    order = [type(c) for c in callbacks if isinstance(c, (ModelCheckpoint, LatestCheckpoint))]
+    assert order == [ModelCheckpoint, LatestCheckpoint]
+    run = tmp_path / "lcreg" / "version_0" / "checkpoints"
+    state = torch.load(run / "last.ckpt", weights_only=True)["callbacks"]
+    (recorded,) = [v for k, v in state.items() if k.startswith("ModelCheckpoint")]
+    assert Path(recorded["best_model_path"]) == Path(cli.trainer.checkpoint_callback.best_model_path)
+    assert [p.name for p in run.glob("*.ckpt") if p.name != "last.ckpt"] == [Path(recorded["best_model_path"]).name]

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import torch
 from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import BasePredictionWriter, Callback, TQDMProgressBar
+from lightning.pytorch.callbacks import BasePredictionWriter, Callback, Checkpoint, TQDMProgressBar
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 
@@ -20,8 +20,12 @@ from lcreg.types import RegistrationResult
 __all__ = ["LatestCheckpoint", "RngState", "TimedProgressBar", "TransformWriter"]
 
 
-class LatestCheckpoint(Callback):
+class LatestCheckpoint(Checkpoint):
     """Keep ``last.ckpt`` the latest training state (model, optimiser, scheduler, loops, callbacks, data position).
+
+    A :class:`~lightning.pytorch.callbacks.Checkpoint`, so Lightning runs its hooks after the other callbacks and,
+    placed after the ``ModelCheckpoint`` (as :class:`lcreg.cli.LcregCLI` places it), after that one too: the state
+    it saves after a validation already records that validation's best checkpoint and early-stopping count.
 
     Lightning's ``ModelCheckpoint(save_last=True)`` rewrites ``last.ckpt`` only when it also saves a top-k
     checkpoint, so ``last.ckpt`` trails the run. This callback writes it every ``every_n_train_steps`` optimiser

@@ -319,6 +319,9 @@ class LcregCLI(LightningCLI):
         from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar
 
         listed = config.get("callbacks") or []
+        # A listed LatestCheckpoint goes after every ModelCheckpoint (below), so last.ckpt records their update.
+        latest = [c for c in listed if isinstance(c, LatestCheckpoint)]
+        listed = config["callbacks"] = [c for c in listed if not isinstance(c, LatestCheckpoint)]
         checkpointing = config.get("enable_checkpointing") is not False
         if checkpointing and not any(isinstance(c, ModelCheckpoint) for c in listed):
             callbacks.append(
@@ -329,8 +332,7 @@ class LcregCLI(LightningCLI):
                     auto_insert_metric_name=False,
                 )
             )
-        if checkpointing and not any(isinstance(c, LatestCheckpoint) for c in listed):
-            callbacks.append(LatestCheckpoint())
+        callbacks.extend(latest or ([LatestCheckpoint()] if checkpointing else []))
         for checkpoint in (c for c in listed if isinstance(c, ModelCheckpoint) and c.save_last):
             rank_zero_info("lcreg: a listed ModelCheckpoint's save_last is off: LatestCheckpoint writes last.ckpt")
             checkpoint.save_last = False
