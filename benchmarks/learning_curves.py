@@ -37,7 +37,7 @@ import argparse
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from lcreg.benchmarking import (
     CONVERGE_METRIC,
@@ -51,6 +51,7 @@ from lcreg.benchmarking import (
     fit_overrides,
     load_runs,
     machine_line,
+    markdown_table,
     output_path,
     plot_curves,
     summary_table,
@@ -199,18 +200,46 @@ def main(argv: Sequence[str] | None = None) -> None:
         report(args, log, out)
 
 
+def stops_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Where every run stopped (early stop or the step cap), its selected checkpoint and its training time."""
+    header = ["variant", "seed", "stopped at step", "why", "selected checkpoint", "train s"]
+    body = [
+        [
+            row["variant"],
+            str(row["seed"]),
+            str(row.get("stopped_step", "-")),
+            "early stop" if row.get("early_stopped") else "step cap",
+            Path(row["best_checkpoint"]).name,
+            f"{row['seconds']:.0f}",
+        ]
+        for row in rows
+    ]
+    return markdown_table(header, body)
+
+
+def metrics_file(args: argparse.Namespace, row: dict[str, Any]) -> Path:
+    """A finished run's ``metrics.csv``: the recorded path, or the same run under ``--run-dir`` (a copied folder,
+    e.g. the committed results of the training queue)."""
+    recorded = Path(row["metrics_csv"])
+    return (
+        recorded if recorded.is_file() else Path(args.run_dir) / row["variant"] / f"seed{row['seed']}" / "metrics.csv"
+    )
+
+
 def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     """Summary table and learning-curve PNGs of the finished runs of ``args.variants`` at this budget."""
     files: dict[str, list[str]] = {}
+    finished = []
     for row in log.rows:
         wanted = (args.points, args.steps, budget_key(args))
         if row["variant"] in args.variants and (row["points"], row["steps"], row.get("budget")) == wanted:
-            files.setdefault(row["variant"], []).append(row["metrics_csv"])
+            files.setdefault(row["variant"], []).append(str(metrics_file(args, row)))
+            finished.append(row)
     runs = load_runs(files)
     budget = budget_key(args) or "fixed budget"
     head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line()}"
     head += f"; runs: {args.run_dir}"
-    write_text(out, "\n".join([head, "", summary_table(runs), ""]))
+    write_text(out, "\n".join([head, "", summary_table(runs), "", stops_table(finished), ""]))
     for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):
         print(f"wrote {path}", flush=True)
     print(f"wrote {out}", flush=True)
