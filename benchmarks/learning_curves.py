@@ -28,7 +28,9 @@ model A and D are the paper's objective exactly as written (``configs/ablation/m
 ``configs/dvds_modelnet40.yaml``); the label-free recipe adds :class:`~lcreg.models.loss_terms.SelfMotionLoss`
 (``configs/dvds_selfsup_modelnet40.yaml``); PointNetLK is the supervised control (analytic Jacobian, lr 1e-4,
 gradient clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without BatchNorm (like the DVDs
-encoder: the solve then sees the same function as the training pass).
+encoder: the solve then sees the same function as the training pass). ``selfsup_lr3e-5`` and ``selfsup_steplr``
+are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of issue 23); ``pcrnet`` and ``fmr`` are
+those baselines with their own configs (``configs/models/``), at the batch and points given here.
 """
 
 from __future__ import annotations
@@ -98,6 +100,8 @@ VARIANTS: dict[str, Variant] = {
             '"init_args": {"step_size": 5, "gamma": 0.5}}',
         ),
     ),
+    "pcrnet": Variant("pcrnet"),
+    "fmr": Variant("fmr"),
     "pointnetlk_nobn": Variant(
         "pointnetlk",
         overrides=(
