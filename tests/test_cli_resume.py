@@ -195,7 +195,11 @@ def test_last_checkpoint_records_the_best_checkpoint_of_the_same_validation(tmp_
     from lcreg.callbacks import LatestCheckpoint
     from lcreg.cli import build_cli
 
-    cadence = ["--trainer.callbacks=[{class_path: lcreg.callbacks.LatestCheckpoint}]"] if listed else []
+    # A ModelCheckpoint on the step (mode max): every validation is a new best, the last one included, so a last.ckpt
+    # saved before the ModelCheckpoint took the last validation in names a deleted file.
+    always_better = "{class_path: lightning.pytorch.callbacks.ModelCheckpoint, init_args: {monitor: step, mode: max}}"
+    latest = ", {class_path: lcreg.callbacks.LatestCheckpoint}" if listed else ""
+    cadence = [f"--trainer.callbacks=[{always_better}{latest}]"]
     outputs = [f"--trainer.logger.init_args.save_dir={tmp_path}", f"--trainer.default_root_dir={tmp_path}"]
     cli = build_cli(["fit", *RUN, *outputs, "--trainer.max_epochs=3", *cadence], run=True)
     callbacks = cli.trainer.callbacks
@@ -204,5 +208,7 @@ def test_last_checkpoint_records_the_best_checkpoint_of_the_same_validation(tmp_
     run = tmp_path / "lcreg" / "version_0" / "checkpoints"
     state = torch.load(run / "last.ckpt", weights_only=True)["callbacks"]
     (recorded,) = [v for k, v in state.items() if k.startswith("ModelCheckpoint")]
-    assert Path(recorded["best_model_path"]) == Path(cli.trainer.checkpoint_callback.best_model_path)
+    checkpoint = cli.trainer.checkpoint_callback
+    assert Path(recorded["best_model_path"]) == Path(checkpoint.best_model_path)  # type: ignore[union-attr]
+    assert float(recorded["best_model_score"]) == cli.trainer.global_step  # the last validation, at the last step
     assert [p.name for p in run.glob("*.ckpt") if p.name != "last.ckpt"] == [Path(recorded["best_model_path"]).name]

@@ -83,17 +83,28 @@ class LatestCheckpoint(Checkpoint):
             self._save(trainer)
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Save after every validation during ``fit`` (also the step-cadence save of the batch before it)."""
-        self._save(trainer)
+        """Save after every validation during ``fit`` (also the step-cadence save of the batch before it).
+
+        A validation at the end of a complete epoch is saved by :meth:`on_train_epoch_end` instead: with one
+        validation per epoch, ``ModelCheckpoint`` and ``EarlyStopping`` take it in at the epoch's end, and the saved
+        state must already hold their update.
+        """
+        if not _epoch_complete(trainer):
+            self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Save at the end of every complete training epoch (runs without validation).
+        """Save at the end of every complete training epoch (after the epoch's validation, if any).
 
         An epoch cut short (``max_steps``) is not saved here: its last step was (a checkpoint here would resume at
         the next epoch).
         """
-        if trainer.fit_loop.epoch_loop.batch_progress.current.ready >= trainer.num_training_batches:
+        if _epoch_complete(trainer):
             self._save(trainer)
+
+
+def _epoch_complete(trainer: Trainer) -> bool:
+    """Whether every training batch of the current epoch has run (its end-of-epoch hooks follow)."""
+    return trainer.fit_loop.epoch_loop.batch_progress.current.ready >= trainer.num_training_batches
 
 
 def _validation_follows(trainer: Trainer) -> bool:
