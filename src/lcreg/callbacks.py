@@ -85,11 +85,12 @@ class LatestCheckpoint(Checkpoint):
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Save after every validation during ``fit`` (also the step-cadence save of the batch before it).
 
-        A validation at the end of a complete epoch is saved by :meth:`on_train_epoch_end` instead: with one
-        validation per epoch, ``ModelCheckpoint`` and ``EarlyStopping`` take it in at the epoch's end, and the saved
-        state must already hold their update.
+        With one validation per epoch, ``ModelCheckpoint`` takes the validation in at the epoch's end, so the state
+        is saved then (:meth:`on_train_epoch_end`), already holding its update. Validations every N steps are taken
+        in here, before this callback (it runs after every ``ModelCheckpoint``), and are saved here: a checkpoint
+        from the epoch-end hook would resume that schedule one step late.
         """
-        if not _epoch_complete(trainer):
+        if not (_epoch_complete(trainer) and _checkpoints_update_at_epoch_end(trainer)):
             self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
@@ -100,6 +101,17 @@ class LatestCheckpoint(Checkpoint):
         """
         if _epoch_complete(trainer):
             self._save(trainer)
+
+
+def _checkpoints_update_at_epoch_end(trainer: Trainer) -> bool:
+    """Whether the trainer's ``ModelCheckpoint`` callbacks take a validation in at the epoch's end.
+
+    That is Lightning's rule for one validation per epoch; it is read from the callbacks themselves.
+    """
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    checkpoints = [c for c in trainer.checkpoint_callbacks if isinstance(c, ModelCheckpoint)]
+    return any(c._should_save_on_train_epoch_end(trainer) for c in checkpoints)
 
 
 def _epoch_complete(trainer: Trainer) -> bool:
