@@ -46,8 +46,8 @@ def test_fit_then_test_from_the_saved_config(tmp_path: Path) -> None:
     config = yaml.safe_load(saved.read_text())
     assert config["model"]["class_path"] == "lcreg.models.dvds.DVDs"
     assert config["model"]["init_args"]["encoder_channels"] == [16, 32]
-    (term,) = config["model"]["init_args"]["loss_terms"]  # the main job is DVDs + LC (configs/lc.yaml)
-    assert term["class_path"] == "lcreg.models.loss_terms.LocalConsistencyLoss"
+    terms = [t["class_path"] for t in config["model"]["init_args"]["loss_terms"]]  # the main job: the recipe
+    assert terms == ["lcreg.models.loss_terms.LocalConsistencyLoss", "lcreg.models.loss_terms.SelfMotionLoss"]
     assert config["compose"] is None  # already expanded: the saved config is complete
     metrics = list(csv.DictReader((run_dir / "metrics.csv").open()))
     assert any(row.get("val/loss") for row in metrics)
