@@ -79,3 +79,21 @@ def test_an_lcreg_job_runs_the_interpreters_lcreg_and_its_results_are_copied(tmp
     copied = tmp_path / "res" / "abl" / "runs"
     assert (copied / "ablation.jsonl").is_file() and (copied / "ablation.md").is_file()
     assert not list(copied.rglob("*.pt")) and not list(copied.rglob("*.ckpt"))  # weights stay in the run folder
+
+
+def test_copied_results_are_not_ignored_by_git() -> None:
+    """Before: `.gitignore`'s `runs/` hid every copied result folder, so nothing the queue copied could be committed."""
+    import shutil
+    import subprocess
+
+    repo = BENCHMARKS.parent
+    if shutil.which("git") is None or not (repo / ".git").exists():
+        pytest.skip("not a git checkout")
+    copied = [
+        "docs/results/converge/job/runs/runs.jsonl",
+        "docs/results/converge/job/runs/runs/converge/lc/idam_LC/seed0/run/metrics.csv",  # a reproduce sweep's rows
+    ]
+    result = subprocess.run(["git", "check-ignore", *copied], cwd=repo, capture_output=True, text=True)
+    assert result.returncode == 1 and not result.stdout, f"ignored: {result.stdout}"
+    weights = subprocess.run(["git", "check-ignore", "docs/results/converge/job/runs/x/best.ckpt"], cwd=repo)
+    assert weights.returncode == 0  # checkpoints stay out
