@@ -19,9 +19,10 @@ every validation object (``val_pairs_per_object``: 4 gives 312 pairs on ``modeln
 moves the criterion by at most 5° / 312. A run that was cut off (killed, session over) resumes from its
 ``last.ckpt`` on the next call with the same arguments, early-stopping state included.
 
-``--out x.md`` writes the summary table of every finished run of the chosen
-variants (:func:`lcreg.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``, ``x_jacobian.png``,
-... by :func:`lcreg.benchmarking.plot_curves`, as ``benchmarks/plot_learning_curves.py`` draws them).
+``--out x.md`` writes the summary table of every finished run of the chosen variants
+(:func:`lcreg.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``, ``x_jacobian.png``, ... by
+:func:`lcreg.benchmarking.plot_curves`, as ``benchmarks/plot_learning_curves.py`` draws them); ``--report-only``
+writes them without training anything (e.g. from the committed copy of a queue job's runs).
 
 Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order):
 model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
@@ -184,6 +185,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--run-dir", default="runs/learning_curves")
     parser.add_argument("--out", default=None, help="summary table (.md); the PNGs are written beside it")
+    parser.add_argument(
+        "--report-only", action="store_true", help="only write --out from the finished runs (train nothing)"
+    )
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
@@ -196,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=KEY)
     budget = budget_key(args) or "fixed budget"
     print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine_line()}", flush=True)
-    for name in args.variants:
+    for name in args.variants if not args.report_only else ():
         for seed in args.seeds:
             run(args, name, seed, log)
     out = output_path(args.out, "learning_curves.md", args.smoke)
