@@ -9,9 +9,9 @@
 Every job is one resumable command (``{runs}``: its run folder under ``--runs``, ``{results}``: its folder under
 ``--results``). ``run`` starts the pending jobs of a section one at a time with ``OMP_NUM_THREADS=1`` under ``nice``
 (on a GPU, with ``--max-minutes`` the command is stopped at that limit and resumes on the next call). When a command
-exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (wall time, machine) is written
-there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs of a long
-job can be committed as they land.
+exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (the last call's wall time) is
+written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
+of a long job can be committed as they land.
 """
 
 from __future__ import annotations
@@ -131,9 +131,10 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> b
     if code != 0:
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
         return False
-    done = {"seconds": round(time.monotonic() - start, 1), "machine": machine_line(), "files": copied}
+    # The wall time of this last call only (earlier calls of a resumed job are in its rows' own training times).
+    done = {"last_call_s": round(time.monotonic() - start, 1), "machine": machine_line(), "files": copied}
     (results / job.id / "DONE.json").write_text(json.dumps(done) + "\n", encoding="utf-8")
-    print(f"queue: {job.id}: done in {done['seconds']:.0f} s", flush=True)
+    print(f"queue: {job.id}: done, last call {done['last_call_s']:.0f} s", flush=True)
     return True
 
 

@@ -135,7 +135,9 @@ def converge_overrides(
 
 def last_checkpoint(log_dir: str | Path) -> Path | None:
     """``<log_dir>/checkpoints/last.ckpt`` if a run in ``log_dir`` left one (the state to resume from)."""
-    path = Path(log_dir) / "checkpoints" / "last.ckpt"
+    from lcreg.resume import LAST
+
+    path = Path(log_dir) / "checkpoints" / LAST
     return path if path.is_file() else None
 
 
