@@ -11,7 +11,9 @@ Every job is one resumable command (``{runs}``: its run folder under ``--runs``,
 (on a GPU, with ``--max-minutes`` the command is stopped at that limit and resumes on the next call). When a command
 exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (the last call's wall time) is
 written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
-of a long job can be committed as they land.
+of a long job can be committed as they land. Run folders need not outlive a session: before a job starts, the
+committed copies of its result logs are restored into an empty run folder, so its finished runs are skipped and only
+the run in progress when a session ended starts again.
 """
 
 from __future__ import annotations
@@ -102,6 +104,19 @@ def sync(job: Job, runs: Path, results: Path) -> int:
     return count
 
 
+def restore(job: Job, runs: Path, results: Path) -> int:
+    """Copy the committed result files of ``job`` back into its run folder where that folder lacks them (a new
+    machine); the scripts then skip the runs these logs list as finished. Returns how many files were copied."""
+    source, target, count = results / job.id / "runs", runs / job.id, 0
+    for path in source.rglob("*") if source.is_dir() else ():
+        destination = target / path.relative_to(source)
+        if path.is_file() and not destination.exists():
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, destination)
+            count += 1
+    return count
+
+
 def status_line(job: Job, results: Path) -> str:
     """``id  section  done|pending (<k> runs finished)  estimate  what``."""
     done = (results / job.id / "DONE.json").is_file()
@@ -117,6 +132,8 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> b
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     argv = ["nice", "-n", "5", *job.executable(runs, results)]
     (results / job.id).mkdir(parents=True, exist_ok=True)
+    if restored := restore(job, runs, results):
+        print(f"queue: {job.id}: {restored} result files restored from {results / job.id / 'runs'}", flush=True)
     print(f"queue: {job.id}: {shlex.join(argv)}", flush=True)
     start = time.monotonic()
     try:

@@ -97,3 +97,18 @@ def test_copied_results_are_not_ignored_by_git() -> None:
     assert result.returncode == 1 and not result.stdout, f"ignored: {result.stdout}"
     weights = subprocess.run(["git", "check-ignore", "docs/results/converge/job/runs/x/best.ckpt"], cwd=repo)
     assert weights.returncode == 0  # checkpoints stay out
+
+
+def test_a_new_machine_restores_finished_runs_from_the_committed_results(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    # The job appends one row per call to its runs.jsonl, as the scripts do for each finished run.
+    append = "import pathlib; p = pathlib.Path('{runs}'); p.mkdir(parents=True, exist_ok=True); "
+    append += "f = p / 'runs.jsonl'; f.write_text((f.read_text() if f.exists() else '') + 'row\\\\n'); raise SystemExit(1)"
+    file.write_text(f'[[job]]\nid = "long"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"{append}\\""\n')
+    args = ["--queue", str(file), "--results", str(tmp_path / "res")]
+    for machine in ("first", "second"):  # each session's run folders are new; the results folder is committed
+        with pytest.raises(SystemExit):
+            queue.main(["run", "--runs", str(tmp_path / machine), *args])
+    assert (tmp_path / "second" / "long" / "runs.jsonl").read_text() == "row\nrow\n"
+    assert (tmp_path / "res" / "long" / "runs" / "runs.jsonl").read_text() == "row\nrow\n"
