@@ -258,7 +258,7 @@ def _read_exact(read: Callable[[Path], np.ndarray], path: Path, pts: np.ndarray,
 
 
 def checkpoint_cases(folder: Path) -> Iterator[Case]:
-    from lcreg.benchmarking import load_weights
+    from lcreg.experiments.benchmarking import load_weights
 
     model = lcreg.PointNetLK()
     files = {"ckpt_empty.ckpt": b"", "ckpt_random.ckpt": os.urandom(512)}

@@ -23,7 +23,7 @@ from functools import partial
 import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     METHODS,
     add_smoke_argument,
     apply_smoke,

@@ -17,12 +17,13 @@ loop runs: gradients zeroed, ``model.training_forward(batch)``, ``model.training
 * ``fast``: the default code path.
 
 Both run on the same weights and batch; time per step is the median of ``--repeats`` alternating rounds after
-``--warmup`` rounds (:func:`lcreg.benchmarking.time_calls`). Memory: on CPU the peak resident-set increase during one
-step (:func:`lcreg.benchmarking.peak_rss_increase_mib`: high-water mark after the step minus the resident set before
-it, freed heap returned first; everything resident at the peak counts: saved activations, temporaries, library
-workspaces); on CUDA the peak of ``torch.cuda.max_memory_allocated`` above the allocation before the step. A check line
-gives the largest differences of the loss terms and of the parameter gradients between the two paths (relative to
-each gradient's largest entry); ``--breakdown`` adds the time of each component of the step in both modes.
+``--warmup`` rounds (:func:`lcreg.experiments.benchmarking.time_calls`). Memory: on CPU the peak resident-set increase
+during one step (:func:`lcreg.experiments.benchmarking.peak_rss_increase_mib`: high-water mark after the step minus the
+resident set before it, freed heap returned first; everything resident at the peak counts: saved activations,
+temporaries, library workspaces); on CUDA the peak of ``torch.cuda.max_memory_allocated`` above the allocation before
+the step. A check line gives the largest differences of the loss terms and of the parameter gradients between the two
+paths (relative to each gradient's largest entry); ``--breakdown`` adds the time of each component of the step in both
+modes.
 
 Threads: PyTorch's intra-op thread count (``--threads``; default: PyTorch's own) changes both paths; it is printed
 with the machine. On a machine shared with other jobs, each multi-threaded op waits for its threads to be scheduled,
@@ -39,7 +40,7 @@ from typing import Any
 import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     add_smoke_argument,
     apply_smoke,
     build,

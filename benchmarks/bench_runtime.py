@@ -10,8 +10,8 @@ embedded synthetic shapes; one pair at a time (batch 1), median over ``--repeats
 (synchronised on CUDA).
 Weights: random unless ``--ckpt key=path`` is given; the LK models' iteration counts (and so their time) depend on
 the weights, so the mean number of iterations is printed beside each figure. Ratios are against DVDs in the same
-process. The paper's figures (Titan Xp + E5-2620) are ``lcreg.reproduce.paper.RUNTIME_MS``; ``lcreg reproduce
-runtime`` runs the same measurement over seeds with a report and a figure.
+process. The paper's figures (Titan Xp + E5-2620) are ``lcreg.experiments.reproduce.paper.RUNTIME_MS``; ``lcreg
+reproduce runtime`` runs the same measurement over seeds with a report and a figure.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import torch
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     METHODS,
     RegistrationSpeed,
     add_smoke_argument,
@@ -35,7 +35,7 @@ from lcreg.benchmarking import (
     registration_speed,
     write_text,
 )
-from lcreg.reproduce.paper import RUNTIME_MS, RUNTIME_POINTS
+from lcreg.experiments.reproduce.paper import RUNTIME_MS, RUNTIME_POINTS
 
 DEFAULT_METHODS = ["dvds", "pointnetlk", "fmr", "pcrnet", "dcp", "icp", "fgr", "ransac"]
 PAPER = RUNTIME_MS

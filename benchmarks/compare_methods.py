@@ -16,9 +16,9 @@
 * Pairs: ``ModelNet40DataModule`` test split (``--protocol``, unseen objects by default), seed 1234, 1024 points, two
   independent samplings, Euler U[0, 45°], t U[-0.5, 0.5]; once clean and once with Gaussian noise sigma 0.01 clipped
   at 0.05 on both clouds. Every method sees the same pairs.
-* Metrics: :func:`lcreg.evaluation.evaluate` (RMSE/MAE of the Euler angles and translations, recall at (2°, 0.01) and
-  (5°, 0.05)); ms/pair is the wall time of ``register`` per pair (batch ``--batch-size``; Open3D methods loop over
-  pairs on the CPU).
+* Metrics: :func:`lcreg.experiments.evaluation.evaluate` (RMSE/MAE of the Euler angles and translations, recall at (2°,
+  0.01) and (5°, 0.05)); ms/pair is the wall time of ``register`` per pair (batch ``--batch-size``; Open3D methods loop
+  over pairs on the CPU).
 
 Rows are appended to ``<out>.jsonl`` as they finish (a rerun skips them); the Markdown table is rewritten each time.
 """
@@ -33,7 +33,7 @@ from typing import Any
 
 import torch
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     METHODS,
     Budget,
     ResultLog,
@@ -51,7 +51,7 @@ from lcreg.benchmarking import (
     synthetic_overrides,
     write_text,
 )
-from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.experiments.evaluation import EvaluationReport, evaluate
 
 ROWS = [
     "dvds",

@@ -25,7 +25,7 @@ import argparse
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     add_smoke_argument,
     build,
     cli_args,
@@ -38,8 +38,8 @@ from lcreg.benchmarking import (
     save_weights,
     write_text,
 )
-from lcreg.benchmarking.registry import REFINE_CONFIG
-from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.experiments.benchmarking.registry import REFINE_CONFIG
+from lcreg.experiments.evaluation import EvaluationReport, evaluate
 from lcreg.models.base import RegistrationModule
 
 SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2], "refine": True}

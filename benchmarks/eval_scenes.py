@@ -9,11 +9,11 @@
   with ``--ckpt``), the data add-on ``configs/data/<dataset>.yaml``, ``configs/voxelize/lk27.yaml`` for the voxelised
   row and ``configs/pipelines/ransac_icp_<dataset>.yaml`` for RANSAC + ICP. The DataModule of the data config makes the
   pairs once; every method sees the same batches.
-* Metrics: :func:`lcreg.evaluation.evaluate` (RMSE/MAE of the Euler angles in degrees and of the translation in
-  metres, mean/median RRE) plus the scene recall of the usual benchmarks: RRE < 15° and RTE < 0.3 m on 3DMatch /
-  7-Scenes (FCGF, DGR), RRE < 5° and RTE < 2 m on KITTI (DGR, GeoTransformer). The thresholds are the DataModules'
-  ``recall_thresholds``, the same that ``lcreg test`` logs as ``test/recall_r15_t0p3`` / ``test/recall_r5_t2``.
-  ms/pair is the wall time of ``register``.
+* Metrics: :func:`lcreg.experiments.evaluation.evaluate` (RMSE/MAE of the Euler angles in degrees and of the
+  translation in metres, mean/median RRE) plus the scene recall of the usual benchmarks: RRE < 15° and RTE < 0.3 m on
+  3DMatch / 7-Scenes (FCGF, DGR), RRE < 5° and RTE < 2 m on KITTI (DGR, GeoTransformer). The thresholds are the
+  DataModules' ``recall_thresholds``, the same that ``lcreg test`` logs as ``test/recall_r15_t0p3`` /
+  ``test/recall_r5_t2``. ms/pair is the wall time of ``register``.
 * ``--tune`` picks the voxelisation settings on validation scenes only (3DMatch SUN3D scenes, never redkitchen or
   KITTI): each candidate (``configs/voxelize/lk27.yaml`` with other ``normalize`` / ``coarse_iterations`` /
   ``reassign_every``) is run with DVDs and ranked by mean RRE.
@@ -33,7 +33,9 @@ from typing import Any
 
 import torch
 
-from lcreg.benchmarking import (
+from lcreg.data.kitti import KITTIOdometryDataModule
+from lcreg.data.threedmatch import SevenScenesDataModule
+from lcreg.experiments.benchmarking import (
     METHODS,
     VOXELIZE_CONFIG,
     ResultLog,
@@ -48,9 +50,7 @@ from lcreg.benchmarking import (
     voxelize_overrides,
     write_text,
 )
-from lcreg.data.kitti import KITTIOdometryDataModule
-from lcreg.data.threedmatch import SevenScenesDataModule
-from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.experiments.evaluation import EvaluationReport, evaluate
 from lcreg.metrics.functional import registration_recall
 
 # (degrees, metres) of each dataset's standard recall: the one its DataModule gives `lcreg test` (single source).

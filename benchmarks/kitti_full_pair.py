@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from functools import partial
 from typing import Any
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     METHODS,
     VOXELIZE_CONFIG,
     add_smoke_argument,

@@ -1,13 +1,14 @@
-"""The paper's "LC + X" experiment as a script: a front end of ``lcreg reproduce lc`` (:mod:`lcreg.reproduce`).
+"""The paper's "LC + X" experiment as a script: a front end of ``lcreg reproduce lc``
+(:mod:`lcreg.experiments.reproduce`).
 
     python benchmarks/lc_plus_x.py --budget cpu --seeds 0 1 2 --out docs/results/lc_plus_x.md
     python benchmarks/lc_plus_x.py --hosts idam deepgmr --budget cpu      # a subset of the hosts
     python benchmarks/lc_plus_x.py --smoke      # seconds: DCP-v2 and LC + DCP-v2, 2 steps on synthetic shapes
 
 Every (host, variant, seed) is trained with the budget's steps, points and batch (``cpu``: per host, see
-``lcreg.reproduce.lc.BUDGETS``; ``paper``: 200 epochs), its checkpoint chosen on the validation pairs and tested
-once on the deterministic test pairs; rows are appended to ``<out>.jsonl`` as runs finish (a rerun skips them), and
-``<out>`` gets the table beside the paper's (with ``<out stem>_rotation.png`` and ``_translation.png``). The same as
+``lcreg.experiments.reproduce.lc.BUDGETS``; ``paper``: 200 epochs), its checkpoint chosen on the validation pairs and
+tested once on the deterministic test pairs; rows are appended to ``<out>.jsonl`` as runs finish (a rerun skips them),
+and ``<out>`` gets the table beside the paper's (with ``<out stem>_rotation.png`` and ``_translation.png``). The same as
 ``lcreg reproduce lc --out <folder of out>``, with the files named after ``--out``. The figures of
 ``docs/results/lc_plus_x.md`` came from the former version of this script (``--host-budget``): per-host step budgets
 like those of the ``cpu`` preset.
@@ -20,10 +21,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from lcreg.benchmarking import add_smoke_argument, output_path
-from lcreg.reproduce.budgets import DEFAULT_ROOT, PRESETS
-from lcreg.reproduce.command import build_parser, reproduce
-from lcreg.reproduce.lc import HOSTS
+from lcreg.experiments.benchmarking import add_smoke_argument, output_path
+from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, PRESETS
+from lcreg.experiments.reproduce.command import build_parser, reproduce
+from lcreg.experiments.reproduce.lc import HOSTS
 
 SMOKE = {"hosts": ["dcp"], "seeds": [0], "budget": "smoke"}
 

@@ -6,23 +6,24 @@
         --val-every 50 --patience 8 --val-pairs 4 --seeds 0 1 2 --variants selfsup --run-dir runs/converge/lc
     python benchmarks/learning_curves.py --smoke      # seconds, embedded shapes, 2 steps
 
-Every (variant, seed) is one ``lcreg fit`` (:func:`lcreg.benchmarking.fit`) that first validates its initial weights
-(step 0), then validates every ``--val-every`` steps; checkpoints are chosen on ``val/rre_mean_deg``. Each run's
-``metrics.csv`` (losses, the IC-LK Jacobian diagnostics ``train/j_*``, validation registration) is kept under
+Every (variant, seed) is one ``lcreg fit`` (:func:`lcreg.experiments.benchmarking.fit`) that first validates its
+initial weights (step 0), then validates every ``--val-every`` steps; checkpoints are chosen on ``val/rre_mean_deg``.
+Each run's ``metrics.csv`` (losses, the IC-LK Jacobian diagnostics ``train/j_*``, validation registration) is kept under
 ``--run-dir/<variant>/seed<k>``. Finished runs are listed in ``<run-dir>/runs.jsonl`` and skipped on a rerun, so a
 long study can be run in chunks.
 
 **Converge budget** (``--patience P``): each run trains until the validation error
-(:data:`lcreg.benchmarking.CONVERGE_METRIC`, the mean of min(RRE, 5°)) has not improved for ``P`` validations, capped
-by ``--steps``; the best checkpoint is chosen on the same metric. ``--val-pairs K`` draws K validation pairs from
-every validation object (``val_pairs_per_object``: 4 gives 312 pairs on ``modelnet40_mini``), so one failed pair
-moves the criterion by at most 5° / 312. A run that was cut off (killed, session over) resumes from its
+(:data:`lcreg.experiments.benchmarking.CONVERGE_METRIC`, the mean of min(RRE, 5°)) has not improved for ``P``
+validations, capped by ``--steps``; the best checkpoint is chosen on the same metric. ``--val-pairs K`` draws K
+validation pairs from every validation object (``val_pairs_per_object``: 4 gives 312 pairs on ``modelnet40_mini``), so
+one failed pair moves the criterion by at most 5° / 312. A run that was cut off (killed, session over) resumes from its
 ``last.ckpt`` on the next call with the same arguments, early-stopping state included.
 
 ``--out x.md`` writes the summary table of every finished run of the chosen variants
-(:func:`lcreg.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``, ``x_jacobian.png``, ... by
-:func:`lcreg.benchmarking.plot_curves`, as ``benchmarks/plot_learning_curves.py`` draws them); ``--report-only``
-writes them without training anything (e.g. from the committed copy of a queue job's runs).
+(:func:`lcreg.experiments.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``,
+``x_jacobian.png``, ... by :func:`lcreg.experiments.benchmarking.plot_curves`, as
+``benchmarks/plot_learning_curves.py`` draws them); ``--report-only`` writes them without training anything (e.g. from
+the committed copy of a queue job's runs).
 
 Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order):
 model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
@@ -42,7 +43,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     SELECTION_METRIC,
     ResultLog,

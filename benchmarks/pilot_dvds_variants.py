@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from lightning.pytorch import LightningDataModule
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     add_smoke_argument,
     build,
     cli_args,
@@ -36,7 +36,7 @@ from lcreg.benchmarking import (
     training_loss,
     write_text,
 )
-from lcreg.evaluation import EvaluationReport, evaluate
+from lcreg.experiments.evaluation import EvaluationReport, evaluate
 from lcreg.types import RegistrationBatch
 
 # Model arguments of each variant over configs/dvds_modelnet40.yaml ("steps" and "lr" are the training loop's).

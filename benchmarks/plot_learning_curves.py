@@ -9,7 +9,7 @@ Each ``--run label=path`` adds runs to a label: ``path`` is a ``metrics.csv``, a
 recursively) or a glob (quote it); several runs of one label are its seeds (mean line, min–max shade). Without
 ``label=`` the label is the run's name (the folder above ``version_<k>``). ``--out`` is a folder (``validation.png``,
 ``jacobian.png``, ``training.png``, ``other.png`` where their keys were logged, and ``summary.md``) or a ``.md`` file
-(the summary there, the PNGs beside it as ``<stem>_<figure>.png``). See :mod:`lcreg.benchmarking.curves`.
+(the summary there, the PNGs beside it as ``<stem>_<figure>.png``). See :mod:`lcreg.experiments.benchmarking.curves`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     add_smoke_argument,
     load_runs,
     output_path,

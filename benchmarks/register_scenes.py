@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from lcreg.benchmarking import add_smoke_argument, machine_line, markdown_table, write_text
+from lcreg.experiments.benchmarking import add_smoke_argument, machine_line, markdown_table, write_text
 from lcreg.registration.command import run
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"

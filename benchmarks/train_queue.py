@@ -33,12 +33,12 @@ from pathlib import Path
 
 import tomllib
 
-from lcreg.benchmarking import add_smoke_argument, machine_line
+from lcreg.experiments.benchmarking import add_smoke_argument, machine_line
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
 """Small files copied from a job's run folder (never checkpoints)."""
-LCREG_MAIN = "import sys; from lcreg.cli import main; sys.argv[0] = 'lcreg'; main()"
+LCREG_MAIN = "import sys; from lcreg.__main__ import main; sys.argv[0] = 'lcreg'; main()"
 """``lcreg`` as a ``python -c`` program (the console script of whichever lcreg the interpreter imports)."""
 SMOKE_QUEUE = """
 [[job]]
@@ -67,7 +67,7 @@ class Job:
         return shlex.split(self.command.format(runs=runs / self.id, results=results / self.id))
 
     def executable(self, runs: Path, results: Path) -> list[str]:
-        """:meth:`argv` run by this interpreter: ``python`` is it, ``lcreg`` is ``python -c <lcreg.cli.main>``, so
+        """:meth:`argv` run by this interpreter: ``python`` is it, ``lcreg`` is ``python -c <lcreg.__main__.main>``, so
         the code imported is that of the interpreter's path (the worktree's ``src`` with ``PYTHONPATH``)."""
         words = self.argv(runs, results)
         head = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}.get(words[0], words[:1])

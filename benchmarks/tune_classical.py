@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from lcreg.baselines.classical import FGR, ICP, RANSAC, FeatureRegistration
-from lcreg.benchmarking import (
+from lcreg.experiments.benchmarking import (
     add_smoke_argument,
     markdown_row,
     markdown_table,

@@ -199,7 +199,7 @@ ORIGINAL_BATCH = {"dcp": 32, "prnet": 36, "idam": 16, "deepgmr": 32, "pointnetlk
 
 @pytest.mark.parametrize("host", list(ORIGINAL_BATCH))
 def test_benchmark_registry_trains_with_the_original_batch_size(host: str) -> None:
-    from lcreg.benchmarking import build
+    from lcreg.experiments.benchmarking import build
 
     _, dm = build(host, with_data=True)
     assert dm.batch_size == ORIGINAL_BATCH[host]

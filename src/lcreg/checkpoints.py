@@ -1,8 +1,8 @@
 """Reading ``torch.save`` files weights-only (Lightning checkpoints, exported weights), with typed errors.
 
 Every file is read with ``torch.load(weights_only=True)``: tensors and plain containers only, no code runs. Needs
-torch only. :mod:`lcreg.benchmarking` (``load_weights``) and :mod:`lcreg.weights` (pretrained weights, their export)
-read through this module.
+torch only. :mod:`lcreg.experiments.benchmarking` (``load_weights``) and :mod:`lcreg.weights` (pretrained weights,
+their export) read through this module.
 """
 
 from __future__ import annotations

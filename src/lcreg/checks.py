@@ -14,6 +14,7 @@ All checks raise typed errors that name the offending argument, never ``assert``
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 
@@ -80,6 +81,32 @@ class PointCloudFileError(ValueError):
 
 class DatasetLayoutError(ValueError):
     """A dataset folder exists but its files do not follow the expected layout (the message names the path)."""
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """A dataset's root folder does not exist (the message names it, resolved, and how to give another)."""
+
+
+def dataset_root(root: str | Path, what: str, layout: str, argument: str = "--data.init_args.root") -> Path:
+    """``root`` (``~`` expanded) if it is a directory.
+
+    Args:
+        root: The dataset folder as configured (a relative path is relative to the working directory).
+        what: The dataset or component, for the message (e.g. ``"ModelNet40DataModule"``).
+        layout: The expected layout, appended to the message.
+        argument: The option that sets the folder, named in the message.
+
+    Raises:
+        DatasetNotFoundError: If it is not a directory; a relative ``root`` is shown resolved against the working
+            directory (configs name ``../shared/data/...``, which holds only from a source checkout).
+    """
+    path = Path(root).expanduser()
+    if path.is_dir():
+        return path
+    where = "" if path.is_absolute() else f" (relative to the working directory: {path.resolve()})"
+    raise DatasetNotFoundError(
+        f"{what}: root {str(root)!r}{where} is not a directory; give the dataset's folder with {argument}; {layout}"
+    )
 
 
 def check_float(x: object, name: str) -> torch.Tensor:

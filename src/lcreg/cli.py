@@ -52,15 +52,14 @@ import importlib
 import os
 import re
 import sys
-from pathlib import Path
 from typing import Any, NoReturn
 
-import yaml
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.checkpoints import CheckpointError, check_class, check_keys, one_line, read_checkpoint
+from lcreg.config import ConfigFileError, ConfigValueError, UsageError, config_texts, expand_configs
 from lcreg.models.base import EVALUATION_ARGS, NonFiniteTrainingError, RegistrationModule
 
 __all__ = [
@@ -84,16 +83,8 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 }
 
 
-class UsageError(Exception):
-    """A mistake in the arguments or configs (exit code 2 from the command line)."""
-
-
-class ConfigFileError(UsageError, FileNotFoundError):
-    """A config file (or a file it composes) does not exist."""
-
-
-class ConfigValueError(UsageError, ValueError):
-    """A config is malformed (``compose`` cycle or value) or sets an unsupported option."""
+FILE_ERRORS = (CheckpointError, NonFiniteTrainingError)
+"""Errors that end the command line with exit code 1 (with the dataset and weights errors, imported late)."""
 
 
 class NothingToTrainError(UsageError, RuntimeError):
@@ -372,83 +363,6 @@ def _wandb_offline_if_no_account(argv: list[str]) -> None:
         print("lcreg: no WANDB_API_KEY found, logging to wandb in offline mode (sync later with `wandb sync`)")
 
 
-def _config_mentions_wandb(argv: list[str]) -> list[str]:
-    """Arguments plus the text of any ``--config`` files (to detect a WandbLogger)."""
-    texts = list(argv)
-    for i, arg in enumerate(argv):
-        path = None
-        if arg.startswith("--config="):
-            path = arg.split("=", 1)[1]
-        elif arg == "--config" and i + 1 < len(argv):
-            path = argv[i + 1]
-        if path and os.path.isfile(path):
-            with open(path, encoding="utf-8") as fh:
-                texts.append(fh.read())
-    return texts
-
-
-def _config_path(arg: str, following: str | None) -> str | None:
-    """The file named by ``--config=F`` or ``--config F`` (``None`` for other arguments)."""
-    if arg.startswith("--config="):
-        return arg.split("=", 1)[1]
-    return following if arg == "--config" else None
-
-
-def _composed(path: Path, seen: tuple[Path, ...] = ()) -> list[Path]:
-    """``path``'s ``compose:`` files (recursively, in order), then ``path`` itself.
-
-    Raises:
-        ConfigFileError: If a composed file does not exist (names the file that lists it).
-        ConfigValueError: On a ``compose`` cycle or a ``compose`` value that is not a list of paths.
-    """
-    path = path.resolve()
-    if path in seen:
-        raise ConfigValueError(f"config compose cycle: {' -> '.join(str(p) for p in (*seen, path))}")
-    with path.open(encoding="utf-8") as fh:
-        content = yaml.safe_load(fh)
-    parts = content.get("compose") if isinstance(content, dict) else None
-    if parts is None:
-        return [path]
-    if not isinstance(parts, list) or not all(isinstance(p, str) for p in parts):
-        raise ConfigValueError(f"{path}: `compose` must be a list of config paths, got {parts!r}")
-    files: list[Path] = []
-    for part in parts:
-        child = path.parent / part
-        if not child.is_file():
-            raise ConfigFileError(f"{path}: composed config {part!r} not found ({child})")
-        files += _composed(child, (*seen, path))
-    return [*files, path]
-
-
-def expand_configs(args: list[str]) -> list[str]:
-    """Replace each ``--config F`` whose YAML has ``compose: [...]`` by ``--config`` of every composed file, then F.
-
-    Args:
-        args: Command-line arguments.
-
-    Returns:
-        The arguments with composed configs spelled out (other arguments unchanged, in order), and
-        ``--compose=null`` at the end when any file composed others, so the saved ``config.yaml`` (already complete)
-        does not compose them again.
-    """
-    out: list[str] = []
-    composed = False
-    i = 0
-    while i < len(args):
-        path = _config_path(args[i], args[i + 1] if i + 1 < len(args) else None)
-        step = 2 if args[i] == "--config" else 1
-        if path is None or not Path(path).is_file():
-            out += args[i : i + step] if path is not None else [args[i]]
-            i += step if path is not None else 1
-            continue
-        files = _composed(Path(path))
-        composed = composed or len(files) > 1
-        for file in files:
-            out += ["--config", str(file)]
-        i += step
-    return [*out, "--compose=null"] if composed else out
-
-
 def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
     """The ``lcreg`` CLI; ``run=False`` only instantiates model, data and trainer (scripts and tests use it).
 
@@ -492,12 +406,12 @@ def main(args: ArgsType = None) -> None:
 
         register_main([str(a) for a in argv[1:]])
         return
-    if argv[:1] == ["reproduce"]:  # sweeps of fit runs behind one command, not a Lightning subcommand
-        from lcreg.reproduce.command import main as reproduce_main
-
-        reproduce_main([str(a) for a in argv[1:]])
-        return
-    _wandb_offline_if_no_account(_config_mentions_wandb([str(a) for a in argv]))
+    if argv[:1] == ["reproduce"]:  # the experiments' command: the library does not import them
+        raise UsageError(
+            "`reproduce` is not a command of lcreg.cli.main: run `lcreg reproduce` (the console script, "
+            "lcreg.__main__.main) or lcreg.experiments.reproduce.command.main"
+        )
+    _wandb_offline_if_no_account(config_texts([str(a) for a in argv]))
     if args is not None or _debug():
         build_cli(args)
         return
@@ -510,14 +424,17 @@ def main(args: ArgsType = None) -> None:
 def _exit_on(err: Exception) -> NoReturn:
     """Exit with one line for a user error; re-raise anything else (a bug: its traceback is shown).
 
-    Exit codes: 2 for arguments and configs; 1 for files, checkpoints, weights and training stopped on non-finite
-    losses.
+    Exit codes: 2 for arguments and configs; 1 for dataset folders, files, checkpoints, weights and training stopped
+    on non-finite losses.
     """
+    from lcreg.checks import DatasetLayoutError, DatasetNotFoundError
     from lcreg.weights import PretrainedError
 
     if isinstance(err, UsageError):
         code = 2
-    elif isinstance(err, (CheckpointError, PretrainedError, NonFiniteTrainingError)):
+    elif isinstance(
+        err, (CheckpointError, PretrainedError, NonFiniteTrainingError, DatasetNotFoundError, DatasetLayoutError)
+    ):
         code = 1
     else:
         raise err

@@ -248,7 +248,7 @@ def test_icp_validates_and_tests_through_the_shared_step_without_a_loss(tmp_path
     import lightning as L
 
     from lcreg.data.datamodule import SyntheticDataModule
-    from lcreg.evaluation import evaluate
+    from lcreg.experiments.evaluation import evaluate
 
     dm = SyntheticDataModule(num_points=128, batch_size=2, num_train=4, num_val=2, num_test=2, max_angle_deg=10.0)
     trainer = L.Trainer(

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from tests.benchmarks.test_smoke import BENCHMARKS, load
 
-from lcreg.reproduce.command import build_parser
+from lcreg.experiments.reproduce.command import build_parser
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -104,7 +104,8 @@ def test_a_new_machine_restores_finished_runs_from_the_committed_results(tmp_pat
     file = tmp_path / "q.toml"
     # The job appends one row per call to its runs.jsonl, as the scripts do for each finished run.
     append = "import pathlib; p = pathlib.Path('{runs}'); p.mkdir(parents=True, exist_ok=True); "
-    append += "f = p / 'runs.jsonl'; f.write_text((f.read_text() if f.exists() else '') + 'row\\\\n'); raise SystemExit(1)"
+    append += "f = p / 'runs.jsonl'; f.write_text((f.read_text() if f.exists() else '') + 'row\\\\n'); "
+    append += "raise SystemExit(1)"
     file.write_text(f'[[job]]\nid = "long"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"{append}\\""\n')
     args = ["--queue", str(file), "--results", str(tmp_path / "res")]
     for machine in ("first", "second"):  # each session's run folders are new; the results folder is committed

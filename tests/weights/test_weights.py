@@ -14,7 +14,7 @@ import torch
 import lcreg
 import lcreg.weights as weights_module
 from lcreg.baselines.pointnetlk import PointNetLK
-from lcreg.benchmarking import pair_batches
+from lcreg.experiments.benchmarking import pair_batches
 from lcreg.metrics.functional import registration_recall, rotation_error_deg, translation_error
 from lcreg.models.base import RegistrationModule
 from lcreg.models.dvds import DVDs

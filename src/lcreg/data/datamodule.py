@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -22,7 +21,7 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
-from lcreg.checks import DatasetLayoutError, ShapeError
+from lcreg.checks import DatasetLayoutError, ShapeError, dataset_root
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
@@ -336,8 +335,7 @@ class ModelNet40DataModule(PairDataModule):
         self.unseen_categories_test = unseen_categories_test
 
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
-        if not Path(self.root).expanduser().is_dir():
-            raise FileNotFoundError(f"ModelNet40DataModule: root {self.root!r} is not a directory; {EXPECTED_LAYOUT}")
+        dataset_root(self.root, type(self).__name__, EXPECTED_LAYOUT)
         part: Literal["train", "test"] = "train" if stage == "fit" else "test"
         return {part: modelnet40_objects(self.root, self.protocol, part, self.unseen_categories_test)}
 

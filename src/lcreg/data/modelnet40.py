@@ -26,7 +26,7 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from lcreg.checks import DatasetLayoutError
+from lcreg.checks import DatasetLayoutError, dataset_root
 from lcreg.data.pairs import ObjectSet
 
 __all__ = [
@@ -55,10 +55,7 @@ EXPECTED_LAYOUT = (
 
 def _check_root(root: str | Path) -> Path:
     """Return ``root`` as a directory path or raise ``FileNotFoundError`` describing the layout."""
-    path = Path(root).expanduser()
-    if not path.is_dir():
-        raise FileNotFoundError(f"ModelNet40 root {str(path)!r} is not a directory; {EXPECTED_LAYOUT}")
-    return path
+    return dataset_root(root, "ModelNet40", EXPECTED_LAYOUT)
 
 
 def _resolve_entry(root: Path, entry: str, list_file: Path) -> Path:

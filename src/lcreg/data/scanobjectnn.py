@@ -44,7 +44,7 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError
+from lcreg.checks import DatasetLayoutError, NonFiniteError, ShapeError, dataset_root
 from lcreg.data.datamodule import PairDataModule
 from lcreg.data.pairs import ObjectSet
 
@@ -353,8 +353,7 @@ class ScanObjectNNDataModule(PairDataModule):
         self.drop_background_points = drop_background_points
 
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
-        if not Path(self.root).expanduser().is_dir():
-            raise FileNotFoundError(f"ScanObjectNNDataModule: root {self.root!r} is not a directory; {EXPECTED_LAYOUT}")
+        dataset_root(self.root, type(self).__name__, EXPECTED_LAYOUT)
         split: Split = "train" if stage == "fit" else "test"
         objects = scanobjectnn_objects(
             self.root, split, self.variant, self.background, self.drop_background_points, seed=self.seed

@@ -36,7 +36,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
-from lcreg.checks import DatasetLayoutError
+from lcreg.checks import DatasetLayoutError, dataset_root
 from lcreg.data.scenes import ScenePair, ScenePairDataModule, Split
 
 __all__ = [
@@ -239,9 +239,7 @@ def _check_benchmark(benchmark: str) -> None:
 def _benchmark_dir(root: str | Path, benchmark: str) -> Path:
     """``<root>/benchmarks/<benchmark>``, or ``FileNotFoundError`` describing the layout."""
     _check_benchmark(benchmark)
-    path = Path(root).expanduser()
-    if not path.is_dir():
-        raise FileNotFoundError(f"3DMatch root {str(path)!r} is not a directory; {EXPECTED_LAYOUT}")
+    path = dataset_root(root, "3DMatch", EXPECTED_LAYOUT)
     bench = path / "benchmarks" / benchmark
     if not bench.is_dir():
         raise FileNotFoundError(f"benchmark folder {str(bench)!r} is not a directory; {EXPECTED_LAYOUT}")

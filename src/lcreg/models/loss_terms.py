@@ -20,7 +20,8 @@ YAML (``configs/lc.yaml`` appends LC to any model's list; ``loss_terms+:`` appen
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import Protocol
 
 import torch
 from torch import nn
@@ -31,10 +32,24 @@ from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.losses import lk_pose_loss
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-if TYPE_CHECKING:
-    from lcreg.models.base import RegistrationModule
+__all__ = ["LocalConsistencyLoss", "LossHost", "LossTerm", "SelfMotionLoss", "random_subsets"]
 
-__all__ = ["LocalConsistencyLoss", "LossTerm", "SelfMotionLoss", "random_subsets"]
+
+class LossHost(Protocol):
+    """What a loss term may use of its model (:class:`~lcreg.models.base.RegistrationModule` provides it all)."""
+
+    @property
+    def descriptor_dim(self) -> int:
+        """Width ``K`` of :meth:`descriptor_encoder`'s features."""
+        ...
+
+    def descriptor_encoder(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The encoder ``psi``: ``(B, n, 3) -> (B, K)`` or ``(B, n, K)``."""
+        ...
+
+    def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """The model's estimate with its autograd graph kept."""
+        ...
 
 
 class LossTerm(nn.Module):
@@ -62,11 +77,11 @@ class LossTerm(nn.Module):
         """Smallest cloud this term accepts (folded into the model's ``min_points``)."""
         return 0
 
-    def bind(self, model: RegistrationModule) -> None:
+    def bind(self, model: LossHost) -> None:
         """Called once by the model's constructor: check (or adapt to) the model; default does nothing."""
 
     def forward(
-        self, model: RegistrationModule, result: RegistrationResult, batch: RegistrationBatch
+        self, model: LossHost, result: RegistrationResult, batch: RegistrationBatch
     ) -> torch.Tensor:  # pragma: no cover - interface
         """The term's unweighted scalar value for ``model``'s ``result`` on ``batch``."""
         raise NotImplementedError
@@ -100,7 +115,7 @@ class LocalConsistencyLoss(LossTerm):
         """``N_l``: LC needs clouds of at least ``num_local_points``."""
         return self.local_consistency.num_local_points
 
-    def bind(self, model: RegistrationModule) -> None:
+    def bind(self, model: LossHost) -> None:
         """Set (or check) the LC width against the host's descriptor width.
 
         Raises:
@@ -108,7 +123,7 @@ class LocalConsistencyLoss(LossTerm):
         """
         self.local_consistency.bind(model.descriptor_dim)
 
-    def forward(self, model: RegistrationModule, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
+    def forward(self, model: LossHost, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
         """``LocalConsistency(psi, X, Y, estimate)`` (scalar, nats)."""
         return self.local_consistency(
             model.descriptor_encoder(), batch.points_src, batch.points_ref, result.transform_ref_src
@@ -189,7 +204,7 @@ class SelfMotionLoss(LossTerm):
             ref = ref + self.noise_std * torch.randn_like(ref)
         return src, ref, motion
 
-    def forward(self, model: RegistrationModule, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
+    def forward(self, model: LossHost, result: RegistrationResult, batch: RegistrationBatch) -> torch.Tensor:
         """``16 MSE(T G^-1, I)`` of the host's differentiable estimate on pairs made from ``batch.points_src``."""
         src, ref, motion = self.make_pairs(batch.points_src.detach())
         estimate = model.differentiable_forward(src, ref).transform_ref_src

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lcreg.checks import dataset_root
 from lcreg.data.kitti.icp import check_icp_args, refine_pair
 from lcreg.data.kitti.io import JsonPair, read_calib_velo_to_cam, read_json_pairs, read_poses, relative_lidar_pose
 from lcreg.data.kitti.layout import (
@@ -247,9 +248,7 @@ def kitti_pairs(
     """
     _check_args(split, selection, min_distance, max_frames_apart)
     check_icp_args(voxel_size, max_distance, max_iteration)
-    base = Path(root).expanduser()
-    if not base.is_dir():
-        raise FileNotFoundError(f"KITTI root {str(base)!r} is not a directory; {EXPECTED_LAYOUT}")
+    base = dataset_root(root, "KITTI", EXPECTED_LAYOUT)
     seqs = tuple(KITTI_SPLITS[split] if sequences is None else (int(s) for s in sequences))
     found = {seq_id: scan_frames(base, seq_id) for seq_id in seqs}
     json_file = pairs_path(base, split)

@@ -1,0 +1,103 @@
+"""Benchmark pairs: deterministic ModelNet40 or embedded synthetic pairs, and the synthetic data of smoke runs."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import fields, replace
+from typing import Any, Literal
+
+from lightning.pytorch import LightningDataModule
+
+from lcreg.experiments.benchmarking.registry import cli_args
+from lcreg.types import RegistrationBatch
+
+__all__ = ["SYNTHETIC_DATA", "pair_batches", "split_batches", "synthetic_options", "synthetic_overrides"]
+
+SYNTHETIC_DATA = "lcreg.data.datamodule.SyntheticDataModule"
+Split = Literal["val", "test"]
+Protocol = Literal["unseen_objects", "unseen_categories"]
+
+
+def synthetic_options(pairs: int = 2, num_points: int = 64, batch_size: int = 2) -> dict[str, Any]:
+    """Constructor arguments of a tiny :class:`~lcreg.data.datamodule.SyntheticDataModule` (smoke runs).
+
+    Args:
+        pairs: Validation and test pairs.
+        num_points: Points per cloud.
+        batch_size: Pairs per batch (training uses ``2 * batch_size`` shapes).
+    """
+    return {
+        "num_train": 2 * batch_size,
+        "num_val": pairs,
+        "num_test": pairs,
+        "num_points": num_points,
+        "points_per_shape": 2 * num_points,
+        "batch_size": batch_size,
+        "num_workers": 0,
+    }
+
+
+def synthetic_overrides(pairs: int = 2, num_points: int = 64, batch_size: int = 2) -> list[str]:
+    """Overrides that replace a config's data block by tiny embedded synthetic pairs (no files needed)."""
+    return [f"--data={SYNTHETIC_DATA}", *cli_args("data", synthetic_options(pairs, num_points, batch_size))]
+
+
+def split_batches(datamodule: LightningDataModule, split: Split = "test") -> list[RegistrationBatch]:
+    """Set ``datamodule`` up for ``split`` and return all its (deterministic) batches."""
+    datamodule.setup("fit" if split == "val" else "test")
+    loader = datamodule.val_dataloader() if split == "val" else datamodule.test_dataloader()
+    return list(loader)
+
+
+def pair_batches(
+    root: str | None,
+    split: Split = "test",
+    pairs: int | None = None,
+    num_points: int = 1024,
+    batch_size: int = 16,
+    protocol: Protocol = "unseen_objects",
+    **options: Any,
+) -> tuple[list[RegistrationBatch], str]:
+    """Deterministic pairs of ModelNet40 (``root``) or of the embedded synthetic shapes (``root=None``).
+
+    Args:
+        root: ModelNet40 folder, or ``None`` for the synthetic shapes.
+        split: ``"val"`` (carved out of the training objects) or ``"test"``.
+        pairs: Keep the first ``pairs`` pairs (``None``: all; synthetic: 128 test / 64 validation shapes).
+        num_points: Points per cloud.
+        batch_size: Pairs per batch.
+        protocol: ModelNet40 protocol (``"unseen_objects"`` or ``"unseen_categories"``).
+        **options: Further pair options of :class:`~lcreg.data.datamodule.PairDataModule` (``noise_sigma``, ``seed``).
+
+    Returns:
+        The batches and a description of their source.
+    """
+    from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
+
+    dm: LightningDataModule
+    if root is None:
+        sizes = synthetic_options(pairs, num_points, batch_size) if pairs else {"num_points": num_points}
+        dm = SyntheticDataModule(**{**sizes, "batch_size": batch_size, **options})
+        source = "embedded synthetic shapes"
+    else:
+        dm = ModelNet40DataModule(root, protocol, num_points=num_points, batch_size=batch_size, **options)
+        source = f"ModelNet40 {root} ({protocol.replace('_', ' ')} {split} pairs)"
+    return _first_pairs(split_batches(dm, split), pairs), source
+
+
+def _first_pairs(batches: Iterable[RegistrationBatch], pairs: int | None) -> list[RegistrationBatch]:
+    """The batches holding the first ``pairs`` pairs (the last one cut to size); all of them for ``None``."""
+    out: list[RegistrationBatch] = []
+    left = pairs
+    for batch in batches:
+        if left is not None and left <= 0:
+            break
+        if left is not None and len(batch) > left:
+            batch = replace(batch, **{f.name: _head(getattr(batch, f.name), left) for f in fields(batch)})
+        out.append(batch)
+        left = None if left is None else left - len(batch)
+    return out
+
+
+def _head(value: Any, count: int) -> Any:
+    return None if value is None else value[:count]

@@ -1,0 +1,218 @@
+"""The one table of benchmarked methods: a name, a label and the config files that build it.
+
+Config paths are relative to lcreg's ``configs/`` folder (:func:`config_dir`) and appear only in this
+module, so a new config layout is one edit here. Every benchmark builds a method by name through
+:func:`lcreg.experiments.benchmarking.build`, exactly as ``lcreg test --config <configs...>`` does.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcreg.config import configs_root
+
+__all__ = [
+    "ABLATION_CONFIGS",
+    "DATA_CONFIGS",
+    "METHODS",
+    "REFINE_CONFIG",
+    "VOXELIZE_CONFIG",
+    "MethodSpec",
+    "cli_args",
+    "config_dir",
+    "config_path",
+    "data_config",
+    "method",
+    "voxelize_overrides",
+]
+
+REFINE_CONFIG = "refine/icp.yaml"
+"""ICP refinement after any method's estimate (test time)."""
+VOXELIZE_CONFIG = "voxelize/lk27.yaml"
+"""Voxelised IC-LK with 27 voxels for the LK models (test time)."""
+_VOXELIZE_KEY = "model.init_args.voxel_grid"  # where VOXELIZE_CONFIG puts the grid, for overrides of its settings
+LC_CONFIG = "lc.yaml"
+"""Local consistency appended to any model's loss terms."""
+SELF_MOTION_CONFIG = "self_motion.yaml"
+"""The label-free self-motion term appended to any model's loss terms (the recipe of ``dvds_selfsup``)."""
+MODELNET40 = "data/modelnet40.yaml"
+DCP_PROTOCOL = "data/dcp_protocol.yaml"
+
+DATA_CONFIGS: dict[str, str] = {
+    "sevenscenes": "data/sevenscenes.yaml",
+    "kitti": "data/kitti.yaml",
+    "scanobjectnn": "data/scanobjectnn.yaml",
+}
+"""Data add-ons (they replace a model config's ModelNet40 data block)."""
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """How to build one benchmarked method.
+
+    Attributes:
+        label: Row label in tables.
+        configs: Config files, relative to :func:`config_dir`, passed in order as ``--config``.
+        learned: Whether the method has weights to train (a checkpoint is meaningful).
+        refine: Optional refinement config appended after ``configs`` (``+ ICP`` rows).
+        weights_from: Name of the method whose checkpoint this one reuses (``None``: its own).
+        lc_variant: Name of the same host with local consistency (``LC + X``), if any.
+        overrides: Command-line overrides applied right after ``configs`` (the original batch size), before any
+            further config a caller adds.
+    """
+
+    label: str
+    configs: tuple[str, ...]
+    learned: bool
+    refine: str | None = None
+    weights_from: str | None = None
+    lc_variant: str | None = None
+    overrides: tuple[str, ...] = ()
+
+    def config_files(self) -> tuple[str, ...]:
+        """``configs`` followed by the refinement config (relative paths)."""
+        return (*self.configs, self.refine) if self.refine else self.configs
+
+
+def _batch(size: int) -> tuple[str, ...]:
+    return (f"--data.init_args.batch_size={size}",)
+
+
+def _learned(label: str, model: str, batch: int) -> MethodSpec:
+    return MethodSpec(label, (f"models/{model}.yaml", MODELNET40), True, overrides=_batch(batch))
+
+
+def _host(label: str, model: str, batch: int, lc: bool) -> MethodSpec:
+    """A host of the LC + X table: ModelNet40 under the DCP-family protocol, with or without ``lc.yaml``."""
+    configs = (f"models/{model}.yaml", *((LC_CONFIG,) if lc else ()), MODELNET40, DCP_PROTOCOL)
+    return MethodSpec(label, configs, True, lc_variant=None if lc else f"{model}_lc", overrides=_batch(batch))
+
+
+def _ablation(stem: str, recipe: bool) -> tuple[str, MethodSpec]:
+    """``ablation_<stem>`` (the paper's objective) or ``ablation_<stem>_selfsup`` (plus the self-motion term)."""
+    label = f"DVDs ablation {stem}" + (" + self-motion" if recipe else "")
+    configs = (f"ablation/{stem}.yaml", *((SELF_MOTION_CONFIG,) if recipe else ()))
+    return f"ablation_{stem}" + ("_selfsup" if recipe else ""), MethodSpec(label, configs, True)
+
+
+ABLATION_CONFIGS = (
+    "model_A",
+    "model_B",
+    "model_C",
+    "model_D",
+    "local_32",
+    "local_96",
+    "lambda_0.5_0.5",
+    "lambda_1_0.1",
+)
+"""The distinct rows of the paper's ablation table (``configs/ablation/<stem>.yaml``; ``local_64`` and
+``lambda_0.5_0.1`` are model D under another logger name, so they are not registered twice)."""
+
+
+def _classical(label: str, model: str, refine: str | None = None) -> MethodSpec:
+    return MethodSpec(label, (f"models/{model}.yaml", MODELNET40), False, refine=refine)
+
+
+# Batch sizes are the originals' (DCP 32, PRNet 36, IDAM 16, DeepGMR 32, PointNetLK 32, PCRNet 20, FMR-Net 8).
+METHODS: dict[str, MethodSpec] = {
+    "dvds": MethodSpec("DVDs", ("dvds_modelnet40.yaml",), True),
+    "dvds_selfsup": MethodSpec("DVDs, self-motion recipe", ("dvds_selfsup_modelnet40.yaml",), True),
+    "dvds_voxel": MethodSpec("DVDs voxelised (27 voxels)", ("dvds_modelnet40.yaml", VOXELIZE_CONFIG), True),
+    "dvds_icp": MethodSpec("DVDs + ICP", ("dvds_modelnet40.yaml",), True, refine=REFINE_CONFIG, weights_from="dvds"),
+    "pointnetlk": _learned("PointNetLK", "pointnetlk", 32),
+    "pcrnet": _learned("PCRNet", "pcrnet", 20),
+    "fmr": _learned("FMR-Net", "fmr", 8),
+    "dcp": _host("DCP-v2", "dcp", 32, lc=False),
+    "prnet": _host("PRNet", "prnet", 36, lc=False),
+    "idam": _host("IDAM", "idam", 16, lc=False),
+    "deepgmr": _host("DeepGMR", "deepgmr", 32, lc=False),
+    "dcp_lc": _host("LC + DCP-v2", "dcp", 32, lc=True),
+    "prnet_lc": _host("LC + PRNet", "prnet", 36, lc=True),
+    "idam_lc": _host("LC + IDAM", "idam", 16, lc=True),
+    "deepgmr_lc": _host("LC + DeepGMR", "deepgmr", 32, lc=True),
+    "icp": _classical("ICP point-to-point", "icp"),
+    "icp_plane": _classical("ICP point-to-plane", "icp_plane"),
+    "ransac": _classical("FPFH + RANSAC", "ransac"),
+    "fgr": _classical("FPFH + FGR", "fgr"),
+    "ransac_icp": _classical("FPFH + RANSAC + ICP", "ransac", refine=REFINE_CONFIG),
+    "fgr_icp": _classical("FPFH + FGR + ICP", "fgr", refine=REFINE_CONFIG),
+    **dict(_ablation(stem, recipe) for recipe in (False, True) for stem in ABLATION_CONFIGS),
+    "ransac_icp_sevenscenes": MethodSpec(
+        "FPFH + RANSAC + ICP", ("pipelines/ransac_icp_sevenscenes.yaml", DATA_CONFIGS["sevenscenes"]), False
+    ),
+    "ransac_icp_kitti": MethodSpec(
+        "FPFH + RANSAC + ICP", ("pipelines/ransac_icp_kitti.yaml", DATA_CONFIGS["kitti"]), False
+    ),
+}
+"""Every benchmarked method by name (the one registry)."""
+
+
+def method(name: str) -> MethodSpec:
+    """The spec of ``name``.
+
+    Raises:
+        KeyError: If ``name`` is not in :data:`METHODS` (the message lists the known names).
+    """
+    try:
+        return METHODS[name]
+    except KeyError:
+        raise KeyError(f"unknown method {name!r}; known: {', '.join(METHODS)}") from None
+
+
+def config_dir() -> Path:
+    """Lcreg's configs folder (:func:`lcreg.config.configs_root`: package data, or ``configs/`` of a checkout).
+
+    Raises:
+        lcreg.config.ConfigFileError: If lcreg's configs are missing (a broken install).
+    """
+    return configs_root()
+
+
+def config_path(name: str | Path) -> Path:
+    """``name`` resolved against :func:`config_dir` (absolute paths are kept).
+
+    Raises:
+        FileNotFoundError: If the file does not exist.
+    """
+    path = Path(name) if Path(name).is_absolute() else config_dir() / name
+    if not path.is_file():
+        raise FileNotFoundError(f"config {str(path)!r} does not exist")
+    return path
+
+
+def data_config(dataset: str) -> str:
+    """The data add-on config of ``dataset`` (relative path).
+
+    Raises:
+        KeyError: If ``dataset`` is not in :data:`DATA_CONFIGS`.
+    """
+    if dataset not in DATA_CONFIGS:
+        raise KeyError(f"unknown dataset {dataset!r}; known: {', '.join(DATA_CONFIGS)}")
+    return DATA_CONFIGS[dataset]
+
+
+def cli_args(section: str, values: Mapping[str, Any]) -> list[str]:
+    """Command-line overrides ``--<section>.init_args.<name>=<value>`` (``None`` values are skipped).
+
+    Args:
+        section: ``"model"``, ``"data"`` or another class-valued top-level key.
+        values: Constructor arguments; non-strings are written as JSON (``true``, ``[1, 2]``); ``None`` means "keep
+            the config's value" (pass the string ``"null"`` to set ``None``).
+
+    Returns:
+        Arguments for :func:`lcreg.experiments.benchmarking.build`.
+    """
+    return [
+        f"--{section}.init_args.{key}={value if isinstance(value, str) else json.dumps(value)}"
+        for key, value in values.items()
+        if value is not None
+    ]
+
+
+def voxelize_overrides(**values: Any) -> list[str]:
+    """Overrides of :data:`VOXELIZE_CONFIG`'s settings (``normalize``, ``coarse_iterations``, ...)."""
+    return cli_args(_VOXELIZE_KEY, values)

@@ -1,0 +1,141 @@
+"""Benchmark output: Markdown tables, ``mean ± std`` cells, resumable JSONL results and the machine line."""
+
+from __future__ import annotations
+
+import json
+import platform
+import tempfile
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:
+    from lcreg.experiments.evaluation import EvaluationReport
+
+__all__ = [
+    "REPORT_COLUMNS",
+    "ResultLog",
+    "format_mean_std",
+    "machine_line",
+    "markdown_row",
+    "markdown_table",
+    "mean_std_row",
+    "output_path",
+    "report_table",
+    "write_text",
+]
+
+REPORT_COLUMNS = (
+    ("rmse_r_deg", "RMSE(R) °"),
+    ("mae_r_deg", "MAE(R) °"),
+    ("rmse_t", "RMSE(t)"),
+    ("mae_t", "MAE(t)"),
+    ("rre_mean_deg", "mean RRE °"),
+    ("rre_median_deg", "median RRE °"),
+    ("recall_r2_t0p01", "recall (2°, 0.01)"),
+    ("recall_r5_t0p05", "recall (5°, 0.05)"),
+)
+"""Metric keys of :func:`lcreg.experiments.evaluation.evaluate` and their column titles in :func:`report_table`."""
+
+
+def markdown_row(cells: Sequence[object]) -> str:
+    """One Markdown table row; cells are written with ``str``, a ``|`` inside a cell escaped (``|X1| = 64``)."""
+    return "| " + " | ".join(str(cell).replace("|", "\\|") for cell in cells) + " |"
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]] = ()) -> str:
+    """A Markdown table (no trailing newline); with no rows, the header and separator lines (rows follow later)."""
+    return "\n".join([markdown_row(header), "|---" * len(header) + "|", *(markdown_row(row) for row in rows)])
+
+
+def format_mean_std(values: Sequence[float], mean_fmt: str = ".3g", std_fmt: str = ".2g", scale: float = 1.0) -> str:
+    """``"mean ± std"`` of ``values`` times ``scale`` (sample standard deviation; 0 for a single value)."""
+    t = torch.tensor(list(values), dtype=torch.float64) * scale
+    std = float(t.std()) if len(t) > 1 else 0.0
+    return f"{float(t.mean()):{mean_fmt}} ± {std:{std_fmt}}"
+
+
+def _metric_cell(key: str, value: float) -> str:
+    return f"{100 * value:.1f} %" if key.startswith("recall") else f"{value:.4g}"
+
+
+def report_table(reports: Sequence[EvaluationReport]) -> str:
+    """One row per report: RMSE/MAE of R (degrees) and t (point units), median RRE, recalls (%), ms/pair, pairs."""
+    header = ["method", *(title for _, title in REPORT_COLUMNS), "ms/pair", "pairs"]
+    rows = [
+        [r.name, *(_metric_cell(k, r.metrics[k]) for k, _ in REPORT_COLUMNS), f"{r.ms_per_pair:.1f}", r.num_pairs]
+        for r in reports
+    ]
+    return markdown_table(header, rows)
+
+
+def _mean_std_cell(key: str, values: list[float]) -> str:
+    if key.startswith("recall"):
+        return format_mean_std(values, scale=100.0) + " %"
+    return format_mean_std(values)
+
+
+def mean_std_row(reports: Sequence[EvaluationReport], name: str) -> str:
+    """One row of :func:`report_table` with ``mean ± std`` over ``reports`` (e.g. seeds) in every column."""
+    cells = [_mean_std_cell(key, [r.metrics[key] for r in reports]) for key, _ in REPORT_COLUMNS]
+    ms = _mean_std_cell("ms", [r.ms_per_pair for r in reports])
+    return markdown_row([name, *cells, ms, reports[0].num_pairs])
+
+
+class ResultLog:
+    """Finished benchmark rows in a JSONL file: appended as they finish, read back so a rerun skips them.
+
+    Args:
+        path: The ``.jsonl`` file (created with its folder on the first :meth:`append`).
+        key: Fields that identify a row (e.g. ``("key", "setting")``); rows with the same key are the same run.
+    """
+
+    def __init__(self, path: str | Path, key: Sequence[str] = ()) -> None:
+        self.path = Path(path)
+        self.key = tuple(key)
+        self.rows: list[dict[str, Any]] = []
+        if self.path.is_file():
+            lines = self.path.read_text(encoding="utf-8").splitlines()
+            self.rows = [json.loads(line) for line in lines if line.strip()]
+
+    def find(self, **key: Any) -> dict[str, Any] | None:
+        """The last row whose key fields equal ``key`` (``None`` if there is none)."""
+        wanted = tuple(key[k] for k in self.key)
+        matches = [row for row in self.rows if tuple(row.get(k) for k in self.key) == wanted]
+        return matches[-1] if matches else None
+
+    def done(self, **key: Any) -> bool:
+        """Whether a row with this key is finished."""
+        return self.find(**key) is not None
+
+    def append(self, row: dict[str, Any]) -> dict[str, Any]:
+        """Write ``row`` as one JSON line (flushed at once) and keep it; returns it."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self.path.open("a", encoding="utf-8") as fh:
+            fh.write(json.dumps(row) + "\n")
+        self.rows.append(row)
+        return row
+
+
+def machine_line(device: str | torch.device = "cpu") -> str:
+    """``"<processor or GPU>, torch <version>, <n> threads"`` for table headers."""
+    device = torch.device(device)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine()
+    return f"{name} ({device.type}), torch {torch.__version__}, {torch.get_num_threads()} threads"
+
+
+def write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` (parent folders created); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def output_path(out: str | None, filename: str, smoke: bool) -> Path | None:
+    """Where a script writes: ``out``; in a smoke run without ``out``, ``filename`` in a new temporary folder."""
+    if out:
+        return Path(out)
+    return Path(tempfile.mkdtemp(prefix="lcreg-smoke-")) / filename if smoke else None

@@ -1,0 +1,160 @@
+"""Training budgets of ``lcreg reproduce``: the ``smoke``, ``cpu``, ``converge`` and ``paper`` presets and the data.
+
+A :class:`RunBudget` is what one run (one variant, one seed) gets: optimiser steps or epochs, points per cloud,
+pairs per batch and how often it is validated. A budget with a ``patience`` is a *converge* budget: the run trains
+until its validation error (:data:`lcreg.experiments.benchmarking.CONVERGE_METRIC`, the mean of min(RRE, 5°), on
+``val_pairs`` pairs per validation object) has not improved for ``patience`` validations, capped by ``steps``, and
+resumes from its ``last.ckpt`` when it was cut off. Each experiment maps every preset to a budget per *budget group*
+(all DVDs variants share one; each LC host has its own, because their steps cost from 0.7 to 13 s on a CPU).
+:class:`DataChoice` is the data every run of a sweep reads: ModelNet40 under ``root`` with the pair seed fixed (the
+same validation and test pairs in every run), or, for ``smoke``, the tiny embedded synthetic shapes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from lcreg.experiments.benchmarking import (
+    CONVERGE_METRIC,
+    SELECTION_METRIC,
+    cli_args,
+    converge_overrides,
+    epoch_overrides,
+    fit_overrides,
+    synthetic_overrides,
+)
+
+__all__ = [
+    "CONVERGE_EPOCHS_OF_8",
+    "CONVERGE_LK",
+    "CONVERGE_SMALL_BATCH",
+    "DEFAULT_ROOT",
+    "PAIR_SEED",
+    "PRESETS",
+    "SMOKE_PAIRS",
+    "DataChoice",
+    "Preset",
+    "RunBudget",
+]
+
+Preset = Literal["smoke", "cpu", "converge", "paper"]
+PRESETS: tuple[Preset, ...] = ("smoke", "cpu", "converge", "paper")
+DEFAULT_ROOT = "../shared/data/modelnet40_mini"
+"""ModelNet40 folder of ``configs/data/modelnet40.yaml`` (relative to the working directory, as there)."""
+PAIR_SEED = 1234
+"""Seed of the validation carve-out and of the deterministic validation and test pairs (every run, every seed)."""
+SMOKE_PAIRS = 2
+"""Validation and test pairs of a ``smoke`` run (embedded synthetic shapes)."""
+
+
+@dataclass(frozen=True)
+class RunBudget:
+    """The training budget of one run.
+
+    Attributes:
+        steps: Optimiser steps (``None``: an epoch budget).
+        epochs: Training epochs (``None``: a step budget); exactly one of the two is set.
+        points: Points per cloud (``None``: the config's).
+        batch: Pairs per batch (``None``: the config's, i.e. the original method's).
+        checks: Validations per step-budgeted run (every ``steps // checks`` steps); epoch budgets validate after
+            every epoch.
+        patience: Converge budget: stop after this many validations without improvement (``steps`` is then the
+            cap); ``None``: train the whole budget.
+        val_pairs: Validation pairs per validation object (``val_pairs_per_object`` of the DataModule).
+    """
+
+    steps: int | None = None
+    epochs: int | None = None
+    points: int | None = None
+    batch: int | None = None
+    checks: int = 4
+    patience: int | None = None
+    val_pairs: int = 1
+
+    def __post_init__(self) -> None:
+        if (self.steps is None) == (self.epochs is None):
+            raise ValueError(f"a RunBudget needs exactly one of steps and epochs, got {self}")
+        values = (self.steps, self.epochs, self.points, self.batch, self.checks, self.patience, self.val_pairs)
+        if any(v is not None and v < 1 for v in values):
+            raise ValueError(f"RunBudget values must be positive, got {self}")
+        if self.patience is not None and self.steps is None:
+            raise ValueError(f"a converge RunBudget (patience) needs a step cap, got {self}")
+
+    @property
+    def converge(self) -> bool:
+        """Whether the run stops when validation stops improving (and resumes from ``last.ckpt``)."""
+        return self.patience is not None
+
+    @property
+    def monitor(self) -> str:
+        """The validation metric the checkpoint (and early stopping) selects on."""
+        return CONVERGE_METRIC if self.converge else SELECTION_METRIC
+
+    @property
+    def val_every(self) -> int | None:
+        """Steps between validations (``None`` for an epoch budget: after every epoch)."""
+        return None if self.steps is None else max(1, self.steps // self.checks)
+
+    def fit_overrides(self, run_dir: str | Path, seed: int) -> list[str]:
+        """The ``lcreg fit`` arguments of this budget: steps or epochs, validation, logs under ``run_dir``."""
+        if self.steps is not None and self.patience is not None:
+            return converge_overrides(self.steps, self.val_every or 1, self.patience, run_dir, seed=seed)
+        if self.steps is not None:
+            return fit_overrides(self.steps, self.val_every or 1, run_dir, seed=seed)
+        return epoch_overrides(self.epochs or 1, run_dir, seed=seed)
+
+    def describe(self) -> str:
+        """E.g. ``"80 steps × 16 pairs × 512 points, validated every 20 steps"``."""
+        length = f"{self.steps} steps" if self.steps is not None else f"{self.epochs} epochs"
+        batch = f"{self.batch} pairs" if self.batch else "the config's batch"
+        points = f"{self.points} points" if self.points else "the config's points"
+        checks = f"every {self.val_every} steps" if self.val_every else "after every epoch"
+        text = f"{length} × {batch} × {points}, validated {checks}"
+        if self.converge:
+            text += f", until {self.patience} validations bring no gain ({self.val_pairs} pairs per validation object)"
+        return text
+
+
+CONVERGE_LK = RunBudget(steps=3000, points=512, batch=16, checks=60, patience=6, val_pairs=4)
+"""``converge`` for the IC-LK models (DVDs and its ablations, PointNetLK, FMR-Net, PCRNet): validated every 50 steps
+on 312 pairs (``modelnet40_mini``), stopped after 300 steps without gain, capped at 3,000 steps (68 epochs of the
+705 training objects). 512 points instead of the paper's 1024 (chosen before any test number was seen): half the
+step cost on a CPU; identical for every variant, X and LC + X alike."""
+CONVERGE_SMALL_BATCH = RunBudget(steps=3000, points=256, batch=8, checks=60, patience=6, val_pairs=4)
+"""``converge`` for DCP-v2 and PRNet (3.5 and 11 s per step at 256 points × 8 on one CPU thread)."""
+CONVERGE_EPOCHS_OF_8 = RunBudget(steps=5016, points=512, batch=8, checks=57, patience=8, val_pairs=4)
+"""``converge`` for IDAM and DeepGMR (about 1 s per step at 512 × 8): validated once per epoch (88 steps of 8 pairs,
+so epoch-stepped schedulers such as DeepGMR's ``ReduceLROnPlateau`` always see a validation loss), at most 57
+epochs, stopped after 8 epochs without gain."""
+
+
+@dataclass(frozen=True)
+class DataChoice:
+    """The data of every run of a sweep: ModelNet40 (``root``, ``protocol``) or the embedded synthetic shapes.
+
+    Attributes:
+        root: ModelNet40 folder (official ``modelnet40_ply_hdf5_2048`` layout); ``None``: embedded synthetic shapes.
+        protocol: ``"unseen_objects"`` (train and test on the first 20 categories) or ``"unseen_categories"``.
+        workers: DataLoader workers (``None``: the config's); 0 on a 2-core CPU, where a loader process only
+            competes with training.
+    """
+
+    root: str | None
+    protocol: str = "unseen_objects"
+    workers: int | None = 0
+
+    def overrides(self, budget: RunBudget) -> list[str]:
+        """Data arguments of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
+        pairs = cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None})
+        if self.root is None:
+            return [*synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), *pairs]
+        values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
+        return [*cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}), *pairs]
+
+    def describe(self) -> str:
+        """One line for tables and the JSONL key."""
+        if self.root is None:
+            return f"embedded synthetic shapes ({SMOKE_PAIRS} validation and test pairs; smoke: numbers mean nothing)"
+        return f"ModelNet40 {self.root}, {self.protocol.replace('_', ' ')}"

@@ -1,0 +1,222 @@
+"""``lcreg reproduce EXPERIMENT``: rerun a table of the paper, write ours beside the paper's numbers.
+
+``lcreg reproduce ablation --budget cpu --seeds 0 1 2 --out DIR`` trains every variant × seed that ``DIR`` does not
+hold yet (:mod:`lcreg.experiments.reproduce.sweep`), then writes ``DIR/<experiment>.md``
+(:mod:`lcreg.experiments.reproduce.report`), ``DIR/<experiment>.jsonl`` (every run) and
+``DIR/<experiment>_rotation.png``, ``_translation.png`` (:mod:`lcreg.experiments.reproduce.plots`). Dispatched by
+:func:`lcreg.cli.main` before LightningCLI, like ``lcreg register``.
+
+Errors print one line on stderr with exit code 2 (arguments); ``LCREG_DEBUG=1`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NoReturn
+
+from lcreg.experiments.benchmarking import write_text
+from lcreg.experiments.reproduce.ablation import ABLATION
+from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
+from lcreg.experiments.reproduce.conditions import EvalExperiment, EvalRun, run_conditions
+from lcreg.experiments.reproduce.lc import LC
+from lcreg.experiments.reproduce.plots import plot_sweep
+from lcreg.experiments.reproduce.recall_curves import RECALL_CURVES, plot_recall_curves, render_recall_curves
+from lcreg.experiments.reproduce.report import render
+from lcreg.experiments.reproduce.robustness import ROBUSTNESS, plot_robustness, render_robustness
+from lcreg.experiments.reproduce.runtime import (
+    RUNTIME,
+    RuntimeExperiment,
+    RuntimeRun,
+    measure_runtime,
+    plot_runtime,
+    render_runtime,
+)
+from lcreg.experiments.reproduce.spec import Experiment
+from lcreg.experiments.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
+
+__all__ = [
+    "EVALUATIONS",
+    "EXPERIMENTS",
+    "PLANNED",
+    "TIMINGS",
+    "ReproduceUsageError",
+    "build_parser",
+    "main",
+    "reproduce",
+]
+
+EXPERIMENTS: dict[str, Experiment] = {"ablation": ABLATION, "lc": LC}
+"""The experiments ``lcreg reproduce`` runs, by name."""
+TIMINGS = {"runtime": RUNTIME}
+"""Experiments that time registration instead of training (:mod:`lcreg.experiments.reproduce.runtime`)."""
+EVALUATIONS: dict[str, EvalExperiment] = {"robustness": ROBUSTNESS, "recall-curves": RECALL_CURVES}
+"""Experiments that evaluate trained models under test conditions (:mod:`lcreg.experiments.reproduce.conditions`)."""
+PLANNED: tuple[str, ...] = ()
+"""Experiments named by the command but not available yet."""
+AVAILABLE = (*EXPERIMENTS, *TIMINGS, *EVALUATIONS)
+WRITERS = {
+    "robustness": (render_robustness, plot_robustness),
+    "recall-curves": (render_recall_curves, plot_recall_curves),
+}
+
+
+class ReproduceUsageError(ValueError):
+    """A bad argument of ``lcreg reproduce`` (exit code 2 on the command line)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``lcreg reproduce``."""
+    parser = argparse.ArgumentParser(
+        prog="lcreg reproduce",
+        description="Rerun a table of the DVDs paper: train every variant x seed with a budget, choose each\n"
+        "checkpoint on the validation pairs, test it, and write a Markdown table (ours, the paper's, the ratio,\n"
+        "the paper's claims against the seed spread), a JSONL of every run and PNG plots.\n"
+        "A rerun skips finished runs.",
+        epilog="experiments:\n  ablation  models A-D, |X1| = 32/64/96, (λ1, λ2): paper objective and self-motion "
+        "recipe\n  lc        X vs LC + X for DCP-v2, PRNet, IDAM, DeepGMR\n"
+        "  runtime   ms per pair at 500/1000/2000 points of every method (nothing trained; CPU, and GPU if any)\n"
+        "  robustness     recall vs Gaussian noise and vs partial visibility, every method on the same pairs\n"
+        "  recall-curves  recall vs rotation-error threshold: unseen objects, unseen categories, 7-Scenes, KITTI\n"
+        "                 (robustness and recall-curves train the learned methods once, shared in <out>/models.jsonl)"
+        "\n\nbudgets: smoke (seconds, synthetic shapes), cpu (about 2 h per "
+        "experiment on 2 CPU cores),\n  converge (each run until its validation error stops improving, resumable; "
+        "many CPU-hours:\n  benchmarks/train_queue.toml), paper (the paper's 200 epochs, for a GPU); see "
+        "docs/reproducing.md",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("experiment", metavar="EXPERIMENT", help=f"one of {', '.join(AVAILABLE)}")
+    parser.add_argument("--budget", required=True, choices=PRESETS, help="training budget of every run")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: %(default)s)")
+    parser.add_argument("--out", help="output folder (default: runs/reproduce/<budget>)")
+    parser.add_argument("--root", default=DEFAULT_ROOT, help="ModelNet40 folder (default: %(default)s; not smoke)")
+    parser.add_argument(
+        "--protocol",
+        choices=("unseen_objects", "unseen_categories"),
+        help="ModelNet40 protocol (default: unseen_objects; runtime: unseen_categories, the paper's)",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        default=[],
+        metavar="PATTERN",
+        help="variant keys (fnmatch: 'paper/*', 'dcp/*'; runtime: method keys)",
+    )
+    parser.add_argument(
+        "--resume",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="skip runs already in the JSONL (default); --no-resume reruns them (the newest row of a run counts)",
+    )
+    parser.add_argument("--report-only", action="store_true", help="write the table and plots from the JSONL only")
+    return parser
+
+
+def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment | EvalExperiment:
+    if name in PLANNED:
+        raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(AVAILABLE)}")
+    if name not in AVAILABLE:
+        raise ReproduceUsageError(f"unknown experiment {name!r}; available: {', '.join(AVAILABLE)}")
+    try:
+        if name in TIMINGS:
+            return TIMINGS[name].select(only)
+        return EVALUATIONS[name].select(only) if name in EVALUATIONS else EXPERIMENTS[name].select(only)
+    except ValueError as err:
+        raise ReproduceUsageError(str(err)) from None
+
+
+def _data(preset: Preset, root: str, protocol: str | None) -> DataChoice:
+    if preset == "smoke":
+        return DataChoice(None)
+    if not Path(root).expanduser().is_dir():
+        raise ReproduceUsageError(
+            f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
+        )
+    workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
+    return DataChoice(str(Path(root).expanduser().resolve()), protocol or "unseen_objects", workers)
+
+
+def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
+    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        raise ReproduceUsageError(f"--seeds must be distinct non-negative integers, got {list(seeds)}")
+    return tuple(seeds)
+
+
+def reproduce(
+    args: argparse.Namespace, command: str, progress: Callable[[str], None] = print, stem: str = ""
+) -> list[Path]:
+    """Run (or, with ``report_only``, only report) the sweep that parsed ``args`` describe.
+
+    Args:
+        args: Parsed arguments of :func:`build_parser`.
+        command: The command line written in the report.
+        progress: Called with one line per run.
+        stem: File stem of the outputs in ``--out`` (default: the experiment's name).
+
+    Returns:
+        The written files: the Markdown report, the JSONL (if any run finished) and the PNGs.
+
+    Raises:
+        ReproduceUsageError: Unknown or planned experiment, ``--only`` matching nothing, bad seeds, missing data.
+    """
+    experiment = _experiment(args.experiment, args.only)
+    out = Path(args.out or f"runs/reproduce/{args.budget}")
+    if isinstance(experiment, RuntimeExperiment):
+        data = _data(args.budget, args.root, args.protocol or "unseen_categories")
+        return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
+    if isinstance(experiment, EvalExperiment):
+        data = _data(args.budget, args.root, "unseen_categories")
+        run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+        return _evaluate(run, args, command, progress)
+    data = _data(args.budget, args.root, args.protocol)
+    sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+    if args.report_only:
+        log = sweep.open_log()
+    else:
+        log = run_sweep(sweep, progress=progress, rerun=not args.resume)
+    rows = finished_rows(sweep, log)
+    report = render(sweep, rows, command, failed_runs(sweep, log))
+    written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
+    written += [sweep.log_path] if sweep.log_path.is_file() else []
+    return written + plot_sweep(sweep, rows)
+
+
+def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
+    """Measure (or only report) the runtime experiment; the Markdown report, the JSONL and the PNG."""
+    log = run.open_log() if args.report_only else measure_runtime(run, progress=progress, rerun=not args.resume)
+    written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
+    written += [run.log_path] if run.log_path.is_file() else []
+    return written + plot_runtime(run, log)
+
+
+def _evaluate(run: EvalRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
+    """Train and evaluate (or only report) an evaluation experiment; the Markdown report, the JSONL and the PNG."""
+    log = run.open_log() if args.report_only else run_conditions(run, progress=progress, rerun=not args.resume)
+    render_report, plot = WRITERS[run.experiment.name]
+    written = [write_text(run.file_stem.with_suffix(".md"), render_report(run, log, command))]
+    written += [run.log_path] if run.log_path.is_file() else []
+    return written + plot(run, log)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of ``lcreg reproduce`` (exit code 2 for arguments)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    command = "lcreg reproduce " + " ".join(argv)
+    if os.environ.get("LCREG_DEBUG", "") not in ("", "0"):
+        written = reproduce(args, command)
+    else:
+        try:
+            written = reproduce(args, command)
+        except ReproduceUsageError as err:
+            _fail(str(err))
+    for path in written:
+        print(f"wrote {path}")
+
+
+def _fail(message: str) -> NoReturn:
+    sys.stderr.write(f"lcreg reproduce: error: {message}\n")
+    raise SystemExit(2)

@@ -1,0 +1,238 @@
+"""Run an experiment's variants × seeds: train with the budget, select on validation, test, one JSONL row per run.
+
+Every run goes through the benchmark harness (:func:`lcreg.experiments.benchmarking.fit`): the method is built from its
+configs exactly as ``lcreg fit`` builds it, trained with ``seed_everything = seed`` (initialisation and training
+order), and validated during training on the validation pairs carved out of the training objects; the checkpoint with
+the lowest ``val/rre_mean_deg`` is kept (never the test set) and tested once on the deterministic test pairs (the same
+in every run: the data's pair seed is fixed). The row is appended to ``<out>/<experiment>.jsonl`` (flushed) as soon
+as the run ends; a rerun skips every (variant, seed) whose row is there for the same budget and data, so an
+interrupted sweep resumes with the next unfinished run. A run whose training stops on non-finite losses
+(:class:`~lcreg.models.base.NonFiniteTrainingError`) is recorded as failed (a result of that variant, not retried)
+and the sweep goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lcreg.checkpoints import one_line
+from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, load_weights, method, save_weights, timed
+from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
+from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
+from lcreg.models.base import NonFiniteTrainingError
+
+__all__ = [
+    "KEY_FIELDS",
+    "METRICS",
+    "OutputFiles",
+    "PresetRun",
+    "Sweep",
+    "Trainer",
+    "failed_runs",
+    "finished_rows",
+    "run_sweep",
+    "train_and_test",
+]
+
+METRICS = tuple(key for key, _ in REPORT_COLUMNS)
+"""Test metrics kept in every row (RMSE/MAE of R and t, RRE mean and median, the two recalls)."""
+KEY_FIELDS = ("experiment", "variant", "seed", "budget", "data")
+"""Fields that identify a run in the JSONL: a row with the same values is a finished run, skipped on a rerun."""
+
+Trainer = Callable[[str, RunBudget, DataChoice, Path, int], dict[str, Any]]
+"""``train(method, budget, data, run_dir, seed) -> row fields``: :func:`train_and_test` (tests pass a fake)."""
+
+
+class OutputFiles:
+    """Where an experiment run writes: ``<out>/<stem>`` plus ``.md``, ``.jsonl``, ``.png`` (shared by every run kind).
+
+    Attributes:
+        out: The output folder.
+        stem: File stem (``""``: the experiment's name).
+        experiment: The experiment (its ``name`` is the default stem).
+    """
+
+    out: Path
+    stem: str
+    experiment: Any
+
+    @property
+    def file_stem(self) -> Path:
+        """``<out>/<stem>``: the report, JSONL and PNGs are this plus a suffix (``stem`` defaults to the experiment)."""
+        return self.out / (self.stem or self.experiment.name)
+
+    @property
+    def log_path(self) -> Path:
+        """``<out>/<stem>.jsonl``."""
+        return self.file_stem.with_suffix(".jsonl")
+
+
+@dataclass(frozen=True)
+class PresetRun(OutputFiles):
+    """One experiment under one preset, seeds and data (base of the runtime and evaluation runs).
+
+    Attributes:
+        experiment: The experiment; its ``budgets`` map every preset to the budget of this run kind.
+        preset: The budget preset.
+        seeds: Seeds (mean ± std over them).
+        data: The data every run reads.
+        out: The output folder.
+        stem: File stem (``""``: the experiment's name).
+    """
+
+    experiment: Any
+    preset: Preset
+    seeds: tuple[int, ...]
+    data: DataChoice
+    out: Path
+    stem: str = ""
+
+    @property
+    def budget(self) -> Any:
+        """The preset's budget."""
+        return self.experiment.budgets[self.preset]
+
+
+@dataclass(frozen=True)
+class Sweep(PresetRun):
+    """An experiment under one preset, seeds and data, writing ``<out>/<stem>.{md,jsonl}`` and PNGs.
+
+    Its :attr:`budget` maps budget groups to :class:`RunBudget`; :meth:`Experiment.budget` gives a variant's.
+    """
+
+    experiment: Experiment
+
+    def run_dir(self, variant: Variant, seed: int) -> Path:
+        """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``."""
+        return self.out / "runs" / self.preset / self.experiment.name / variant.key.replace("/", "_") / f"seed{seed}"
+
+    def key(self, variant: Variant, seed: int) -> dict[str, Any]:
+        """The :data:`KEY_FIELDS` of a run."""
+        budget = self.experiment.budget(self.preset, variant).describe()
+        name = self.experiment.name
+        return {
+            "experiment": name,
+            "variant": variant.key,
+            "seed": seed,
+            "budget": budget,
+            "data": self.data.describe(),
+        }
+
+    def open_log(self) -> ResultLog:
+        """The sweep's JSONL (finished runs of every budget and data; rows are told apart by their key)."""
+        return ResultLog(self.log_path, KEY_FIELDS)
+
+
+def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+    """Train method ``name`` under ``budget`` on ``data``, test the checkpoint chosen on validation.
+
+    Returns:
+        Row fields: the test metrics (:data:`METRICS`), the selected checkpoint (its name; its weights are kept
+        as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
+        the pair counts, the sizes and the times.
+    """
+    overrides = [*budget.fit_overrides(run_dir, seed), *data.overrides(budget)]
+    result = fit(name, overrides, monitor=budget.monitor, resume=budget.converge)
+    best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
+    load_weights(result.model, result.best_checkpoint)
+    test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
+    results, test_s = timed(test)
+    tested = results[0]
+    weights = _keep_weights_only(result.model, result.best_checkpoint, run_dir)
+    dm: Any = result.datamodule
+    return {
+        "method": name,
+        "configs": list(method(name).config_files()),
+        "steps": int(result.trainer.global_step),
+        "epochs": int(result.trainer.current_epoch),
+        "train_s": round(result.seconds, 1),
+        "test_s": round(test_s, 1),
+        "selected": result.best_checkpoint.name,
+        "weights": str(weights),
+        "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
+        "selected_on": budget.monitor,
+        "best_val": None if best_val is None else float(best_val),
+        "stopped_early": budget.converge and int(result.trainer.global_step) < (budget.steps or 0),
+        "metrics_csv": str(Path(result.trainer.log_dir or run_dir) / "metrics.csv"),
+        "num_val_pairs": len(dm.val_set),
+        "num_test_pairs": len(dm.test_set),
+        "num_points": dm.hparams.num_points,
+        "batch_size": dm.hparams.batch_size,
+        **{key: float(tested[f"test/{key}"]) for key in METRICS},
+    }
+
+
+def _keep_weights_only(model: torch.nn.Module, best: Path, run_dir: Path) -> Path:
+    """Save the tested (selected) weights as ``<run_dir>/selected_weights.pt`` and delete the run's checkpoints.
+
+    A finished run needs no training state: the Lightning checkpoints (optimiser moments, ``last.ckpt``) are up to
+    three times the weights (about 70 MB for DCP-v2 or PRNet), times every run of a sweep.
+    """
+    path = save_weights(model, run_dir / "selected_weights.pt")
+    for checkpoint in best.parent.glob("*.ckpt"):
+        checkpoint.unlink()
+    return path
+
+
+def run_sweep(
+    sweep: Sweep,
+    train: Trainer | None = None,
+    progress: Callable[[str], None] = lambda _: None,
+    rerun: bool = False,
+) -> ResultLog:
+    """Train and test every unfinished (variant, seed) of ``sweep``, appending each row as it ends.
+
+    Args:
+        sweep: What to run.
+        train: The run itself (``None``: :func:`train_and_test`).
+        progress: Called with one line per run (skipped or finished).
+        rerun: Run finished runs again too (their new rows are appended; the newest row of a run counts).
+
+    Returns:
+        The JSONL log with every finished row.
+    """
+    log = sweep.open_log()
+    for variant in sweep.experiment.variants:
+        budget = sweep.experiment.budget(sweep.preset, variant)
+        for seed in sweep.seeds:
+            key = sweep.key(variant, seed)
+            if log.done(**key) and not rerun:
+                progress(f"{variant.key} seed {seed}: finished before, skipped")
+                continue
+            run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
+            try:
+                fields = run(seed)
+            except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
+                fields = {"failed": one_line(str(err), 300)}
+            row = log.append({**key, "preset": sweep.preset, **fields})
+            progress(f"{variant.key} seed {seed}: {_outcome(row)}")
+    return log
+
+
+def _outcome(row: dict[str, Any]) -> str:
+    if "failed" in row:
+        return f"failed ({row['failed']})"
+    return f"RMSE(R) {row['rmse_r_deg']:.3f}°, {row['train_s']:.0f} s"
+
+
+def _rows_of(sweep: Sweep, log: ResultLog) -> dict[str, list[dict[str, Any]]]:
+    """The newest row of every (variant, seed) of ``sweep`` in ``log`` (its budget and data), by variant key."""
+    found = {v.key: [log.find(**sweep.key(v, seed)) for seed in sweep.seeds] for v in sweep.experiment.variants}
+    return {key: [row for row in rows if row is not None] for key, rows in found.items()}
+
+
+def finished_rows(sweep: Sweep, log: ResultLog) -> Rows:
+    """The successful runs of ``sweep`` in ``log`` by variant key (failed runs left out: see :func:`failed_runs`)."""
+    return {key: [r for r in rows if "failed" not in r] for key, rows in _rows_of(sweep, log).items()}
+
+
+def failed_runs(sweep: Sweep, log: ResultLog) -> list[str]:
+    """``"<variant> seed <k>: <why>"`` for every run of ``sweep`` whose training diverged (non-finite losses)."""
+    rows = _rows_of(sweep, log)
+    return [f"{key} seed {r['seed']}: {r['failed']}" for key, runs in rows.items() for r in runs if "failed" in r]

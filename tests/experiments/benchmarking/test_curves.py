@@ -1,0 +1,337 @@
+"""Learning curves (lcreg.experiments.benchmarking.curves): sparse metrics.csv parsing, seed aggregation, summary,
+PNGs."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lcreg.experiments.benchmarking import format_mean_std
+from lcreg.experiments.benchmarking.curves import (
+    DPI,
+    PANEL_SIZE,
+    SUMMARY_HEADER,
+    Panel,
+    Series,
+    aggregate,
+    canonical_key,
+    ema,
+    figure_pixels,
+    load_runs,
+    plot_curves,
+    read_metrics,
+    run_files,
+    summary_rows,
+    summary_table,
+    write_synthetic_metrics,
+)
+
+# Lightning's layout: train rows (step-level keys), a validation row at the same step as a train row, an epoch-end
+# row with the _epoch means, empty cells for keys a row did not log, a repeated train step, a NaN.
+SPARSE_CSV = """\
+epoch,step,train/loss_step,train/loss_epoch,train/lc,train/recon_epoch,train/j_cond,val/rre_mean_deg,val/loss
+0,0,1.0,,0.5,,0.01,,
+0,1,0.8,,0.4,,,,
+0,1,,,,,,12.0,0.9
+0,2,0.7,,nan,,0.02,,
+0,2,,0.9,,1.5,,,
+1,3,0.6,,0.3,,0.03,,
+1,3,0.5,,,,,,
+1,3,,,,,,8.0,0.7
+1,3,,0.55,,1.2,,,
+"""
+
+
+def write(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+def series(steps: list[int], values: list[float]) -> Series:
+    return Series(np.array(steps, dtype=np.int64), np.array(values, dtype=np.float64))
+
+
+def assert_series(s: Series, steps: list[int], values: list[float]) -> None:
+    assert s.steps.dtype == np.int64 and s.steps.tolist() == steps
+    np.testing.assert_allclose(s.values, values)
+
+
+# ------------------------------------------------------------------------------------------------ parsing
+
+
+@pytest.mark.parametrize(
+    ("column", "expected"),
+    [
+        ("train/loss_step", ("train/loss", 0)),
+        ("train/global_step", ("train/global", 0)),
+        ("train/loss_epoch", ("train/loss", 2)),
+        ("train/j_cond", ("train/j_cond", 1)),
+        ("val/rre_mean_deg", ("val/rre_mean_deg", 1)),
+        ("_step", ("_step", 1)),
+    ],
+)
+def test_canonical_key_strips_lightnings_suffixes(column: str, expected: tuple[str, int]) -> None:
+    assert canonical_key(column) == expected
+
+
+def test_read_metrics_parses_interleaved_sparse_rows(tmp_path: Path) -> None:
+    metrics = read_metrics(write(tmp_path / "metrics.csv", SPARSE_CSV))
+    assert sorted(metrics) == ["train/j_cond", "train/lc", "train/loss", "train/recon", "val/loss", "val/rre_mean_deg"]
+    assert_series(metrics["train/loss"], [0, 1, 2, 3], [1.0, 0.8, 0.7, 0.5])  # _step wins; repeated step: last
+    assert_series(metrics["train/lc"], [0, 1, 3], [0.5, 0.4, 0.3])  # NaN skipped
+    assert_series(metrics["train/recon"], [2, 3], [1.5, 1.2])  # only the _epoch variant was logged
+    assert_series(metrics["train/j_cond"], [0, 2, 3], [0.01, 0.02, 0.03])
+    assert_series(metrics["val/rre_mean_deg"], [1, 3], [12.0, 8.0])
+    assert_series(metrics["val/loss"], [1, 3], [0.9, 0.7])
+
+
+def test_read_metrics_prefers_a_plain_key_over_the_epoch_variant(tmp_path: Path) -> None:
+    path = write(tmp_path / "metrics.csv", "epoch,step,train/x_epoch,train/x\n0,0,,2.0\n0,0,9.0,\n0,1,,3.0\n")
+    assert_series(read_metrics(path)["train/x"], [0, 1], [2.0, 3.0])
+
+
+def test_read_metrics_needs_a_step_column(tmp_path: Path) -> None:
+    with pytest.raises(KeyError):
+        read_metrics(write(tmp_path / "metrics.csv", "epoch,loss\n0,1.0\n"))
+
+
+def test_run_files_takes_a_file_a_folder_or_a_glob(tmp_path: Path) -> None:
+    a = write(tmp_path / "runs" / "x" / "version_0" / "metrics.csv", SPARSE_CSV)
+    b = write(tmp_path / "runs" / "x" / "version_1" / "metrics.csv", SPARSE_CSV)
+    assert run_files(a) == [a]
+    assert run_files(tmp_path / "runs") == [a, b]
+    assert run_files(str(tmp_path / "runs" / "x" / "version_*" / "metrics.csv")) == [a, b]
+    assert run_files(str(tmp_path / "runs" / "x" / "version_*")) == [a, b]
+    with pytest.raises(FileNotFoundError, match=r"no metrics\.csv"):
+        run_files(tmp_path / "nothing*")
+
+
+def test_load_runs_reads_each_labels_files_as_its_seeds(tmp_path: Path) -> None:
+    a = write_synthetic_metrics(tmp_path / "a.csv", seed=0)
+    b = write_synthetic_metrics(tmp_path / "b.csv", seed=1)
+    runs = load_runs({"D": [a, b], "recipe": [a]})
+    assert [len(seeds) for seeds in runs.values()] == [2, 1]
+    assert_series(
+        runs["recipe"][0]["val/loss"], runs["D"][0]["val/loss"].steps.tolist(), runs["D"][0]["val/loss"].values
+    )
+
+
+def test_synthetic_metrics_look_like_lightnings(tmp_path: Path) -> None:
+    header = write_synthetic_metrics(tmp_path / "m.csv", steps=64).read_text().splitlines()[0].split(",")
+    assert header[:2] == ["epoch", "step"] and "train/loss_step" in header and "train/loss_epoch" in header
+    metrics = read_metrics(tmp_path / "m.csv")
+    assert metrics["val/rre_mean_deg"].steps.tolist() == [19, 39, 59]
+    assert metrics["train/loss"].steps.tolist() == list(range(1, 64, 2))  # the _step values, not the epoch means
+    assert {f"train/j_dir_{d}" for d in ("rx", "ry", "rz", "tx", "ty", "tz")} <= set(metrics)
+
+
+# ------------------------------------------------------------------------------------------------ seeds
+
+
+def test_aggregate_aligns_seeds_on_step() -> None:
+    band = aggregate([series([0, 2, 4], [1.0, 2.0, 3.0]), series([0, 2], [3.0, 6.0]), series([2, 6], [4.0, 9.0])])
+    assert band.steps.tolist() == [0, 2, 4, 6]
+    assert band.count.tolist() == [2, 3, 1, 1]
+    np.testing.assert_allclose(band.mean, [2.0, 4.0, 3.0, 9.0])
+    np.testing.assert_allclose(band.low, [1.0, 2.0, 3.0, 9.0])
+    np.testing.assert_allclose(band.high, [3.0, 6.0, 3.0, 9.0])
+    np.testing.assert_allclose(band.std, [np.sqrt(2.0), 2.0, 0.0, 0.0])  # sample std; one seed: 0
+
+
+def test_aggregate_of_one_series_is_that_series() -> None:
+    band = aggregate([series([1, 3], [0.5, 0.25])])
+    np.testing.assert_array_equal(band.mean, [0.5, 0.25])
+    np.testing.assert_array_equal(band.low, band.high)
+    with pytest.raises(ValueError, match="at least one"):
+        aggregate([])
+
+
+def test_ema_is_bias_corrected() -> None:
+    s = series([0, 1, 2], [1.0, 3.0, 3.0])
+    assert ema(s, 0.0) is s
+    np.testing.assert_allclose(ema(s, 0.5).values, [1.0, 1.75 / 0.75, 2.375 / 0.875])
+
+
+def test_panels_match_patterns_in_order_and_name_keys() -> None:
+    panel = Panel("norms", ("train/*_grad_norm", "train/x"))
+    present = ["train/x", "train/lc_grad_norm", "train/global_grad_norm", "val/x"]
+    assert panel.matches(present) == ["train/global_grad_norm", "train/lc_grad_norm", "train/x"]
+    assert [panel.name(k) for k in panel.matches(present)] == ["global", "lc", "x"]
+    assert Panel("rre", ("val/a", "val/b"), names=("mean", "median")).name("val/b") == "median"
+
+
+# ------------------------------------------------------------------------------------------------ summary
+
+
+def test_summary_rows_first_last_best_over_seeds() -> None:
+    runs = {
+        "D": [
+            {
+                "val/rre_mean_deg": series([19, 39, 59], [10.0, 4.0, 6.0]),
+                "val/recall_r5_t0p05": series([19, 39], [0.2, 0.6]),
+            },
+            {
+                "val/rre_mean_deg": series([19, 39, 59], [12.0, 8.0, 5.0]),
+                "val/recall_r5_t0p05": series([19, 39], [0.4, 0.3]),
+            },
+        ],
+        "recipe": [{"val/rre_mean_deg": series([19, 39], [9.0, 3.0])}],
+    }
+    rows = summary_rows(runs, ["val/rre_mean_deg", "val/recall_r5_t0p05", "val/rte_mean"])
+    assert rows == [
+        [
+            "val/rre_mean_deg",
+            "D",
+            "2",
+            f"{format_mean_std([10.0, 12.0], '.4g', '.2g')} @ 19",
+            f"{format_mean_std([6.0, 5.0], '.4g', '.2g')} @ 59",
+            format_mean_std([4.0, 5.0], ".4g", ".2g"),  # seed 0 at step 39, seed 1 at step 59
+            "39/59",
+        ],
+        ["val/rre_mean_deg", "recipe", "1", "9 @ 19", "3 @ 39", "3", "39"],  # one seed: no ± 0
+        [
+            "val/recall_r5_t0p05",
+            "D",
+            "2",
+            f"{format_mean_std([0.2, 0.4], '.1f', '.1f', scale=100.0)} % @ 19",
+            f"{format_mean_std([0.6, 0.3], '.1f', '.1f', scale=100.0)} % @ 39",
+            f"{format_mean_std([0.6, 0.4], '.1f', '.1f', scale=100.0)} %",  # recall: the highest is best
+            "19/39",
+        ],
+    ]
+    assert rows[0][3] == "11 ± 1.4 @ 19" and rows[2][5] == "50.0 ± 14.1 %"
+
+
+def test_summary_table_is_markdown(tmp_path: Path) -> None:
+    runs = load_runs({"D": [write_synthetic_metrics(tmp_path / "a.csv")]})
+    lines = summary_table(runs).splitlines()
+    assert lines[0] == "| " + " | ".join(SUMMARY_HEADER) + " |" and lines[1].startswith("|---")
+    assert [line.split(" | ")[0] for line in lines[2:]] == [
+        "| val/rre_mean_deg",
+        "| val/rre_median_deg",
+        "| val/rte_mean",
+        "| val/recall_r5_t0p05",
+        "| val/recall_r2_t0p01",
+        "| val/loss",
+        "| train/loss",
+        "| train/j_sensitivity",
+        "| train/j_cond",
+    ]
+
+
+# ------------------------------------------------------------------------------------------------ figures
+
+needs_matplotlib = pytest.mark.skipif(
+    importlib.util.find_spec("matplotlib") is None, reason="matplotlib is not installed (pip install -e '.[dev]')"
+)
+
+
+def read_png(path: Path) -> np.ndarray:
+    from matplotlib.image import imread
+
+    assert path.is_file() and path.stat().st_size > 0
+    return imread(path)
+
+
+def assert_drawn(image: np.ndarray, axes: int) -> None:
+    """A PNG of ``axes`` panels: the size of figure_pixels, not blank."""
+    width, height = figure_pixels(axes)
+    assert image.shape == (height, width, 4)
+    assert image[..., :3].std() > 0.05 and (image[..., :3] < 0.5).mean() > 0.005  # lines and text, not blank
+
+
+def test_figure_pixels() -> None:
+    assert (DPI, PANEL_SIZE) == (100, (4.0, 3.0))
+    assert figure_pixels(1) == (400, 345)
+    assert figure_pixels(3) == (1200, 345)
+    assert figure_pixels(5) == (1200, 645)
+
+
+@needs_matplotlib
+def test_plot_curves_writes_one_png_per_figure_of_the_expected_size(tmp_path: Path) -> None:
+    runs = {
+        "model D": [read_metrics(write_synthetic_metrics(tmp_path / f"d{s}.csv", seed=s)) for s in range(3)],
+        "recipe": [read_metrics(write_synthetic_metrics(tmp_path / f"r{s}.csv", seed=10 + s)) for s in range(2)],
+    }
+    written = plot_curves(runs, tmp_path / "out", smooth=0.5)
+    assert [p.name for p in written] == ["validation.png", "jacobian.png", "training.png"]
+    assert_drawn(read_png(written[0]), 3)  # RRE, RTE, recall (no RMSE/MAE logged)
+    assert_drawn(read_png(written[1]), 5)  # J cond, J sensitivity, gradient norms, per direction for each label
+    assert_drawn(read_png(written[2]), 5)  # loss, global, lc, recon, normal
+
+
+@needs_matplotlib
+def test_absent_keys_leave_their_panels_and_figures_out(tmp_path: Path) -> None:
+    runs = {"D": [{"val/rre_median_deg": series([0, 5], [3.0, 2.0]), "lr": series([0, 5], [1e-3, 1e-4])}]}
+    written = plot_curves(runs, tmp_path, prefix="x_")
+    assert [p.name for p in written] == ["x_validation.png", "x_other.png"]
+    assert_drawn(read_png(written[0]), 1)
+    assert_drawn(read_png(written[1]), 1)
+    assert plot_curves({"D": [{}]}, tmp_path / "empty") == [] and not (tmp_path / "empty").exists()
+
+
+@needs_matplotlib
+def test_negative_values_keep_a_linear_axis(tmp_path: Path) -> None:
+    runs = {"D": [{"train/loss": series([0, 1, 2], [0.5, -0.2, -0.4])}]}
+    (path,) = plot_curves(runs, tmp_path)
+    assert_drawn(read_png(path), 1)
+
+
+# ------------------------------------------------------------------------------------------------ end to end
+
+
+@needs_matplotlib
+@pytest.mark.usefixtures("isolated_cli")
+def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
+    from lcreg.cli import main
+
+    dvds = Path(__file__).resolve().parents[3] / "configs" / "dvds.yaml"
+    main(
+        [
+            "fit",
+            "--config",
+            str(dvds),
+            "--model.init_args.encoder_channels=[16,32]",
+            "--model.init_args.decoder_grid_size=8",
+            "--model.init_args.decoder_hidden=[32]",
+            "--model.init_args.normal_hidden=[16]",
+            "--model.init_args.diagnostics_every_n_steps=1",
+            "--data.init_args.num_points=64",
+            "--data.init_args.points_per_shape=128",
+            "--data.init_args.num_train=4",
+            "--data.init_args.num_val=2",
+            "--data.init_args.batch_size=2",
+            "--trainer.max_steps=4",
+            "--trainer.max_epochs=-1",
+            "--trainer.val_check_interval=2",
+            "--trainer.check_val_every_n_epoch=null",
+            "--trainer.log_every_n_steps=1",
+            "--trainer.enable_progress_bar=false",
+            "--trainer.enable_model_summary=false",
+        ]
+    )
+    (csv,) = run_files(tmp_path / "runs")
+    runs = load_runs({"model D": [csv]})
+    metrics = runs["model D"][0]
+    assert metrics["val/rre_mean_deg"].steps.tolist() == [1, 3]
+    assert metrics["train/loss"].steps.tolist() == [0, 1, 2, 3]  # the _step values, not the epoch means
+    assert {"train/lc", "train/recon", "train/normal", "train/global_grad_norm"} <= set(metrics)
+    written = plot_curves(runs, tmp_path / "curves")
+    assert {p.name for p in written} >= {"validation.png", "jacobian.png", "training.png"}
+    for path in written:
+        read_png(path)
+    assert "| val/rre_mean_deg | model D | 1 |" in summary_table(runs)
+
+
+def test_summary_lists_the_jacobian_diagnostics_best_when_highest(tmp_path: Path) -> None:
+    from lcreg.experiments.benchmarking.curves import summary_rows
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("epoch,step,train/j_sensitivity,train/j_cond\n0,9,0.05,0.3\n0,19,0.01,0.1\n0,29,0.02,0.2\n")
+    rows = {row[0]: row for row in summary_rows(load_runs({"collapse": [path]}))}
+    assert rows["train/j_sensitivity"][3:6] == ["0.05 @ 9", "0.02 @ 29", "0.05"]
+    assert rows["train/j_cond"][5:] == ["0.3", "9"]

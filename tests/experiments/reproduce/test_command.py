@@ -1,0 +1,167 @@
+"""``lcreg reproduce`` end to end: the smoke preset of every experiment, resume, and clear errors for bad arguments."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import lcreg.experiments.reproduce.sweep
+from _reproduce_outputs import assert_png_drawn, count_calls, read_jsonl  # type: ignore[import-not-found]
+from lcreg.__main__ import main
+from lcreg.experiments.reproduce import EXPERIMENTS, PLANNED
+from lcreg.experiments.reproduce.budgets import DataChoice, RunBudget
+from lcreg.experiments.reproduce.lc import LC
+from lcreg.experiments.reproduce.report import render
+from lcreg.experiments.reproduce.sweep import METRICS, Sweep, failed_runs, finished_rows, run_sweep
+from lcreg.models.base import NonFiniteTrainingError
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+pytest.importorskip("matplotlib")
+
+
+@pytest.mark.parametrize("name", list(EXPERIMENTS))
+def test_smoke_preset_writes_jsonl_markdown_with_paper_columns_and_plots(name: str, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "out"
+    main(["reproduce", name, "--budget", "smoke", "--seeds", "0", "--out", str(out)])
+    experiment = EXPERIMENTS[name]
+    rows = read_jsonl(out / f"{name}.jsonl")
+    assert sorted(r["variant"] for r in rows) == sorted(v.key for v in experiment.variants)
+    assert all(r["preset"] == "smoke" and r["steps"] == 2 and r["num_test_pairs"] == 2 for r in rows)
+    assert all(Path(r["weights"]).is_file() and not list(Path(r["weights"]).parent.rglob("*.ckpt")) for r in rows)
+    text = (out / f"{name}.md").read_text()
+    assert "ours / paper" in text and "Budget `smoke` per run: 2 steps × 2 pairs × 128 points" in text
+    assert "**2 test pairs**" in text and f"Runs finished: {len(rows)} of {len(rows)}" in text
+    assert text.count("| one seed |") == 2 * len(experiment.claims)  # RMSE(R) and MAE(R) per claim
+    paper_value = f"{experiment.paper[experiment.cells[0].paper or ''].get('rmse_r_deg'):.3f}"
+    assert paper_value in text.split("## MAE(R)")[0]
+    for suffix in ("rotation", "translation"):
+        assert_png_drawn(out / f"{name}_{suffix}.png")
+    assert f"wrote {out / name}.md" in capsys.readouterr().out
+
+
+def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path: Path, monkeypatch) -> None:
+    fits = count_calls(monkeypatch, lcreg.experiments.reproduce.sweep, "fit")
+    args = [
+        "reproduce",
+        "lc",
+        "--budget",
+        "smoke",
+        "--seeds",
+        "0",
+        "--only",
+        "idam/*",
+        "deepgmr/X",
+        "--out",
+        str(tmp_path),
+    ]
+    main(args)
+    assert fits == ["idam", "idam_lc", "deepgmr"]
+    main(args)  # everything finished: nothing trains, the report is written again
+    assert len(fits) == 3 and (tmp_path / "lc.md").is_file()
+    log = tmp_path / "lc.jsonl"
+    lines = log.read_text().splitlines()
+    log.write_text("\n".join(lines[:1]) + "\n")  # interrupted after the first run
+    main(args)
+    assert fits[3:] == ["idam_lc", "deepgmr"] and len(read_jsonl(log)) == 3
+
+
+def _fake_train(calls: list[tuple[str, int]]) -> Any:
+    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+        calls.append((name, seed))
+        return {"rmse_r_deg": 1.0, "train_s": 0.0}
+
+    return train
+
+
+def test_resume_keys_on_budget_and_data_and_no_resume_reruns(tmp_path: Path) -> None:
+    calls: list[tuple[str, int]] = []
+    idam = LC.select(["idam/X"])
+    sweep = Sweep(idam, "smoke", (0, 1), DataChoice(None), tmp_path)
+    run_sweep(sweep, _fake_train(calls))
+    run_sweep(sweep, _fake_train(calls))
+    assert calls == [("idam", 0), ("idam", 1)]
+    run_sweep(Sweep(idam, "smoke", (0, 1, 2), DataChoice(None), tmp_path), _fake_train(calls))  # a new seed only
+    assert calls[2:] == [("idam", 2)]
+    run_sweep(Sweep(idam, "cpu", (0,), DataChoice("/m"), tmp_path), _fake_train(calls))  # another budget and data
+    assert calls[3:] == [("idam", 0)]
+    run_sweep(sweep, _fake_train(calls), rerun=True)
+    assert calls[4:] == [("idam", 0), ("idam", 1)] and len(read_jsonl(sweep.log_path)) == 6
+
+
+def _error(args: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as info:
+        main(["reproduce", *args])
+    assert info.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_bad_arguments_give_one_clear_line(tmp_path: Path, capsys) -> None:
+    out = ["--out", str(tmp_path)]
+    assert "unknown experiment 'tables'; available: ablation, lc" in _error(
+        ["tables", "--budget", "smoke", *out], capsys
+    )
+    for planned in PLANNED:
+        assert f"experiment {planned!r} is not available yet" in _error([planned, "--budget", "smoke", *out], capsys)
+    assert "the following arguments are required: --budget" in _error(["lc", *out], capsys)
+    assert "invalid choice: 'gpu'" in _error(["lc", "--budget", "gpu", *out], capsys)
+    assert "--seeds must be distinct non-negative" in _error(
+        ["lc", "--budget", "smoke", "--seeds", "1", "1", *out], capsys
+    )
+    assert "--only 'dvds/*' matches no variant of lc" in _error(
+        ["lc", "--budget", "smoke", "--only", "dvds/*", *out], capsys
+    )
+    missing = tmp_path / "nowhere"
+    message = _error(["ablation", "--budget", "cpu", "--root", str(missing), *out], capsys)
+    assert message.startswith("lcreg reproduce: error: ModelNet40 not found at") and "pass --root DIR" in message
+    assert not list(tmp_path.iterdir())  # nothing written, nothing trained
+
+
+def test_report_only_writes_the_table_of_what_is_finished(tmp_path: Path, capsys) -> None:
+    main(["reproduce", "ablation", "--budget", "smoke", "--report-only", "--out", str(tmp_path)])
+    text = (tmp_path / "ablation.md").read_text()
+    assert "Runs finished: 0 of 48" in text and "not run" in text
+    assert not (tmp_path / "ablation.jsonl").exists() and not list(tmp_path.glob("*.png"))
+
+
+def test_a_diverged_run_is_recorded_as_failed_not_retried_and_left_out_of_the_means(tmp_path: Path) -> None:
+    calls: list[tuple[str, int]] = []
+    ok = _fake_train(calls)
+
+    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+        if seed == 1:
+            calls.append((name, seed))
+            raise NonFiniteTrainingError("10 consecutive steps had a non-finite loss")
+        return ok(name, budget, data, run_dir, seed)
+
+    sweep = Sweep(LC.select(["idam/X"]), "smoke", (0, 1), DataChoice(None), tmp_path)
+    run_sweep(sweep, train)
+    run_sweep(sweep, train)
+    assert calls == [("idam", 0), ("idam", 1)]
+    log = sweep.open_log()
+    assert finished_rows(sweep, log) == {"idam/X": [log.rows[0]]}
+    failed = failed_runs(sweep, log)
+    assert failed == ["idam/X seed 1: 10 consecutive steps had a non-finite loss"]
+    metrics = dict.fromkeys(METRICS, 1.0)
+    rows = {"idam/X": [{**log.rows[0], **metrics, "test_s": 0.0, "steps": 2, "num_test_pairs": 2, "num_val_pairs": 2}]}
+    assert f"- Failed (non-finite training loss, left out of the means): {failed[0]}" in render(
+        sweep, rows, "c", failed
+    )
+
+
+def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stopped(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from lcreg.experiments.benchmarking import CONVERGE_METRIC
+    from lcreg.experiments.reproduce.ablation import ABLATION
+
+    # min_delta is 0: on 2 synthetic validation pairs the run may stop early or reach the cap; both are recorded.
+    budget = RunBudget(steps=4, points=64, batch=2, checks=4, patience=1, val_pairs=2)
+    experiment = replace(ABLATION.select(["paper/model_A"]), budgets={"smoke": {"dvds": budget}})
+    sweep = Sweep(experiment, "smoke", (0,), DataChoice(None), tmp_path)
+    run_sweep(sweep)
+    (row,) = read_jsonl(sweep.log_path)
+    assert row["selected_on"] == CONVERGE_METRIC and "val_rre_clip5_deg" in row["selected"]
+    assert row["num_val_pairs"] == 2 * 2 and row["steps"] <= 4
+    assert row["stopped_early"] == (row["steps"] < 4) and row["best_val_rre_mean_deg"] is None

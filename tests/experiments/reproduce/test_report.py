@@ -1,0 +1,153 @@
+"""Report and plots of hand-made rows: paper columns and ratios, header facts, claims, PNGs that are not blank."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lcreg.experiments.reproduce.ablation import ABLATION
+from lcreg.experiments.reproduce.budgets import DataChoice, RunBudget
+from lcreg.experiments.reproduce.lc import HOSTS, LC
+from lcreg.experiments.reproduce.plots import bar_positions, plot_sweep
+from lcreg.experiments.reproduce.report import metric_table, render
+from lcreg.experiments.reproduce.spec import Cell, Experiment, Variant
+from lcreg.experiments.reproduce.sweep import METRICS, Sweep
+
+pytest.importorskip("matplotlib")
+
+
+def row(value: float, **extra: Any) -> dict[str, Any]:
+    """A finished run whose every metric is ``value`` (recalls 0.5)."""
+    metrics = {key: 0.5 if key.startswith("recall") else value for key in METRICS}
+    return {**metrics, "train_s": 10.0, "test_s": 1.0, "steps": 68, "num_test_pairs": 164, "num_val_pairs": 78, **extra}
+
+
+def lc_rows() -> dict[str, list[dict[str, Any]]]:
+    """X and LC + X both at twice the paper's RMSE(R) of X, ± 0.1 over three seeds."""
+    return {
+        v.key: [row(2 * LC.paper[HOSTS[v.budget_group]]["rmse_r_deg"] + d) for d in (-0.1, 0, 0.1)] for v in LC.variants
+    }
+
+
+def sweep(experiment: Experiment, tmp_path: Path, preset: str = "cpu") -> Sweep:
+    return Sweep(experiment, preset, (0, 1, 2), DataChoice("/data/modelnet40_mini"), tmp_path)  # type: ignore[arg-type]
+
+
+def test_lc_table_has_paper_ours_and_ratio_per_series(tmp_path: Path) -> None:
+    table = metric_table(LC, lc_rows(), "rmse_r_deg").splitlines()
+    assert table[0] == "|  | row | paper: X | ours: X | ours / paper | paper: LC + X | ours: LC + X | ours / paper |"
+    dcp = table[2].split(" | ")
+    assert dcp[1:] == ["DCP-v2", "4.834", "9.67 ± 0.1", "2.00×", "3.950", "9.67 ± 0.1", "2.45× |"]
+
+
+def test_zero_paper_values_have_no_ratio_and_pipes_are_escaped() -> None:
+    rows = {v.key: [row(0.01)] for v in ABLATION.variants}
+    table = metric_table(ABLATION, rows, "mae_t")
+    assert "| models | A | 0.002 | 0.01 ± 0 | 5.00× |" in table
+    assert "| D | 0.000 | 0.01 ± 0 | – |" in table  # the paper prints 0.000
+    assert "\\|X1\\| = 96" in table and table.count("ours / paper") == 2  # two objectives, one paper column
+
+
+def test_report_states_budget_data_pairs_seeds_and_claims(tmp_path: Path) -> None:
+    text = render(sweep(LC, tmp_path), lc_rows(), "lcreg reproduce lc --budget cpu")
+    assert (
+        "Budget `cpu` per run:" in text and "- dcp: 72 steps × 8 pairs × 256 points, validated every 24 steps." in text
+    )
+    assert "ModelNet40 /data/modelnet40_mini, unseen objects: **164 test pairs**, 78 validation pairs" in text
+    assert "Seeds: 0, 1, 2" in text and "Runs finished: 24 of 8" not in text and "Runs finished: 24 of 24" in text
+    claims = [line for line in text.splitlines() if line.startswith("| LC + ")]
+    assert len(claims) == 8 and all("within spread" in line for line in claims)  # LC - X = 0 ± 0.1
+    assert "## Differences from the paper" in text and "`cpu`" in text
+
+
+def test_claims_in_the_report_hold_or_fail_beyond_the_spread(tmp_path: Path) -> None:
+    rows = lc_rows()
+    rows["dcp/LC"] = [row(v) for v in (3.0, 3.1, 3.2)]  # far below X (9.67)
+    rows["prnet/LC"] = [row(v) for v in (9.0, 9.1, 9.2)]  # far above X (3.01)
+    text = render(sweep(LC, tmp_path), rows, "cmd")
+    assert "| LC + DCP-v2 beats DCP-v2 | RMSE(R) (°) | **holds** | LC + X − X = -6.57 (spread 0.1): holds |" in text
+    assert "| LC + PRNet beats PRNet | MAE(R) (°) | **does not hold** |" in text
+
+
+def test_budgets_validate_and_describe_themselves(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="exactly one of steps and epochs"):
+        RunBudget(steps=2, epochs=3)
+    with pytest.raises(ValueError, match="positive"):
+        RunBudget(steps=0)
+    epochs = RunBudget(epochs=200, points=1024)
+    assert epochs.describe() == "200 epochs × the config's batch × 1024 points, validated after every epoch"
+    args = epochs.fit_overrides(tmp_path, seed=3)
+    assert "--trainer.max_epochs=200" in args and "--trainer.check_val_every_n_epoch=1" in args
+    assert "--seed_everything=3" in args and "--trainer.max_steps=-1" in args
+    assert RunBudget(steps=68, checks=4).val_every == 17
+    assert "--data.init_args.seed=1234" in DataChoice("/m").overrides(RunBudget(steps=1, points=512))
+
+
+def test_an_experiment_refuses_cells_of_unknown_variants_and_missing_budgets() -> None:
+    variant = Variant("x", "dcp", "g")
+    good = {"budgets": {"cpu": {"g": RunBudget(steps=1)}}, "series": {}, "claims": (), "paper": {"P": {}}}
+    with pytest.raises(ValueError, match="unknown variants"):
+        Experiment("e", "t", "p", variants=(variant,), cells=(Cell("b", "r", "s", "y", None),), **good)
+    with pytest.raises(ValueError, match="no budget"):
+        Experiment("e", "t", "p", variants=(Variant("x", "dcp", "h"),), cells=(), **good)
+    with pytest.raises(ValueError, match="--only 'nope' matches no variant of lc"):
+        LC.select(["nope"])
+    assert [v.key for v in LC.select(["idam/*"]).variants] == ["idam/X", "idam/LC"] and len(
+        LC.select(["idam/*"]).claims
+    ) == 1
+
+
+def _not_blank(path: Path) -> np.ndarray:
+    from matplotlib.image import imread
+
+    image = imread(path)[..., :3]
+    assert image.shape[0] > 300 and image.shape[1] > 500 and image.std() > 0.05
+    return image
+
+
+def test_plots_draw_bars_in_series_colours_and_paper_lines(tmp_path: Path) -> None:
+    paths = plot_sweep(sweep(LC, tmp_path), lc_rows())
+    assert [p.name for p in paths] == ["lc_rotation.png", "lc_translation.png"]
+    image = _not_blank(paths[0])
+    for colour in ((31, 119, 180), (255, 127, 14)):  # C0 (X) and C1 (LC + X) bars
+        assert (np.abs(image * 255 - colour).sum(axis=-1) < 60).sum() > 500
+    assert (image.sum(axis=-1) < 0.1).sum() > 200  # black paper lines and text
+    rows = {v.key: [row(2.0 + i / 10, num_test_pairs=2)] for i, v in enumerate(ABLATION.variants)}
+    assert all(_not_blank(p) is not None for p in plot_sweep(sweep(ABLATION, tmp_path, "smoke"), rows))
+    assert plot_sweep(sweep(LC, tmp_path), {v.key: [] for v in LC.variants}) == []  # nothing finished: no figure
+
+
+def test_bar_positions_leave_a_gap_between_blocks() -> None:
+    x = bar_positions(ABLATION)
+    assert x[("models", "D")] == 3.0 and x[("local size |X1|", "|X1| = 32")] == pytest.approx(4.6)
+
+
+def test_converge_budgets_stop_early_select_on_the_clipped_error_and_draw_more_validation_pairs(
+    tmp_path: Path,
+) -> None:
+    from lcreg.experiments.benchmarking import CONVERGE_METRIC, SELECTION_METRIC
+
+    with pytest.raises(ValueError, match="step cap"):
+        RunBudget(epochs=3, patience=2)
+    with pytest.raises(ValueError, match="positive"):
+        RunBudget(steps=10, patience=0)
+    budget = RunBudget(steps=3000, points=512, batch=16, checks=60, patience=6, val_pairs=4)
+    assert budget.converge and budget.monitor == CONVERGE_METRIC and budget.val_every == 50
+    assert budget.describe().endswith("until 6 validations bring no gain (4 pairs per validation object)")
+    args = budget.fit_overrides(tmp_path, seed=1)
+    assert "--trainer.max_steps=3000" in args and any("EarlyStopping" in a and '"patience": 6' in a for a in args)
+    assert "--data.init_args.val_pairs_per_object=4" in DataChoice("/m").overrides(budget)
+    plain = RunBudget(steps=68)
+    assert not plain.converge and plain.monitor == SELECTION_METRIC
+    assert not any("val_pairs_per_object" in a for a in DataChoice("/m").overrides(plain))
+
+
+def test_every_experiment_has_a_converge_budget() -> None:
+    from lcreg.experiments.reproduce import EXPERIMENTS
+
+    for name, experiment in EXPERIMENTS.items():
+        assert "converge" in experiment.budgets, name
+    assert {b.patience for b in LC.budgets["converge"].values()} == {6, 8}

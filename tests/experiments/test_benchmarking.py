@@ -1,0 +1,366 @@
+"""The benchmark harness (lcreg.experiments.benchmarking): registry, build, checkpoints, timing bookkeeping, training,
+writers."""
+
+from __future__ import annotations
+
+import itertools
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+import lcreg.experiments.evaluation
+from lcreg.cli import expand_configs
+from lcreg.experiments.benchmarking import (
+    CONVERGE_METRIC,
+    DATA_CONFIGS,
+    METHODS,
+    REFINE_CONFIG,
+    VOXELIZE_CONFIG,
+    Budget,
+    CheckpointFormatError,
+    CheckpointMismatchError,
+    CheckpointNotFoundError,
+    CheckpointReadError,
+    FitResult,
+    ResultLog,
+    build,
+    cli_args,
+    cli_arguments,
+    config_dir,
+    config_path,
+    converge_overrides,
+    fit,
+    fit_overrides,
+    format_mean_std,
+    key_values,
+    last_checkpoint,
+    load_weights,
+    markdown_table,
+    method,
+    output_path,
+    pair_batches,
+    peak_rss_increase_mib,
+    read_metrics,
+    registration_speed,
+    save_weights,
+    synthetic_overrides,
+    time_call,
+    time_calls,
+    timed,
+    training_loss,
+    voxelize_overrides,
+)
+from lcreg.experiments.evaluation import evaluate
+from lcreg.models.base import RegistrationModule
+from lcreg.types import RegistrationResult
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+
+def _lc_terms(num_local_points: int) -> list[dict]:
+    """configs/lc.yaml's term with a smaller |X1|, as a --model.init_args.loss_terms value."""
+    lc = {
+        "class_path": "lcreg.nn.local_consistency.LocalConsistency",
+        "init_args": {"num_local_points": num_local_points},
+    }
+    return [{"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss", "init_args": {"local_consistency": lc}}]
+
+
+TINY_DVDS = cli_args(
+    "model",
+    {
+        "encoder_channels": [8, 16],
+        "loss_terms": _lc_terms(16),
+        "decoder_grid_size": 4,
+        "decoder_hidden": [8],
+        "normal_hidden": [8],
+        "diagnostics_every_n_steps": 0,
+    },
+)
+
+
+class FakeClock:
+    """A clock that advances by the given steps, one per reading."""
+
+    def __init__(self, steps: list[float]) -> None:
+        self.now = 0.0
+        self.steps = iter(steps)
+
+    def __call__(self) -> float:
+        self.now += next(self.steps)
+        return self.now
+
+
+def _model_class(spec_configs: tuple[str, ...]) -> str:
+    """The ``model.class_path`` of the last config of a method that has a model block."""
+    files = expand_configs([arg for c in spec_configs for arg in ("--config", str(config_path(c)))])[1::2]
+    paths = [(yaml.safe_load(Path(f).read_text()) or {}).get("model", {}).get("class_path") for f in files]
+    return [p for p in paths if p][-1]
+
+
+# --- registry ------------------------------------------------------------------------------------------------------
+def test_every_registered_config_exists() -> None:
+    assert config_dir().name == "configs" and config_dir().is_dir()
+    for spec in METHODS.values():
+        for name in spec.config_files():
+            assert config_path(name).is_file()
+    for name in (*DATA_CONFIGS.values(), REFINE_CONFIG, VOXELIZE_CONFIG):
+        assert config_path(name).is_file()
+
+
+def test_registry_links_point_to_registered_methods() -> None:
+    for spec in METHODS.values():
+        assert spec.weights_from in (None, *METHODS) and spec.lc_variant in (None, *METHODS)
+        if spec.lc_variant:
+            assert METHODS[spec.lc_variant].learned and spec.learned
+    assert METHODS["ransac_icp"].config_files() == ("models/ransac.yaml", "data/modelnet40.yaml", REFINE_CONFIG)
+    with pytest.raises(KeyError, match="unknown method 'nope'; known: dvds"):
+        method("nope")
+    with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
+        config_path("missing.yaml")
+
+
+@pytest.mark.parametrize("name", list(METHODS))
+def test_build_without_checkpoint_gives_the_configured_class(name: str) -> None:
+    model = build(name)
+    module, _, cls = _model_class(METHODS[name].config_files()).rpartition(".")
+    assert isinstance(model, RegistrationModule)
+    assert type(model).__module__ == module and type(model).__name__ == cls
+    assert model.has_loss == METHODS[name].learned
+
+
+def test_build_passes_configs_and_overrides_like_lcreg_test() -> None:
+    args = cli_arguments("dvds_icp", ["data/kitti.yaml"], ["--seed_everything=3"])
+    files = [Path(a).relative_to(config_dir()).as_posix() for a in args[1::2][:3]]
+    assert args[0::2][:3] == ["--config"] * 3 and files == ["dvds_modelnet40.yaml", REFINE_CONFIG, "data/kitti.yaml"]
+    dcp = cli_arguments("dcp", ["data/kitti.yaml"])  # the original batch size comes before a further data config
+    assert dcp.index("--data.init_args.batch_size=32") < dcp.index(str(config_path("data/kitti.yaml")))
+    assert args[-1] == "--seed_everything=3"
+    _, dm = build("icp", overrides=["--data.init_args.num_points=512"], with_data=True)
+    assert type(dm).__name__ == "ModelNet40DataModule" and dm.hparams.num_points == 512
+    _, dm = build("icp", overrides=synthetic_overrides(pairs=3), with_data=True)
+    assert type(dm).__name__ == "SyntheticDataModule" and dm.num_test == 3 and dm.hparams.num_workers == 0
+
+
+def test_cli_args_write_json_and_skip_none() -> None:
+    values = {"a": 1, "b": None, "c": [1, 2], "d": True, "e": "x", "f": "null"}
+    assert cli_args("model", values) == [
+        "--model.init_args.a=1",
+        "--model.init_args.c=[1, 2]",
+        "--model.init_args.d=true",
+        "--model.init_args.e=x",
+        "--model.init_args.f=null",
+    ]
+    assert voxelize_overrides(normalize=False) == ["--model.init_args.voxel_grid.init_args.normalize=false"]
+
+
+# --- checkpoints ---------------------------------------------------------------------------------------------------
+def test_load_weights_round_trip(tmp_path: Path) -> None:
+    source = build("dvds", overrides=["--seed_everything=1", *TINY_DVDS])
+    path = save_weights(source, tmp_path / "ckpt" / "tiny.ckpt")
+    target = build("dvds", path, overrides=["--seed_everything=2", *TINY_DVDS])
+    for (key, a), b in zip(source.state_dict().items(), target.state_dict().values()):
+        assert torch.equal(a, b), key
+
+
+def test_load_weights_typed_errors_name_the_file(tmp_path: Path) -> None:
+    model = torch.nn.Linear(2, 2)
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    (tmp_path / "garbage.ckpt").write_bytes(b"\x80not a checkpoint" * 8)
+    torch.save(torch.zeros(2), tmp_path / "tensor.ckpt")
+    torch.save({"state_dict": torch.nn.Linear(3, 3).state_dict()}, tmp_path / "other.ckpt")
+    cases = [
+        ("missing.ckpt", CheckpointNotFoundError, FileNotFoundError),
+        ("empty.ckpt", CheckpointReadError, ValueError),
+        ("garbage.ckpt", CheckpointReadError, ValueError),
+        ("tensor.ckpt", CheckpointFormatError, ValueError),
+        ("other.ckpt", CheckpointMismatchError, RuntimeError),
+    ]
+    for name, error, builtin in cases:
+        with pytest.raises(error, match=name) as info:
+            load_weights(model, tmp_path / name)
+        assert isinstance(info.value, builtin) and info.value.path == tmp_path / name
+
+
+def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Path) -> None:
+    run = fit_overrides(max_steps=2, val_every=1, run_dir=tmp_path, name="tiny", seed=0)
+    result = fit("dvds", [*run, *TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32)])
+    assert result.best_checkpoint.is_file() and "rre" in result.best_checkpoint.name
+    assert result.best_checkpoint.is_relative_to(tmp_path / "tiny") and result.trainer.global_step == 2
+    content = torch.load(result.best_checkpoint, map_location="cpu", weights_only=True)  # hparams are plain values
+    assert "hyper_parameters" in content
+    fresh = load_weights(build("dvds", overrides=TINY_DVDS), result.best_checkpoint)
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), result.model.state_dict().values()))
+
+
+def test_fit_refuses_a_config_that_does_not_select_on_validation_rre(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="val/rre_mean_deg"):
+        fit("icp", fit_overrides(1, 1, tmp_path))
+
+
+def test_converge_stops_after_patience_validations_without_improvement(tmp_path: Path) -> None:
+    # min_delta 1000: no later validation counts as an improvement, so the run stops after 1 + patience checks.
+    run = converge_overrides(max_steps=20, val_every=1, patience=2, run_dir=tmp_path, name="c", min_delta=1000.0)
+    result = fit("dvds", [*run, *TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32)], monitor=CONVERGE_METRIC)
+    assert result.trainer.global_step == 3
+    assert "val_rre_clip5_deg" in result.best_checkpoint.name and result.best_checkpoint.is_file()
+    with pytest.raises(ValueError, match="patience"):
+        converge_overrides(10, 1, 0, tmp_path)
+    with pytest.raises(ValueError, match=CONVERGE_METRIC):  # a plain run's checkpoint selects on the mean RRE
+        fit("dvds", [*fit_overrides(1, 1, tmp_path), *TINY_DVDS, *synthetic_overrides(2, 32)], monitor=CONVERGE_METRIC)
+
+
+def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path: Path) -> None:
+    data = [*TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32), "--trainer.logger.init_args.version=seed0"]
+
+    def converge(steps: int) -> FitResult:
+        run = converge_overrides(max_steps=steps, val_every=2, patience=50, run_dir=tmp_path, name="r")
+        return fit("dvds", [*run, *data], validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+
+    first = converge(2)
+    log_dir = Path(first.trainer.log_dir or "")
+    assert first.trainer.global_step == 2 and last_checkpoint(log_dir) is not None
+    second = converge(4)  # the same run, continued: steps 3 and 4 only
+    assert second.trainer.global_step == 4 and Path(second.trainer.log_dir or "") == log_dir
+    assert (log_dir / "metrics.segment1.csv").is_file()
+    curve = read_metrics(log_dir / "metrics.csv")["val/rre_clip5_deg"]
+    # Untrained (step 0) and after 2 steps (logged at step 1) from the first segment, after 4 steps from the second.
+    assert list(curve.steps) == [0, 1, 3]
+    assert last_checkpoint(tmp_path / "nothing") is None
+
+
+# --- timing --------------------------------------------------------------------------------------------------------
+def test_timed_reads_the_clock_around_the_call() -> None:
+    out, seconds = timed(lambda: "done", clock=FakeClock([10.0, 2.5]))
+    assert out == "done" and seconds == 2.5
+
+
+def test_time_call_drops_warmup_and_reports_the_median() -> None:
+    # each call reads the clock twice: start (+1) and end (+duration)
+    durations = [100.0, 3.0, 1.0, 2.0, 7.0]  # warm-up 100 is dropped
+    clock = FakeClock(list(itertools.chain.from_iterable((1.0, d) for d in durations)))
+    timing = time_call(lambda: None, repeats=4, warmup=1, clock=clock)
+    assert timing.runs_s == (3.0, 1.0, 2.0, 7.0) and timing.median_s == 2.5
+    with pytest.raises(ValueError, match="repeats"):
+        time_call(lambda: None, repeats=0)
+
+
+def test_time_calls_alternates_rounds() -> None:
+    calls: list[str] = []
+    fns: dict[str, Callable[[], object]] = {"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}
+    clock = FakeClock([0.0, 1.0, 0.0, 5.0] * 3)
+    timings = time_calls(fns, repeats=2, warmup=1, clock=clock)
+    assert calls == ["a", "b"] * 3
+    assert timings["a"].runs_s == (1.0, 1.0) and timings["b"].median_s == 5.0
+
+
+class _Fixed(RegistrationModule):
+    """Identity estimates with 4 iterations per pair."""
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        b = points_src.shape[0]
+        return RegistrationResult(torch.eye(4).expand(b, 4, 4), torch.ones(b, dtype=torch.bool), torch.full((b,), 4))
+
+
+def test_peak_rss_increase_sees_a_transient_allocation() -> None:
+    def allocate() -> float:
+        block = torch.ones(16 * 2**20 // 4)  # 16 MiB, freed on return
+        return float(block.sum())
+
+    result, mib = peak_rss_increase_mib(allocate)
+    assert result == 16 * 2**20 // 4
+    if mib is None:
+        pytest.skip("no resettable high-water mark on this system (Linux /proc/self/clear_refs)")
+    assert 15 <= mib < 200
+    _, idle = peak_rss_increase_mib(lambda: None)
+    assert idle is not None and idle < 15
+
+
+def test_registration_speed_is_the_median_pass_per_pair() -> None:
+    points = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(0))
+    clock = FakeClock([0.0, 9.0, 0.0, 0.2, 0.0, 0.4, 0.0, 0.3])  # warm-up pass 9 s, then 0.2/0.4/0.3 s
+    speed = registration_speed(_Fixed(), points, points, batch_size=3, repeats=3, clock=clock)
+    assert speed.ms_per_pair == pytest.approx(1000 * 0.3 / 4) and speed.mean_iterations == 4.0
+
+
+def test_evaluate_times_register_with_the_harness(monkeypatch: pytest.MonkeyPatch) -> None:
+    batches, _ = pair_batches(None, pairs=3, num_points=16, batch_size=2)
+    monkeypatch.setattr(lcreg.experiments.evaluation, "timed", lambda fn, device=None: (fn(), 0.5))
+    report = evaluate(_Fixed(), batches, "fixed")
+    assert report.num_pairs == 3 and report.ms_per_pair == pytest.approx(1000 * 2 * 0.5 / 3)
+
+
+# --- data and training ---------------------------------------------------------------------------------------------
+def test_pair_batches_keep_the_first_pairs() -> None:
+    batches, source = pair_batches(None, pairs=3, num_points=16, batch_size=2)
+    assert source == "embedded synthetic shapes" and [len(b) for b in batches] == [2, 1]
+    assert batches[1].points_src.shape == (1, 16, 3) and batches[1].transform_ref_src.shape == (1, 4, 4)
+    val, _ = pair_batches(None, "val", pairs=2, num_points=16, batch_size=4)
+    assert [len(b) for b in val] == [2]
+
+
+def test_training_loss_includes_injected_local_consistency() -> None:
+    model = build(
+        "dcp_lc",
+        overrides=[
+            *cli_args("model", {"emb_dims": 16, "ff_dims": 16, "k": 4, "loss_terms": _lc_terms(8)}),
+        ],
+    )
+    batch = pair_batches(None, pairs=2, num_points=32, batch_size=2)[0][0]
+    torch.manual_seed(0)
+    losses = training_loss(model.train(), batch)
+    torch.manual_seed(0)
+    host_only = model._compute_loss(model.training_forward(batch), batch)  # what the pilot regression measured
+    assert "lc" in losses and "lc" not in host_only
+    total = host_only["loss"] + losses["lc"]
+    assert float(losses["loss"].detach()) == pytest.approx(float(total.detach()), rel=1e-5)
+
+
+def test_fit_overrides_set_a_step_budget() -> None:
+    args = fit_overrides(max_steps=8, val_every=2, run_dir="runs/x", name="n", seed=5)
+    assert "--trainer.max_steps=8" in args and "--trainer.val_check_interval=2" in args
+    assert "--seed_everything=5" in args and "--trainer.logger.init_args.name=n" in args
+
+
+# --- writers and options -------------------------------------------------------------------------------------------
+def test_markdown_table_format() -> None:
+    assert markdown_table(["a", "b"], [[1, "x"], [2.5, None]]) == "| a | b |\n|---|---|\n| 1 | x |\n| 2.5 | None |"
+    assert markdown_table(["a"]) == "| a |\n|---|"
+    assert markdown_table(["|X1|"], [["|X1| = 64"]]).splitlines()[-1] == "| \\|X1\\| = 64 |"  # pipes in cells escaped
+
+
+def test_format_mean_std() -> None:
+    assert format_mean_std([1.0, 3.0]) == "2 ± 1.4"
+    assert format_mean_std([0.5], ".1f", ".1f", scale=100.0) == "50.0 ± 0.0"
+
+
+def test_result_log_resume_skips_finished_rows(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "results.jsonl"
+    log = ResultLog(path, key=("key", "setting"))
+    assert log.rows == [] and not log.done(key="a", setting="clean")
+    log.append({"key": "a", "setting": "clean", "value": 1})
+    log.append({"key": "a", "setting": "noisy", "value": 2})
+    with path.open("a") as fh:
+        fh.write("\n")  # a blank line (e.g. an editor's) is ignored
+    again = ResultLog(path, key=("key", "setting"))
+    assert again.done(key="a", setting="clean") and not again.done(key="b", setting="clean")
+    assert again.find(key="a", setting="noisy") == {"key": "a", "setting": "noisy", "value": 2}
+    assert len(path.read_text().splitlines()) == 3
+
+
+def test_output_path_and_options(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    assert output_path("x.md", "y.md", smoke=True) == Path("x.md")
+    assert output_path(None, "y.md", smoke=False) is None
+    smoke = output_path(None, "y.md", smoke=True)
+    assert smoke is not None and smoke.name == "y.md" and smoke.parent.is_dir() and smoke.parent.parent == tmp_path
+    assert key_values(["a=1", "b=x=y"], "--ckpt") == {"a": "1", "b": "x=y"}
+    with pytest.raises(SystemExit, match="--ckpt expects key=value"):
+        key_values(["a"], "--ckpt")
+    assert Budget.parse("200,512,16") == Budget(200, 512, 16) and str(Budget(1, 2, 3)) == "1,2,3"
+    with pytest.raises(SystemExit, match="steps,points,batch"):
+        Budget.parse("200,512")

@@ -1,0 +1,59 @@
+import pytest
+import torch
+
+from lcreg.experiments.benchmarking import report_table
+from lcreg.experiments.evaluation import evaluate
+from lcreg.geometry.random_transforms import random_euler_transform
+from lcreg.models.base import RegistrationModule
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+
+class _Oracle(RegistrationModule):
+    """Returns a fixed set of transforms (for exact metric checks)."""
+
+    def __init__(self, transforms: torch.Tensor) -> None:
+        super().__init__()
+        self.transforms = transforms
+        self.calls = 0
+
+    def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        b = points_src.shape[0]
+        out = self.transforms[self.calls : self.calls + b]
+        self.calls += b
+        return RegistrationResult(out, torch.ones(b, dtype=torch.bool), torch.full((b,), 3))
+
+
+def _batches(gt: torch.Tensor, size: int) -> list[RegistrationBatch]:
+    pts = torch.rand(gt.shape[0], 16, 3, generator=torch.Generator().manual_seed(0))
+    return [RegistrationBatch(pts[i : i + size], pts[i : i + size], gt[i : i + size]) for i in range(0, len(gt), size)]
+
+
+def test_evaluate_perfect_and_failed_estimates() -> None:
+    gt, _ = random_euler_transform(6, generator=torch.Generator().manual_seed(1))
+    pred = gt.clone()
+    pred[5] = float("nan")  # one failed registration: counted, never dropped
+    report = evaluate(_Oracle(pred), _batches(gt, 4), "oracle")
+    assert report.num_pairs == 6 and report.extra["mean_iterations"] == 3
+    assert report.metrics["recall_r2_t0p01"] == pytest.approx(5 / 6)
+    assert report.metrics["rre_median_deg"] == pytest.approx(0.0, abs=1e-3)
+    assert torch.isnan(report.rotation_error_deg[5]) and report.rotation_error_deg[:5].abs().max() < 1e-3
+    table = report_table([report])
+    assert "| oracle |" in table and "83.3 %" in table and table.count("\n") == 2
+
+
+def test_evaluate_needs_ground_truth() -> None:
+    batch = RegistrationBatch(torch.rand(1, 8, 3), torch.rand(1, 8, 3))
+    with pytest.raises(ValueError, match="ground-truth"):
+        evaluate(_Oracle(torch.eye(4)[None]), [batch], "x")
+
+
+def test_mean_std_row_over_seeds() -> None:
+    from lcreg.experiments.benchmarking import mean_std_row
+
+    gt, _ = random_euler_transform(4, generator=torch.Generator().manual_seed(2))
+    bad = gt.clone()
+    bad[:2] = float("nan")
+    reports = [evaluate(_Oracle(gt), _batches(gt, 4), "a"), evaluate(_Oracle(bad), _batches(gt, 4), "b")]
+    row = mean_std_row(reports, "two seeds")
+    # recall 100 % and 50 %: mean 75 %, sample std 35.4 %
+    assert row.startswith("| two seeds |") and "75 ± 35 %" in row and row.endswith("| 4 |")
