@@ -258,7 +258,7 @@ def _read_exact(read: Callable[[Path], np.ndarray], path: Path, pts: np.ndarray,
 
 
 def checkpoint_cases(folder: Path) -> Iterator[Case]:
-    from lcreg.experiments.benchmarking import load_weights
+    from lcreg.weights import load_into
 
     model = lcreg.PointNetLK()
     files = {"ckpt_empty.ckpt": b"", "ckpt_random.ckpt": os.urandom(512)}
@@ -269,7 +269,7 @@ def checkpoint_cases(folder: Path) -> Iterator[Case]:
     for name, data in files.items():
         (folder / name).write_bytes(data)
     for name in [*files, "ckpt_no_state_dict.ckpt", "ckpt_missing.ckpt"]:
-        yield Case("load_weights", name, lambda p=folder / name: load_weights(model, str(p)), (name,))
+        yield Case("load_into", name, lambda p=folder / name: load_into(model, str(p)), (name,))
 
 
 # --- driver --------------------------------------------------------------------------------------------------------

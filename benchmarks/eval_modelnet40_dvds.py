@@ -35,12 +35,12 @@ from lcreg.experiments.benchmarking import (
     output_path,
     pair_batches,
     report_table,
-    save_weights,
     write_text,
 )
 from lcreg.experiments.benchmarking.registry import REFINE_CONFIG
 from lcreg.experiments.evaluation import EvaluationReport, evaluate
 from lcreg.models.base import RegistrationModule
+from lcreg.weights.export import save
 
 SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2], "refine": True}
 
@@ -102,9 +102,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         args.root = None  # the embedded synthetic shapes
     args.out = output_path(args.out, "modelnet40_dvds.md", args.smoke)
     if args.smoke and not args.ckpt:
-        args.ckpt = [
-            str(save_weights(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".ckpt")))
-        ]
+        args.ckpt = [str(save(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".pt")))]
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
     args.model_args = key_values(args.model_args, "--model-args")

@@ -1,8 +1,12 @@
 """Reading ``torch.save`` files weights-only (Lightning checkpoints, exported weights), with typed errors.
 
 Every file is read with ``torch.load(weights_only=True)``: tensors and plain containers only, no code runs. Needs
-torch only. :mod:`lcreg.experiments.benchmarking` (``load_weights``) and :mod:`lcreg.weights` (pretrained weights,
-their export) read through this module.
+torch only. :mod:`lcreg.weights` (the one loader of weights files and checkpoints, their export) and the CLI's
+``--ckpt_path`` check read through this module.
+
+Errors: one family. :class:`CheckpointError` is the root of every error met reading weights or checkpoints (the
+``lcreg.weights.Pretrained*Error`` classes derive from it and from the matching class here: a missing exported file
+is a :class:`CheckpointNotFoundError` too), so ``except CheckpointError`` catches them all.
 """
 
 from __future__ import annotations
@@ -29,7 +33,13 @@ __all__ = [
 
 
 class CheckpointError(Exception):
-    """A checkpoint could not be loaded; ``path`` names the file, ``reason`` says why (the message without the file)."""
+    """A checkpoint or weights file could not be used; ``path`` names the file, ``reason`` says why.
+
+    ``reason`` is the message without the file; ``path`` is ``None`` only for a weights name that names no file.
+    """
+
+    path: Path | None
+    reason: str
 
     def __init__(self, path: str | Path, message: str) -> None:
         super().__init__(f"checkpoint {str(path)!r}: {message}")

@@ -179,7 +179,7 @@ class LcregCLI(LightningCLI):
         Raises:
             lcreg.checkpoints.CheckpointError: One line naming the file: nothing to resume, missing, unreadable,
                 not a Lightning checkpoint, or a checkpoint of another model class.
-            lcreg.weights.PretrainedError: Unknown weights name or missing weights file.
+            lcreg.weights.PretrainedError: Unknown weights name or missing weights file (a CheckpointError too).
         """
         subcommand = self.config.get("subcommand")
         if not subcommand:
@@ -428,13 +428,10 @@ def _exit_on(err: Exception) -> NoReturn:
     on non-finite losses.
     """
     from lcreg.checks import DatasetLayoutError, DatasetNotFoundError
-    from lcreg.weights import PretrainedError
 
     if isinstance(err, UsageError):
         code = 2
-    elif isinstance(
-        err, (CheckpointError, PretrainedError, NonFiniteTrainingError, DatasetNotFoundError, DatasetLayoutError)
-    ):
+    elif isinstance(err, (CheckpointError, NonFiniteTrainingError, DatasetNotFoundError, DatasetLayoutError)):
         code = 1
     else:
         raise err

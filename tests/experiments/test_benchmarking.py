@@ -12,6 +12,7 @@ import pytest
 import torch
 import yaml
 
+import lcreg
 import lcreg.experiments.evaluation
 from lcreg.cli import expand_configs
 from lcreg.experiments.benchmarking import (
@@ -21,10 +22,6 @@ from lcreg.experiments.benchmarking import (
     REFINE_CONFIG,
     VOXELIZE_CONFIG,
     Budget,
-    CheckpointFormatError,
-    CheckpointMismatchError,
-    CheckpointNotFoundError,
-    CheckpointReadError,
     FitResult,
     ResultLog,
     build,
@@ -38,7 +35,6 @@ from lcreg.experiments.benchmarking import (
     format_mean_std,
     key_values,
     last_checkpoint,
-    load_weights,
     markdown_table,
     method,
     output_path,
@@ -46,7 +42,6 @@ from lcreg.experiments.benchmarking import (
     peak_rss_increase_mib,
     read_metrics,
     registration_speed,
-    save_weights,
     synthetic_overrides,
     time_call,
     time_calls,
@@ -57,6 +52,8 @@ from lcreg.experiments.benchmarking import (
 from lcreg.experiments.evaluation import evaluate
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationResult
+from lcreg.weights import training_only
+from lcreg.weights.export import save
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -159,31 +156,16 @@ def test_cli_args_write_json_and_skip_none() -> None:
 
 
 # --- checkpoints ---------------------------------------------------------------------------------------------------
-def test_load_weights_round_trip(tmp_path: Path) -> None:
+def test_build_loads_weights_of_the_one_format(tmp_path: Path) -> None:
+    """A model saved by the harness is an exported weights file: build() and lcreg.pretrained read it alike."""
     source = build("dvds", overrides=["--seed_everything=1", *TINY_DVDS])
-    path = save_weights(source, tmp_path / "ckpt" / "tiny.ckpt")
+    path = save(source, tmp_path / "w" / "tiny.pt")
     target = build("dvds", path, overrides=["--seed_everything=2", *TINY_DVDS])
-    for (key, a), b in zip(source.state_dict().items(), target.state_dict().values()):
-        assert torch.equal(a, b), key
-
-
-def test_load_weights_typed_errors_name_the_file(tmp_path: Path) -> None:
-    model = torch.nn.Linear(2, 2)
-    (tmp_path / "empty.ckpt").write_bytes(b"")
-    (tmp_path / "garbage.ckpt").write_bytes(b"\x80not a checkpoint" * 8)
-    torch.save(torch.zeros(2), tmp_path / "tensor.ckpt")
-    torch.save({"state_dict": torch.nn.Linear(3, 3).state_dict()}, tmp_path / "other.ckpt")
-    cases = [
-        ("missing.ckpt", CheckpointNotFoundError, FileNotFoundError),
-        ("empty.ckpt", CheckpointReadError, ValueError),
-        ("garbage.ckpt", CheckpointReadError, ValueError),
-        ("tensor.ckpt", CheckpointFormatError, ValueError),
-        ("other.ckpt", CheckpointMismatchError, RuntimeError),
-    ]
-    for name, error, builtin in cases:
-        with pytest.raises(error, match=name) as info:
-            load_weights(model, tmp_path / name)
-        assert isinstance(info.value, builtin) and info.value.path == tmp_path / name
+    inference = [k for k in source.state_dict() if not training_only(source, k)]
+    assert inference and all(torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in inference)
+    assert any(not torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in source.state_dict())
+    shipped_like = lcreg.pretrained(path)
+    assert all(torch.equal(source.state_dict()[k], shipped_like.state_dict()[k]) for k in inference)
 
 
 def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Path) -> None:
@@ -193,7 +175,7 @@ def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Pat
     assert result.best_checkpoint.is_relative_to(tmp_path / "tiny") and result.trainer.global_step == 2
     content = torch.load(result.best_checkpoint, map_location="cpu", weights_only=True)  # hparams are plain values
     assert "hyper_parameters" in content
-    fresh = load_weights(build("dvds", overrides=TINY_DVDS), result.best_checkpoint)
+    fresh = build("dvds", result.best_checkpoint, overrides=TINY_DVDS)  # a .ckpt: every tensor, training-only too
     assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), result.model.state_dict().values()))
 
 

@@ -14,6 +14,13 @@ import torch
 import lcreg
 import lcreg.weights as weights_module
 from lcreg.baselines.pointnetlk import PointNetLK
+from lcreg.checkpoints import (
+    CheckpointError,
+    CheckpointFormatError,
+    CheckpointMismatchError,
+    CheckpointNotFoundError,
+    CheckpointReadError,
+)
 from lcreg.experiments.benchmarking import pair_batches
 from lcreg.metrics.functional import registration_recall, rotation_error_deg, translation_error
 from lcreg.models.base import RegistrationModule
@@ -41,7 +48,7 @@ from lcreg.weights import (
 from lcreg.weights.export import CARD_BEGIN, CARD_END, CARD_HEADINGS
 
 from _shared_data import shared_data  # type: ignore[import-not-found]
-from _weights_files import exported, rewrite, tiny_model  # type: ignore[import-not-found]
+from _weights_files import exported, lightning_checkpoint, rewrite, tiny_model  # type: ignore[import-not-found]
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -367,3 +374,62 @@ def test_shipped_weights_register_real_pairs_better_than_untrained_beyond_the_sp
         report.append(f"{stat}: {mine:.4g} trained, untrained {mean:.4g} ± {std:.4g} ({len(seeds)} seeds)")
         worse += [] if better else [stat]
     assert not worse, f"{name}: not beyond the spread on {worse}; " + "; ".join(report)
+
+
+# --- one loader, one format, one error family ----------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("pretrained_error", "checkpoint_error"),
+    [
+        (PretrainedNotFoundError, CheckpointNotFoundError),
+        (PretrainedReadError, CheckpointReadError),
+        (PretrainedFormatError, CheckpointFormatError),
+        (PretrainedMismatchError, CheckpointMismatchError),
+        (UnknownPretrainedError, CheckpointError),
+        (PretrainedClassError, CheckpointError),
+        (PretrainedBuildError, CheckpointError),
+    ],
+)
+def test_weights_errors_are_one_family_rooted_at_checkpoint_error(
+    pretrained_error: type[PretrainedError], checkpoint_error: type[CheckpointError]
+) -> None:
+    err = pretrained_error("w.pt", "reason", Path("w.pt"))
+    assert isinstance(err, checkpoint_error) and isinstance(err, CheckpointError)
+    assert str(err) == "pretrained weights 'w.pt': reason" and err.reason == "reason" and err.path == Path("w.pt")
+
+
+def test_a_missing_exported_file_is_caught_as_a_missing_checkpoint(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointNotFoundError, match=r"absent\.pt"):
+        load_into(tiny_model("pointnetlk"), tmp_path / "absent.pt")
+
+
+def test_one_loader_reads_a_lightning_checkpoint_like_its_export(tmp_path: Path) -> None:
+    source = tiny_model("dvds", seed=3).eval()
+    checkpoint = lightning_checkpoint(source, tmp_path / "run" / "best.ckpt")
+    from_checkpoint = pretrained(checkpoint)
+    from_export = pretrained(exported(source, tmp_path))
+    assert type(from_checkpoint) is DVDs and from_checkpoint.decoder is None  # inference model, as exported
+    src, ref = _clouds()
+    with torch.no_grad():
+        a = from_checkpoint.register(src, ref).transform_ref_src
+        b = from_export.register(src, ref).transform_ref_src
+    assert torch.equal(a, b)
+    configured = tiny_model("dvds", seed=8)  # a .ckpt into a configured model: every tensor, the decoder's too
+    load_into(configured, checkpoint)
+    assert all(torch.equal(v, source.state_dict()[k]) for k, v in configured.state_dict().items())
+    with pytest.raises(CheckpointMismatchError, match=r"best\.ckpt.*holds a lcreg\.models\.dvds\.DVDs model"):
+        load_into(tiny_model("pointnetlk"), checkpoint)
+
+
+def test_save_writes_the_exported_format_from_a_model_in_memory(tmp_path: Path) -> None:
+    from lcreg.weights.export import save
+
+    source = tiny_model("pointnetlk", seed=4).eval()
+    path = save(source, tmp_path / "sub" / "mine.pt", metadata={"steps": 7})
+    weights = read_weights(path)
+    assert weights.name == "mine" and weights.metadata["steps"] == 7 and not list(tmp_path.glob("sub/*.partial"))
+    assert set(weights.state_dict) == {k for k in source.state_dict() if not training_only(source, k)}
+    src, ref = _clouds()
+    with torch.no_grad():
+        assert torch.equal(
+            pretrained(path).register(src, ref).transform_ref_src, source.register(src, ref).transform_ref_src
+        )

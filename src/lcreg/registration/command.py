@@ -232,10 +232,9 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 def _user_errors() -> tuple[type[Exception], ...]:
     """Errors about the user's files, clouds, weights or display (one line, exit code 1)."""
-    from lcreg.checkpoints import CheckpointError
-    from lcreg.weights import PretrainedError
+    from lcreg.checkpoints import CheckpointError  # the root of the weights and checkpoint errors
 
-    errors: tuple[type[Exception], ...] = (OSError, ValueError, CheckpointError, PretrainedError)
+    errors: tuple[type[Exception], ...] = (OSError, ValueError, CheckpointError)
     try:
         from lcreg.viz import DisplayUnavailableError
     except ImportError:  # pragma: no cover

@@ -25,7 +25,6 @@ from __future__ import annotations
 import functools
 from collections import OrderedDict
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -241,7 +240,7 @@ def learned_model(method: str, weights: str | None) -> RegistrationModule:
 
     Raises:
         MethodError: No weights given and none shipped for this method.
-        lcreg.weights.PretrainedError, lcreg.checkpoints.CheckpointError: Unusable weights (naming the file).
+        lcreg.checkpoints.CheckpointError: Unusable weights (naming the file).
     """
     from lcreg import weights as registry
 
@@ -255,15 +254,7 @@ def learned_model(method: str, weights: str | None) -> RegistrationModule:
                 "checkpoint of `lcreg fit` (.ckpt) or of an exported .pt file"
             )
         weights = shipped[0]
-    if str(weights).endswith(".ckpt"):
-        from lcreg.weights.export import slim_payload
-
-        payload = slim_payload(weights, "checkpoint")
-        weights_obj = registry.validated(payload, str(weights), Path(weights))
-        model = registry.resolve_class(payload["class_path"])(**{**payload["init_args"], "unit_scale": 1.0})
-        registry.load_into(model, weights_obj)
-    else:
-        model = registry.pretrained(weights, unit_scale=1.0)
+    model = registry.pretrained(weights, unit_scale=1.0)  # a name, an exported .pt or a .ckpt: one loader
     if registry.class_path_of(model) != class_path:
         found = registry.class_path_of(model)
         raise MethodError(f"weights {weights!r} hold a {found}, method {method!r} needs {class_path}")

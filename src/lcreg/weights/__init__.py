@@ -29,12 +29,22 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from lcreg.checkpoints import CheckpointError, CheckpointNotFoundError, read_torch_file
+from lcreg.checkpoints import (
+    CheckpointError,
+    CheckpointFormatError,
+    CheckpointMismatchError,
+    CheckpointNotFoundError,
+    CheckpointReadError,
+    check_class,
+    read_checkpoint,
+    read_torch_file,
+)
 
 if TYPE_CHECKING:
     from lcreg.models.base import RegistrationModule
 
 __all__ = [
+    "CHECKPOINT_SUFFIX",
     "FORMAT",
     "KEYS",
     "MAX_FILE_BYTES",
@@ -73,6 +83,8 @@ MAX_FILE_BYTES = 5_000_000
 """Size limit of one weights file: 5 MB (5,000,000 bytes)."""
 NAME_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]*")
 """Names of weights files: lower case letters, digits, ``.``, ``_`` and ``-`` (the file is ``<name>.pt``)."""
+CHECKPOINT_SUFFIX = ".ckpt"
+"""Files read as Lightning checkpoints (everything else is read as an exported weights file)."""
 _PLAIN_SCALARS = (str, int, float, bool, type(None))
 
 
@@ -102,17 +114,19 @@ REGISTRY: dict[str, PretrainedSpec] = {
 
 
 # --- errors --------------------------------------------------------------------------------------------------------
-class PretrainedError(Exception):
+class PretrainedError(CheckpointError):
     """Pretrained weights could not be used; ``source`` is the name or path asked for, ``path`` the file (if any).
 
-    The message is one line, starting with ``pretrained weights '<source>'``.
+    Part of the one family of weights and checkpoint errors (:class:`lcreg.checkpoints.CheckpointError` is its
+    root). The message is one line, starting with ``pretrained weights '<source>'``.
     """
 
     def __init__(self, source: str | Path, message: str, path: Path | None = None) -> None:
         where = f" ({path})" if path is not None and str(path) != str(source) else ""
-        super().__init__(f"pretrained weights {str(source)!r}{where}: {message}")
+        Exception.__init__(self, f"pretrained weights {str(source)!r}{where}: {message}")
         self.source = str(source)
         self.path = path
+        self.reason = message
 
     def __str__(self) -> str:  # KeyError (a base of UnknownPretrainedError) would quote the message
         return str(self.args[0])
@@ -122,15 +136,15 @@ class UnknownPretrainedError(PretrainedError, KeyError):
     """The name is neither a registered name nor a path to a ``.pt`` file (the message lists the known names)."""
 
 
-class PretrainedNotFoundError(PretrainedError, FileNotFoundError):
+class PretrainedNotFoundError(PretrainedError, CheckpointNotFoundError):
     """The file does not exist (a registered name whose file is not shipped, or a missing path)."""
 
 
-class PretrainedReadError(PretrainedError, ValueError):
+class PretrainedReadError(PretrainedError, CheckpointReadError):
     """The file is empty, damaged or not a weights-only ``torch.save`` file."""
 
 
-class PretrainedFormatError(PretrainedError, ValueError):
+class PretrainedFormatError(PretrainedError, CheckpointFormatError):
     """The file loads but is not a format-1 lcreg weights file (wrong keys, types, format or name)."""
 
 
@@ -142,7 +156,7 @@ class PretrainedBuildError(PretrainedError, TypeError):
     """The class refuses ``init_args`` plus the overrides (an unknown or invalid argument)."""
 
 
-class PretrainedMismatchError(PretrainedError, RuntimeError):
+class PretrainedMismatchError(PretrainedError, CheckpointMismatchError):
     """The tensors do not fit the model: unexpected or missing keys, or other shapes (another architecture)."""
 
 
@@ -192,7 +206,7 @@ def shipped_names() -> list[str]:
 
 
 def resolve(name_or_path: str | Path) -> Path:
-    """The file of a registered name, or ``name_or_path`` itself when it names a ``.pt`` file.
+    """The file of a registered name, or ``name_or_path`` itself when it names a file (``.pt``, ``.ckpt``, a path).
 
     Raises:
         UnknownPretrainedError: Neither a registered name nor a path (lists the known and shipped names).
@@ -205,7 +219,7 @@ def resolve(name_or_path: str | Path) -> Path:
             present = ", ".join(shipped_names()) or "none yet"
             raise PretrainedNotFoundError(text, f"registered but not shipped in this installation; shipped: {present}")
         return path
-    if isinstance(name_or_path, Path) or text.endswith(".pt") or "/" in text or "\\" in text:
+    if isinstance(name_or_path, Path) or text.endswith((".pt", CHECKPOINT_SUFFIX)) or "/" in text or "\\" in text:
         path = Path(name_or_path)
         if not path.is_file():
             raise PretrainedNotFoundError(text, "no such file")
@@ -218,6 +232,9 @@ def resolve(name_or_path: str | Path) -> Path:
 def read_weights(name_or_path: str | Path) -> PretrainedWeights:
     """Read and validate a weights file (registered name or path), tensors on the CPU.
 
+    A Lightning checkpoint (``.ckpt`` of ``lcreg fit``) is read as the file :mod:`lcreg.weights.export` would write
+    from it (its inference tensors and constructor arguments), so every reader takes all three sources.
+
     Raises:
         UnknownPretrainedError, PretrainedNotFoundError: See :func:`resolve`.
         PretrainedReadError: The file is empty, damaged or not weights-only loadable.
@@ -226,6 +243,10 @@ def read_weights(name_or_path: str | Path) -> PretrainedWeights:
     """
     source = str(name_or_path)
     path = resolve(name_or_path)
+    if path.suffix == CHECKPOINT_SUFFIX:
+        from lcreg.weights.export import slim_payload
+
+        return validated(slim_payload(path, "checkpoint"), source, path)
     try:
         content = read_torch_file(path)
     except CheckpointError as err:  # same reasons, named after the weights
@@ -362,21 +383,37 @@ def load_into(model: torch.nn.Module, weights: str | Path | PretrainedWeights) -
 
     Args:
         model: A model of exactly the file's class (e.g. built from a config, with its decoder and loss terms).
-        weights: A registered name, the path of an exported ``.pt`` file, or weights already read.
+        weights: A registered name, the path of an exported ``.pt`` file, a Lightning checkpoint (``.ckpt``: all its
+            tensors the model has are loaded, training-only ones included), or weights already read.
 
     Returns:
         The weights loaded (provenance in ``metadata``).
 
     Raises:
-        PretrainedError: As :func:`pretrained`; :class:`PretrainedClassError` when ``model`` is of another class.
+        CheckpointError: A subclass naming the file: as :func:`pretrained`; a class mismatch when ``model`` is of
+            another class (:class:`PretrainedClassError`; a checkpoint's: :class:`CheckpointMismatchError`).
     """
     if not isinstance(weights, PretrainedWeights):
-        weights = read_weights(weights)
+        is_checkpoint = str(weights).endswith(CHECKPOINT_SUFFIX)
+        weights = _checkpoint_weights(Path(weights), model) if is_checkpoint else read_weights(weights)
     if weights.class_path != class_path_of(model):
         message = f"holds {weights.class_path} weights, the configured model is {class_path_of(model)}"
         raise PretrainedClassError(weights.source, message, weights.path)
     _load_state(model, weights)
     return weights
+
+
+def _checkpoint_weights(path: Path, model: torch.nn.Module) -> PretrainedWeights:
+    """A Lightning checkpoint's tensors for ``model``: all it has, less training-only ones ``model`` was built without.
+
+    Raises:
+        CheckpointError: Missing, unreadable, no ``state_dict``, or of another class than ``model``.
+    """
+    content = read_checkpoint(path)
+    check_class(path, content, class_path_of(model))
+    own = model.state_dict()
+    state = {k: v for k, v in content["state_dict"].items() if k in own or not training_only(model, k)}
+    return PretrainedWeights(str(path), path, path.stem, class_path_of(model), {}, state, "", {})
 
 
 def _load_state(model: torch.nn.Module, weights: PretrainedWeights) -> None:

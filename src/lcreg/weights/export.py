@@ -47,6 +47,7 @@ from lcreg.weights import (
     PretrainedFormatError,
     PretrainedSizeError,
     PretrainedWeights,
+    class_path_of,
     is_plain_mapping,
     load_into,
     resolve_class,
@@ -62,7 +63,9 @@ __all__ = [
     "card_skeleton",
     "export_weights",
     "main",
+    "model_payload",
     "parse_metadata",
+    "save",
     "serialize",
     "slim_payload",
     "write_card",
@@ -123,8 +126,7 @@ def slim_payload(
             not fit the class (:class:`~lcreg.checkpoints.CheckpointMismatchError`).
         PretrainedError: The class is not an lcreg ``RegistrationModule`` or refuses the hyper-parameters.
     """
-    if not NAME_PATTERN.fullmatch(name):
-        raise ValueError(f"weights name {name!r} must match {NAME_PATTERN.pattern} (it becomes <name>.pt)")
+    _check_name(name)
     content = read_checkpoint(checkpoint)
     hparams = content.get("hyper_parameters")
     if not isinstance(hparams, dict):
@@ -132,26 +134,66 @@ def slim_payload(
     class_path = class_path or hparams.get("_class_path")
     if not isinstance(class_path, str):
         raise CheckpointFormatError(checkpoint, "no model class in hyper_parameters['_class_path']; pass --class-path")
+    meta = {**_default_metadata(checkpoint, content), **(metadata or {})}
+    return _payload(class_path, hparams, content["state_dict"], name, meta, Path(checkpoint))
+
+
+def model_payload(
+    model: torch.nn.Module, name: str, metadata: Mapping[str, str | int | float | bool] | None = None
+) -> dict[str, Any]:
+    """The content of the weights file for a model in memory (its ``hparams`` and inference tensors; nothing written).
+
+    Raises:
+        ValueError: A name outside :data:`~lcreg.weights.NAME_PATTERN`.
+        PretrainedError: The model is not an lcreg ``RegistrationModule``, or its tensors or hyper-parameters do not
+            rebuild it.
+    """
+    _check_name(name)
+    hparams = dict(getattr(model, "hparams", {}))
+    meta = {**_time_metadata(), **(metadata or {})}
+    return _payload(class_path_of(model), hparams, model.state_dict(), name, meta, Path(f"{name}.pt"))
+
+
+def _check_name(name: str) -> None:
+    if not NAME_PATTERN.fullmatch(name):
+        raise ValueError(f"weights name {name!r} must match {NAME_PATTERN.pattern} (it becomes <name>.pt)")
+
+
+def _payload(
+    class_path: str,
+    hparams: Mapping[str, Any],
+    state: Mapping[str, torch.Tensor],
+    name: str,
+    metadata: Metadata,
+    source: Path,
+) -> dict[str, Any]:
+    """Build the inference model of ``class_path`` from ``hparams``, take its tensors from ``state``, check it loads.
+
+    Raises:
+        CheckpointFormatError: Hyper-parameters that are not plain data.
+        CheckpointMismatchError: ``state`` does not fit the class (see :func:`_inference_state`).
+        PretrainedError: Not an lcreg ``RegistrationModule`` class, or it refuses the hyper-parameters.
+    """
     cls = resolve_class(class_path, name)
     init_args = {k: v for k, v in hparams.items() if not k.startswith("_")}
     if not is_plain_mapping(init_args):
-        raise CheckpointFormatError(checkpoint, "hyper_parameters hold values other than plain data")
+        raise CheckpointFormatError(source, "hyper_parameters hold values other than plain data")
     init_args.update(cls.inference_hparams)
     try:
         model = cls(**init_args)
     except (TypeError, ValueError) as err:
-        raise PretrainedBuildError(name, f"{class_path} refuses the checkpoint's hyper-parameters: {err}") from err
-    state = _inference_state(model, content["state_dict"], checkpoint)
+        raise PretrainedBuildError(name, f"{class_path} refuses the hyper-parameters: {err}") from err
+    inference = _inference_state(model, state, source)
     payload = {
         "format": FORMAT,
         "name": name,
         "class_path": class_path,
         "init_args": init_args,
-        "state_dict": state,
+        "state_dict": inference,
         "lcreg_version": lcreg.__version__,
-        "metadata": {**_default_metadata(checkpoint, content), **(metadata or {})},
+        "metadata": dict(metadata),
     }
-    check = PretrainedWeights(name, Path(checkpoint), name, class_path, init_args, state, lcreg.__version__, {})
+    check = PretrainedWeights(name, source, name, class_path, init_args, inference, lcreg.__version__, {})
     load_into(model, check)  # the file loads back exactly as lcreg.pretrained will load it
     return payload
 
@@ -177,13 +219,17 @@ def _inference_state(
     return {k: checkpoint_state[k].detach().to("cpu", copy=True).contiguous() for k in wanted}
 
 
-def _default_metadata(checkpoint: str | Path, content: Mapping[str, Any]) -> Metadata:
-    """Provenance the checkpoint itself records (no absolute paths)."""
-    meta: Metadata = {
-        "source_checkpoint": Path(checkpoint).name,
+def _time_metadata() -> Metadata:
+    """The export time and torch version."""
+    return {
         "exported_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "torch_version": str(torch.__version__),  # a str subclass torch.load(weights_only) refuses
     }
+
+
+def _default_metadata(checkpoint: str | Path, content: Mapping[str, Any]) -> Metadata:
+    """Provenance the checkpoint itself records (no absolute paths)."""
+    meta: Metadata = {"source_checkpoint": Path(checkpoint).name, **_time_metadata()}
     for key in ("global_step", "epoch"):
         if isinstance(content.get(key), int):
             meta[key] = content[key]
@@ -206,11 +252,16 @@ def _data_summary(hparams: Mapping[str, Any]) -> str:
     return f"{cls}({', '.join(items)})"
 
 
-def serialize(payload: Mapping[str, Any], name: str) -> bytes:
+def serialize(payload: Mapping[str, Any], name: str, limited: bool = True) -> bytes:
     """The bytes of ``torch.save(payload)``, checked to read back as :func:`lcreg.weights.read_weights` reads them.
 
+    Args:
+        payload: The file's content.
+        name: The weights' name (for errors).
+        limited: Refuse files over :data:`~lcreg.weights.MAX_FILE_BYTES` (the limit of shipped files).
+
     Raises:
-        PretrainedSizeError: Over :data:`~lcreg.weights.MAX_FILE_BYTES` (names the largest tensors).
+        PretrainedSizeError: Over the limit, when ``limited`` (names the largest tensors).
         PretrainedFormatError: The bytes do not load weights-only as a valid weights file (a non-plain value).
     """
     buffer = io.BytesIO()
@@ -221,7 +272,7 @@ def serialize(payload: Mapping[str, Any], name: str) -> bytes:
     except Exception as err:  # an object that only full unpickling restores
         raise PretrainedFormatError(name, f"does not load weights-only: {one_line(str(err))}") from err
     validated(content, name, Path(f"{name}.pt"))
-    if len(data) > MAX_FILE_BYTES:
+    if limited and len(data) > MAX_FILE_BYTES:
         state = payload["state_dict"]
         largest = sorted(state, key=lambda k: state[k].numel() * state[k].element_size(), reverse=True)[:3]
         sizes = ", ".join(f"{k} {state[k].numel() * state[k].element_size() / 1e6:.2f} MB" for k in largest)
@@ -259,14 +310,44 @@ def export_weights(
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
     payload = slim_payload(checkpoint, name, metadata, class_path)
-    data = serialize(payload, name)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(".pt.partial")
-    partial.write_bytes(data)
-    partial.replace(path)
+    _write(path, serialize(payload, name))
     if card:
         write_card(path, payload)
     return path
+
+
+def save(
+    model: torch.nn.Module,
+    path: str | Path,
+    name: str | None = None,
+    metadata: Mapping[str, str | int | float | bool] | None = None,
+) -> Path:
+    """Write a model in memory as a weights file (the one format, :mod:`lcreg.weights`); returns the path.
+
+    Unlike :func:`export_weights` (files to ship), the size is not limited.
+
+    Args:
+        model: An lcreg ``RegistrationModule`` (its constructor arguments are its ``hparams``).
+        path: The file to write (atomically: a partial file is renamed); ``lcreg.pretrained(path)`` reads it.
+        name: The name stored in the file (default: the file's stem).
+        metadata: Provenance entries.
+
+    Raises:
+        ValueError: A name outside :data:`~lcreg.weights.NAME_PATTERN`.
+        PretrainedError: See :func:`model_payload` and :func:`serialize`.
+    """
+    path = Path(path)
+    name = name or path.stem
+    _write(path, serialize(model_payload(model, name, metadata), name, limited=False))
+    return path
+
+
+def _write(path: Path, data: bytes) -> None:
+    """``data`` to ``path`` through a partial file (a crash never leaves a half-written weights file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(path.name + ".partial")
+    partial.write_bytes(data)
+    partial.replace(path)
 
 
 # --- model card ----------------------------------------------------------------------------------------------------

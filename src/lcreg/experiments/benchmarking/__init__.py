@@ -2,7 +2,8 @@
 
 * :mod:`~lcreg.experiments.benchmarking.registry`: the methods by name (label, config files, learned or not,
   refinement);
-* :mod:`~lcreg.experiments.benchmarking.building`: :func:`build` a method as ``lcreg test`` does, :func:`load_weights`;
+* :mod:`~lcreg.experiments.benchmarking.building`: :func:`build` a method as ``lcreg test`` does (weights: the
+  library's :func:`lcreg.weights.load_into`, written by :func:`lcreg.weights.export.save`);
 * :mod:`~lcreg.experiments.benchmarking.measure`: :func:`timed` (the one timing primitive, synchronised on CUDA),
   medians of repeats, registration speed, peak memory, fresh-process measurements;
 * :mod:`~lcreg.experiments.benchmarking.training`: :func:`training_loss` and short :func:`fit` runs with a step budget;
@@ -16,18 +17,7 @@
 
 from __future__ import annotations
 
-from lcreg.experiments.benchmarking.building import (
-    CheckpointError,
-    CheckpointFormatError,
-    CheckpointMismatchError,
-    CheckpointNotFoundError,
-    CheckpointReadError,
-    build,
-    build_cli_for,
-    cli_arguments,
-    load_weights,
-    save_weights,
-)
+from lcreg.experiments.benchmarking.building import build, build_cli_for, cli_arguments
 from lcreg.experiments.benchmarking.curves import (
     Band,
     Series,
@@ -104,11 +94,6 @@ __all__ = [
     "VOXELIZE_CONFIG",
     "Band",
     "Budget",
-    "CheckpointError",
-    "CheckpointFormatError",
-    "CheckpointMismatchError",
-    "CheckpointNotFoundError",
-    "CheckpointReadError",
     "FitResult",
     "MethodSpec",
     "RegistrationSpeed",
@@ -134,7 +119,6 @@ __all__ = [
     "key_values",
     "last_checkpoint",
     "load_runs",
-    "load_weights",
     "machine_line",
     "markdown_row",
     "markdown_table",
@@ -150,7 +134,6 @@ __all__ = [
     "report_table",
     "run_files",
     "run_fresh_process",
-    "save_weights",
     "split_batches",
     "summary_rows",
     "summary_table",

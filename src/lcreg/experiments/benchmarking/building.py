@@ -1,4 +1,4 @@
-"""Build a registered method from its configs (as ``lcreg test`` does) and load checkpoint weights into it."""
+"""Build a registered method from its configs (as ``lcreg test`` does), with weights by the library's one loader."""
 
 from __future__ import annotations
 
@@ -7,16 +7,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, overload
 
-import torch
-
-from lcreg.checkpoints import (
-    CheckpointError,
-    CheckpointFormatError,
-    CheckpointMismatchError,
-    CheckpointNotFoundError,
-    CheckpointReadError,
-    read_checkpoint,
-)
 from lcreg.experiments.benchmarking.registry import config_path, method
 
 if TYPE_CHECKING:
@@ -25,18 +15,7 @@ if TYPE_CHECKING:
     from lcreg.cli import LcregCLI
     from lcreg.models.base import RegistrationModule
 
-__all__ = [
-    "CheckpointError",
-    "CheckpointFormatError",
-    "CheckpointMismatchError",
-    "CheckpointNotFoundError",
-    "CheckpointReadError",
-    "build",
-    "build_cli_for",
-    "cli_arguments",
-    "load_weights",
-    "save_weights",
-]
+__all__ = ["build", "build_cli_for", "cli_arguments"]
 
 
 def cli_arguments(name: str, configs: Sequence[str | Path] = (), overrides: Sequence[str] = ()) -> list[str]:
@@ -105,8 +84,8 @@ def build(
 
     Args:
         name: Registry name; its configs (and refinement config) come first.
-        checkpoint: Lightning checkpoint whose weights are loaded with :func:`load_weights` (``None``: the config's
-            initialisation, seeded by its ``seed_everything``).
+        checkpoint: Weights loaded by :func:`lcreg.weights.load_into` (a ``.ckpt`` of ``lcreg fit``, an exported
+            ``.pt``, a shipped name; ``None``: the config's initialisation, seeded by its ``seed_everything``).
         configs: Further configs (see :func:`cli_arguments`).
         overrides: Further command-line arguments.
         with_data: Also return the config's DataModule (not set up).
@@ -115,43 +94,16 @@ def build(
         The model (CPU, mode untouched), or ``(model, datamodule)`` with ``with_data``.
 
     Raises:
-        KeyError: Unknown method. FileNotFoundError: A config is missing. CheckpointError: See :func:`load_weights`.
+        KeyError: Unknown method. FileNotFoundError: A config is missing.
+        lcreg.checkpoints.CheckpointError: Unusable weights (a subclass naming the file).
     """
     from lcreg.models.base import RegistrationModule
+    from lcreg.weights import load_into
 
     cli = build_cli_for(name, configs, overrides)
     model = cli.model
     if not isinstance(model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
         raise TypeError(f"{name} built a {type(model).__name__}, not a RegistrationModule")
     if checkpoint is not None:
-        load_weights(model, checkpoint)
+        load_into(model, checkpoint)
     return (model, cli.datamodule) if with_data else model
-
-
-def load_weights(model: torch.nn.Module, path: str | Path) -> torch.nn.Module:
-    """Load the ``state_dict`` of a checkpoint into ``model`` (strict) and return ``model``.
-
-    The file is read by :func:`lcreg.checkpoints.read_checkpoint` (``torch.load(map_location="cpu",
-    weights_only=True)``): tensors and plain containers only, no code runs (checkpoints written by ``lcreg fit``
-    qualify; their hyper-parameters are plain values).
-
-    Raises:
-        CheckpointNotFoundError: ``path`` is not a file.
-        CheckpointReadError: The file cannot be read as a weights-only ``torch.save`` file.
-        CheckpointFormatError: The content is not a dict with a ``state_dict``.
-        CheckpointMismatchError: The weights do not fit ``model``'s architecture.
-    """
-    content = read_checkpoint(path)
-    try:
-        model.load_state_dict(content["state_dict"])
-    except RuntimeError as err:
-        raise CheckpointMismatchError(path, f"weights do not fit {type(model).__name__}: {err}") from err
-    return model
-
-
-def save_weights(model: torch.nn.Module, path: str | Path) -> Path:
-    """Write ``{"state_dict": model.state_dict()}`` (what :func:`load_weights` reads); returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"state_dict": model.state_dict()}, path)
-    return path

@@ -29,7 +29,6 @@ from lcreg.experiments.benchmarking import (
     build,
     data_config,
     format_mean_std,
-    load_weights,
     machine_line,
     markdown_table,
     pair_batches,
@@ -249,10 +248,7 @@ def condition_batches(run: EvalRun, condition: Condition) -> list[RegistrationBa
 
 
 def _model(name: str, weights: str | None) -> RegistrationModule:
-    model = build(name)
-    if weights is not None:
-        load_weights(model, weights)
-    return model
+    return build(name, weights)
 
 
 def _row_fields(report: Any, weights: str | None) -> dict[str, Any]:

@@ -22,10 +22,12 @@ from typing import Any
 import torch
 
 from lcreg.checkpoints import one_line
-from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, load_weights, method, save_weights, timed
+from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, method, timed
 from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
 from lcreg.models.base import NonFiniteTrainingError
+from lcreg.weights import load_into
+from lcreg.weights.export import save
 
 __all__ = [
     "KEY_FIELDS",
@@ -140,7 +142,7 @@ def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path
     overrides = [*budget.fit_overrides(run_dir, seed), *data.overrides(budget)]
     result = fit(name, overrides, monitor=budget.monitor, resume=budget.converge)
     best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
-    load_weights(result.model, result.best_checkpoint)
+    load_into(result.model, result.best_checkpoint)
     test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
     results, test_s = timed(test)
     tested = results[0]
@@ -174,7 +176,7 @@ def _keep_weights_only(model: torch.nn.Module, best: Path, run_dir: Path) -> Pat
     A finished run needs no training state: the Lightning checkpoints (optimiser moments, ``last.ckpt``) are up to
     three times the weights (about 70 MB for DCP-v2 or PRNet), times every run of a sweep.
     """
-    path = save_weights(model, run_dir / "selected_weights.pt")
+    path = save(model, run_dir / "selected_weights.pt")  # the one weights format: lcreg.pretrained reads it
     for checkpoint in best.parent.glob("*.ckpt"):
         checkpoint.unlink()
     return path
