@@ -14,7 +14,16 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("lcreg", "lcreg.types", "lcreg.checks", "lcreg.config", "lcreg.checkpoints", "lcreg.figures", "lcreg.reference"),
+    (
+        "lcreg",
+        "lcreg.types",
+        "lcreg.checks",
+        "lcreg.config",
+        "lcreg.checkpoints",
+        "lcreg.figures",
+        "lcreg.reference",
+        "lcreg.methods",
+    ),
     ("lcreg.geometry",),
     ("lcreg.metrics", "lcreg.nn", "lcreg.data"),
     ("lcreg.models",),

@@ -10,9 +10,12 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
+from lcreg.methods import class_names
+
 __version__ = "0.1.0"
 
 _LAZY = {
+    **class_names(),  # every method's class (lcreg.methods: the one table of methods)
     "LocalConsistency": "lcreg.nn.local_consistency",
     "PointNetEncoder": "lcreg.nn.pointnet",
     "InverseCompositionalLK": "lcreg.nn.lk",
@@ -24,17 +27,6 @@ _LAZY = {
     "LossTerm": "lcreg.models.loss_terms",
     "LocalConsistencyLoss": "lcreg.models.loss_terms",
     "LucasKanadeModule": "lcreg.models.lucas_kanade",
-    "DVDs": "lcreg.models.dvds",
-    "DCP": "lcreg.baselines.dcp",
-    "PRNet": "lcreg.baselines.prnet",
-    "IDAM": "lcreg.baselines.idam",
-    "DeepGMR": "lcreg.baselines.deepgmr",
-    "PointNetLK": "lcreg.baselines.pointnetlk",
-    "FMRNet": "lcreg.baselines.fmr",
-    "PCRNet": "lcreg.baselines.pcrnet",
-    "ICP": "lcreg.baselines.classical",
-    "RANSAC": "lcreg.baselines.classical",
-    "FGR": "lcreg.baselines.classical",
     "ModelNet40DataModule": "lcreg.data.datamodule",
     "SyntheticDataModule": "lcreg.data.datamodule",
     "PairDataModule": "lcreg.data.datamodule",

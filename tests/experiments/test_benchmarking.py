@@ -50,6 +50,7 @@ from lcreg.experiments.benchmarking import (
     voxelize_overrides,
 )
 from lcreg.experiments.evaluation import evaluate
+from lcreg.methods import METHODS as LIBRARY_METHODS
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationResult
 from lcreg.weights import training_only
@@ -128,6 +129,8 @@ def test_build_without_checkpoint_gives_the_configured_class(name: str) -> None:
     assert isinstance(model, RegistrationModule)
     assert type(model).__module__ == module and type(model).__name__ == cls
     assert model.has_loss == METHODS[name].learned
+    library = LIBRARY_METHODS[METHODS[name].method]  # each row builds the library method it names
+    assert f"{module}.{cls}" == library.class_path and library.learned == METHODS[name].learned
 
 
 def test_build_passes_configs_and_overrides_like_lcreg_test() -> None:

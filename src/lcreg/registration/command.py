@@ -20,6 +20,7 @@ from typing import NoReturn
 
 import numpy as np
 
+from lcreg.methods import METHODS
 from lcreg.registration.api import DEFAULT_METHOD, Registration, register
 from lcreg.registration.methods import CLASSICAL, LEARNED, MethodError
 from lcreg.registration.outputs import TRANSFORM_SUFFIXES, check_suffix, read_transform, write_ply, write_transform
@@ -38,7 +39,7 @@ def _methods_help() -> str:
     for name, class_path in LEARNED.items():
         names = [n for n in shipped if REGISTRY[n].class_path == class_path]
         weights = f"shipped weights: {', '.join(names)}" if names else "needs --weights (.ckpt or .pt)"
-        lines.append(f"  {name:<13} {class_path.rpartition('.')[2]} network; {weights}")
+        lines.append(f"  {name:<13} {METHODS[name].summary}; {weights}")
     lines.append("  X+icp         any of the above but icp, then ICP refinement (e.g. ransac+icp, fgr+icp, dvds+icp)")
     return "\n".join(lines)
 

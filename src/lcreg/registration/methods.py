@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from lcreg.methods import METHODS
+
 if TYPE_CHECKING:
     from lcreg.baselines.classical import FGR, ICP, RANSAC, PairResult
     from lcreg.models.base import RegistrationModule
@@ -45,21 +47,10 @@ __all__ = [
     "parse_method",
 ]
 
-CLASSICAL: dict[str, str] = {
-    "icp": "point-to-plane ICP from the identity or --init (local)",
-    "ransac": "FPFH + RANSAC (global)",
-    "fgr": "FPFH + Fast Global Registration (global)",
-}
-LEARNED: dict[str, str] = {
-    "dvds": "lcreg.models.dvds.DVDs",
-    "pointnetlk": "lcreg.baselines.pointnetlk.PointNetLK",
-    "fmr": "lcreg.baselines.fmr.FMRNet",
-    "dcp": "lcreg.baselines.dcp.DCP",
-    "prnet": "lcreg.baselines.prnet.PRNet",
-    "idam": "lcreg.baselines.idam.IDAM",
-    "deepgmr": "lcreg.baselines.deepgmr.DeepGMR",
-    "pcrnet": "lcreg.baselines.pcrnet.PCRNet",
-}
+CLASSICAL: dict[str, str] = {name: info.summary for name, info in METHODS.items() if not info.learned}
+"""The classical methods: name -> one line (from :data:`lcreg.methods.METHODS`)."""
+LEARNED: dict[str, str] = {name: info.class_path for name, info in METHODS.items() if info.learned}
+"""The learned methods: name -> class path (from :data:`lcreg.methods.METHODS`)."""
 REFINERS = ("icp",)
 NORMAL_FACTOR, FEATURE_FACTOR = 2.0, 5.0
 RANSAC_DISTANCE, FGR_DISTANCE, ICP_DISTANCE = 1.5, 0.5, 2.0

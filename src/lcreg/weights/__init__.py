@@ -22,13 +22,16 @@ terms). ``import lcreg.weights`` needs torch only; Lightning is imported when a 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from importlib import import_module
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
 
+from lcreg import __version__
 from lcreg.checkpoints import (
     CheckpointError,
     CheckpointFormatError,
@@ -39,6 +42,7 @@ from lcreg.checkpoints import (
     read_checkpoint,
     read_torch_file,
 )
+from lcreg.methods import pretrained_weights
 
 if TYPE_CHECKING:
     from lcreg.models.base import RegistrationModule
@@ -50,6 +54,7 @@ __all__ = [
     "MAX_FILE_BYTES",
     "NAME_PATTERN",
     "REGISTRY",
+    "Metadata",
     "PretrainedBuildError",
     "PretrainedClassError",
     "PretrainedError",
@@ -64,12 +69,14 @@ __all__ = [
     "class_path_of",
     "is_plain_mapping",
     "load_into",
+    "model_payload",
     "pretrained",
     "pretrained_names",
     "read_weights",
     "resolve",
     "resolve_class",
     "shipped_names",
+    "slim_payload",
     "training_only",
     "validated",
     "weights_dir",
@@ -86,6 +93,8 @@ NAME_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]*")
 CHECKPOINT_SUFFIX = ".ckpt"
 """Files read as Lightning checkpoints (everything else is read as an exported weights file)."""
 _PLAIN_SCALARS = (str, int, float, bool, type(None))
+Metadata = dict[str, str | int | float | bool]
+"""Provenance entries of a weights file."""
 
 
 @dataclass(frozen=True)
@@ -102,15 +111,10 @@ class PretrainedSpec:
 
 
 REGISTRY: dict[str, PretrainedSpec] = {
-    "dvds-modelnet40": PretrainedSpec(
-        "lcreg.models.dvds.DVDs", "DVDs trained self-supervised on ModelNet40 (configs/dvds_modelnet40.yaml)"
-    ),
-    "pointnetlk-modelnet40": PretrainedSpec(
-        "lcreg.baselines.pointnetlk.PointNetLK",
-        "PointNetLK trained supervised on ModelNet40 (configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml)",
-    ),
+    name: PretrainedSpec(info.class_path, text) for name, (info, text) in pretrained_weights().items()
 }
-"""Every name :func:`pretrained` accepts; a name's file ships as ``<name>.pt`` in :func:`weights_dir` (or not yet)."""
+"""Every name :func:`pretrained` accepts (from :data:`lcreg.methods.METHODS`); a name's file ships as ``<name>.pt`` in
+:func:`weights_dir` (or not yet)."""
 
 
 # --- errors --------------------------------------------------------------------------------------------------------
@@ -244,8 +248,6 @@ def read_weights(name_or_path: str | Path) -> PretrainedWeights:
     source = str(name_or_path)
     path = resolve(name_or_path)
     if path.suffix == CHECKPOINT_SUFFIX:
-        from lcreg.weights.export import slim_payload
-
         return validated(slim_payload(path, "checkpoint"), source, path)
     try:
         content = read_torch_file(path)
@@ -447,3 +449,154 @@ def _few(items: list[str], limit: int = 5) -> str:
     """The first ``limit`` items, comma-separated, with a count of the rest."""
     more = f" and {len(items) - limit} more" if len(items) > limit else ""
     return ", ".join(items[:limit]) + more
+
+
+# --- the file's content from a checkpoint or a model in memory ----------------------------------------------------
+def slim_payload(
+    checkpoint: str | Path,
+    name: str,
+    metadata: Mapping[str, str | int | float | bool] | None = None,
+    class_path: str | None = None,
+) -> dict[str, Any]:
+    """The content of the weights file for a Lightning checkpoint (nothing written).
+
+    Args:
+        checkpoint: A checkpoint of ``lcreg fit`` (any Lightning checkpoint with ``hyper_parameters``).
+        name: The name stored in the file (:data:`~lcreg.weights.NAME_PATTERN`).
+        metadata: Entries added to (or replacing) the default metadata.
+        class_path: The model class when the checkpoint does not name it (``hyper_parameters["_class_path"]``).
+
+    Returns:
+        The dict :func:`torch.save` writes: ``format``, ``name``, ``class_path``, ``init_args``, ``state_dict``
+        (inference tensors only, CPU, contiguous copies), ``lcreg_version``, ``metadata``.
+
+    Raises:
+        ValueError: A name outside :data:`~lcreg.weights.NAME_PATTERN`.
+        CheckpointError: The checkpoint is missing, unreadable, has no hyper-parameters or class, or its tensors do
+            not fit the class (:class:`~lcreg.checkpoints.CheckpointMismatchError`).
+        PretrainedError: The class is not an lcreg ``RegistrationModule`` or refuses the hyper-parameters.
+    """
+    _check_name(name)
+    content = read_checkpoint(checkpoint)
+    hparams = content.get("hyper_parameters")
+    if not isinstance(hparams, dict):
+        raise CheckpointFormatError(checkpoint, "no 'hyper_parameters' (the model's constructor arguments)")
+    class_path = class_path or hparams.get("_class_path")
+    if not isinstance(class_path, str):
+        raise CheckpointFormatError(checkpoint, "no model class in hyper_parameters['_class_path']; pass --class-path")
+    meta = {**_default_metadata(checkpoint, content), **(metadata or {})}
+    return _payload(class_path, hparams, content["state_dict"], name, meta, Path(checkpoint))
+
+
+def model_payload(
+    model: torch.nn.Module, name: str, metadata: Mapping[str, str | int | float | bool] | None = None
+) -> dict[str, Any]:
+    """The content of the weights file for a model in memory (its ``hparams`` and inference tensors; nothing written).
+
+    Raises:
+        ValueError: A name outside :data:`~lcreg.weights.NAME_PATTERN`.
+        PretrainedError: The model is not an lcreg ``RegistrationModule``, or its tensors or hyper-parameters do not
+            rebuild it.
+    """
+    _check_name(name)
+    hparams = dict(getattr(model, "hparams", {}))
+    meta = {**_time_metadata(), **(metadata or {})}
+    return _payload(class_path_of(model), hparams, model.state_dict(), name, meta, Path(f"{name}.pt"))
+
+
+def _check_name(name: str) -> None:
+    if not NAME_PATTERN.fullmatch(name):
+        raise ValueError(f"weights name {name!r} must match {NAME_PATTERN.pattern} (it becomes <name>.pt)")
+
+
+def _payload(
+    class_path: str,
+    hparams: Mapping[str, Any],
+    state: Mapping[str, torch.Tensor],
+    name: str,
+    metadata: Metadata,
+    source: Path,
+) -> dict[str, Any]:
+    """Build the inference model of ``class_path`` from ``hparams``, take its tensors from ``state``, check it loads.
+
+    Raises:
+        CheckpointFormatError: Hyper-parameters that are not plain data.
+        CheckpointMismatchError: ``state`` does not fit the class (see :func:`_inference_state`).
+        PretrainedError: Not an lcreg ``RegistrationModule`` class, or it refuses the hyper-parameters.
+    """
+    cls = resolve_class(class_path, name)
+    init_args = {k: v for k, v in hparams.items() if not k.startswith("_")}
+    if not is_plain_mapping(init_args):
+        raise CheckpointFormatError(source, "hyper_parameters hold values other than plain data")
+    init_args.update(cls.inference_hparams)
+    try:
+        model = cls(**init_args)
+    except (TypeError, ValueError) as err:
+        raise PretrainedBuildError(name, f"{class_path} refuses the hyper-parameters: {err}") from err
+    inference = _inference_state(model, state, source)
+    payload = {
+        "format": FORMAT,
+        "name": name,
+        "class_path": class_path,
+        "init_args": init_args,
+        "state_dict": inference,
+        "lcreg_version": __version__,
+        "metadata": dict(metadata),
+    }
+    check = PretrainedWeights(name, source, name, class_path, init_args, inference, __version__, {})
+    load_into(model, check)  # the file loads back exactly as lcreg.pretrained will load it
+    return payload
+
+
+def _inference_state(
+    model: torch.nn.Module, checkpoint_state: Mapping[str, torch.Tensor], checkpoint: str | Path
+) -> dict[str, torch.Tensor]:
+    """The checkpoint's tensors of ``model``'s inference modules (CPU, contiguous copies: no shared storage).
+
+    Raises:
+        CheckpointMismatchError: The checkpoint lacks an inference tensor, or holds tensors that are neither the
+            model's nor training-only (another architecture).
+    """
+    wanted = [k for k in model.state_dict() if not training_only(model, k)]
+    missing = [k for k in wanted if k not in checkpoint_state]
+    foreign = [k for k in checkpoint_state if k not in wanted and not training_only(model, k)]
+    if missing or foreign:
+        raise CheckpointMismatchError(
+            checkpoint,
+            f"does not fit {type(model).__name__}: missing {missing[:5]} ({len(missing)}), "
+            f"unexpected {foreign[:5]} ({len(foreign)})",
+        )
+    return {k: checkpoint_state[k].detach().to("cpu", copy=True).contiguous() for k in wanted}
+
+
+def _time_metadata() -> Metadata:
+    """The export time and torch version."""
+    return {
+        "exported_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "torch_version": str(torch.__version__),  # a str subclass torch.load(weights_only) refuses
+    }
+
+
+def _default_metadata(checkpoint: str | Path, content: Mapping[str, Any]) -> Metadata:
+    """Provenance the checkpoint itself records (no absolute paths)."""
+    meta: Metadata = {"source_checkpoint": Path(checkpoint).name, **_time_metadata()}
+    for key in ("global_step", "epoch"):
+        if isinstance(content.get(key), int):
+            meta[key] = content[key]
+    if isinstance(content.get("pytorch-lightning_version"), str):
+        meta["lightning_version"] = content["pytorch-lightning_version"]
+    data = content.get("datamodule_hyper_parameters")
+    if isinstance(data, dict):
+        meta["data"] = _data_summary(data)
+    return meta
+
+
+def _data_summary(hparams: Mapping[str, Any]) -> str:
+    """``"ModelNet40DataModule(root=modelnet40_mini, num_points=1024, ...)"`` (folders by their last part)."""
+    cls = str(hparams.get("_class_path", "data")).rpartition(".")[2]
+    items = [
+        f"{k}={Path(v).name if k == 'root' and isinstance(v, str) else v}"
+        for k, v in hparams.items()
+        if not k.startswith("_")
+    ]
+    return f"{cls}({', '.join(items)})"

@@ -1,7 +1,8 @@
-"""The one table of benchmarked methods: a name, a label and the config files that build it.
+"""The benchmarked rows: a library method (:data:`lcreg.methods.METHODS`) with its data, refinement, LC or recipe.
 
-Config paths are relative to lcreg's ``configs/`` folder (:func:`config_dir`) and appear only in this
-module, so a new config layout is one edit here. Every benchmark builds a method by name through
+Each row names its library method; its label and model config come from that table, so a method is described once.
+Config paths are relative to lcreg's ``configs/`` folder (:func:`config_dir`) and appear only here and in
+:mod:`lcreg.methods`, so a new config layout is one edit. Every benchmark builds a method by name through
 :func:`lcreg.experiments.benchmarking.build`, exactly as ``lcreg test --config <configs...>`` does.
 """
 
@@ -14,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from lcreg.config import configs_root
+from lcreg.methods import METHODS as LIBRARY
 
 __all__ = [
     "ABLATION_CONFIGS",
@@ -56,6 +58,7 @@ class MethodSpec:
 
     Attributes:
         label: Row label in tables.
+        method: The library method it builds (a key of :data:`lcreg.methods.METHODS`).
         configs: Config files, relative to :func:`config_dir`, passed in order as ``--config``.
         learned: Whether the method has weights to train (a checkpoint is meaningful).
         refine: Optional refinement config appended after ``configs`` (``+ ICP`` rows).
@@ -66,6 +69,7 @@ class MethodSpec:
     """
 
     label: str
+    method: str
     configs: tuple[str, ...]
     learned: bool
     refine: str | None = None
@@ -82,21 +86,24 @@ def _batch(size: int) -> tuple[str, ...]:
     return (f"--data.init_args.batch_size={size}",)
 
 
-def _learned(label: str, model: str, batch: int) -> MethodSpec:
-    return MethodSpec(label, (f"models/{model}.yaml", MODELNET40), True, overrides=_batch(batch))
+def _learned(model: str, batch: int) -> MethodSpec:
+    info = LIBRARY[model]
+    return MethodSpec(info.label, model, (info.config, MODELNET40), True, overrides=_batch(batch))
 
 
-def _host(label: str, model: str, batch: int, lc: bool) -> MethodSpec:
+def _host(model: str, batch: int, lc: bool) -> MethodSpec:
     """A host of the LC + X table: ModelNet40 under the DCP-family protocol, with or without ``lc.yaml``."""
-    configs = (f"models/{model}.yaml", *((LC_CONFIG,) if lc else ()), MODELNET40, DCP_PROTOCOL)
-    return MethodSpec(label, configs, True, lc_variant=None if lc else f"{model}_lc", overrides=_batch(batch))
+    info = LIBRARY[model]
+    configs = (info.config, *((LC_CONFIG,) if lc else ()), MODELNET40, DCP_PROTOCOL)
+    label = f"LC + {info.label}" if lc else info.label
+    return MethodSpec(label, model, configs, True, lc_variant=None if lc else f"{model}_lc", overrides=_batch(batch))
 
 
 def _ablation(stem: str, recipe: bool) -> tuple[str, MethodSpec]:
     """``ablation_<stem>`` (the paper's objective) or ``ablation_<stem>_selfsup`` (plus the self-motion term)."""
     label = f"DVDs ablation {stem}" + (" + self-motion" if recipe else "")
     configs = (f"ablation/{stem}.yaml", *((SELF_MOTION_CONFIG,) if recipe else ()))
-    return f"ablation_{stem}" + ("_selfsup" if recipe else ""), MethodSpec(label, configs, True)
+    return f"ablation_{stem}" + ("_selfsup" if recipe else ""), MethodSpec(label, "dvds", configs, True)
 
 
 ABLATION_CONFIGS = (
@@ -113,42 +120,44 @@ ABLATION_CONFIGS = (
 ``lambda_0.5_0.1`` are model D under another logger name, so they are not registered twice)."""
 
 
-def _classical(label: str, model: str, refine: str | None = None) -> MethodSpec:
-    return MethodSpec(label, (f"models/{model}.yaml", MODELNET40), False, refine=refine)
+def _classical(label: str, model: str, config: str | None = None, refine: str | None = None) -> MethodSpec:
+    """A classical row: ``model``'s config (or another config of the same class, e.g. point-to-plane ICP)."""
+    return MethodSpec(label, model, (config or LIBRARY[model].config, MODELNET40), False, refine=refine)
 
 
 # Batch sizes are the originals' (DCP 32, PRNet 36, IDAM 16, DeepGMR 32, PointNetLK 32, PCRNet 20, FMR-Net 8).
+HOST_BATCHES = {"dcp": 32, "prnet": 36, "idam": 16, "deepgmr": 32}
+"""The hosts of the LC + X table and their original batch sizes."""
 METHODS: dict[str, MethodSpec] = {
-    "dvds": MethodSpec("DVDs", ("dvds_modelnet40.yaml",), True),
-    "dvds_selfsup": MethodSpec("DVDs, self-motion recipe", ("dvds_selfsup_modelnet40.yaml",), True),
-    "dvds_voxel": MethodSpec("DVDs voxelised (27 voxels)", ("dvds_modelnet40.yaml", VOXELIZE_CONFIG), True),
-    "dvds_icp": MethodSpec("DVDs + ICP", ("dvds_modelnet40.yaml",), True, refine=REFINE_CONFIG, weights_from="dvds"),
-    "pointnetlk": _learned("PointNetLK", "pointnetlk", 32),
-    "pcrnet": _learned("PCRNet", "pcrnet", 20),
-    "fmr": _learned("FMR-Net", "fmr", 8),
-    "dcp": _host("DCP-v2", "dcp", 32, lc=False),
-    "prnet": _host("PRNet", "prnet", 36, lc=False),
-    "idam": _host("IDAM", "idam", 16, lc=False),
-    "deepgmr": _host("DeepGMR", "deepgmr", 32, lc=False),
-    "dcp_lc": _host("LC + DCP-v2", "dcp", 32, lc=True),
-    "prnet_lc": _host("LC + PRNet", "prnet", 36, lc=True),
-    "idam_lc": _host("LC + IDAM", "idam", 16, lc=True),
-    "deepgmr_lc": _host("LC + DeepGMR", "deepgmr", 32, lc=True),
+    "dvds": MethodSpec("DVDs", "dvds", ("dvds_modelnet40.yaml",), True),
+    "dvds_selfsup": MethodSpec("DVDs, self-motion recipe", "dvds", ("dvds_selfsup_modelnet40.yaml",), True),
+    "dvds_voxel": MethodSpec("DVDs voxelised (27 voxels)", "dvds", ("dvds_modelnet40.yaml", VOXELIZE_CONFIG), True),
+    "dvds_icp": MethodSpec(
+        "DVDs + ICP", "dvds", ("dvds_modelnet40.yaml",), True, refine=REFINE_CONFIG, weights_from="dvds"
+    ),
+    "pointnetlk": _learned("pointnetlk", 32),
+    "pcrnet": _learned("pcrnet", 20),
+    "fmr": _learned("fmr", 8),
+    **{host: _host(host, batch, lc=False) for host, batch in HOST_BATCHES.items()},
+    **{f"{host}_lc": _host(host, batch, lc=True) for host, batch in HOST_BATCHES.items()},
     "icp": _classical("ICP point-to-point", "icp"),
-    "icp_plane": _classical("ICP point-to-plane", "icp_plane"),
+    "icp_plane": _classical("ICP point-to-plane", "icp", config="models/icp_plane.yaml"),
     "ransac": _classical("FPFH + RANSAC", "ransac"),
     "fgr": _classical("FPFH + FGR", "fgr"),
     "ransac_icp": _classical("FPFH + RANSAC + ICP", "ransac", refine=REFINE_CONFIG),
     "fgr_icp": _classical("FPFH + FGR + ICP", "fgr", refine=REFINE_CONFIG),
     **dict(_ablation(stem, recipe) for recipe in (False, True) for stem in ABLATION_CONFIGS),
     "ransac_icp_sevenscenes": MethodSpec(
-        "FPFH + RANSAC + ICP", ("pipelines/ransac_icp_sevenscenes.yaml", DATA_CONFIGS["sevenscenes"]), False
+        "FPFH + RANSAC + ICP",
+        "ransac",
+        ("pipelines/ransac_icp_sevenscenes.yaml", DATA_CONFIGS["sevenscenes"]),
+        False,
     ),
     "ransac_icp_kitti": MethodSpec(
-        "FPFH + RANSAC + ICP", ("pipelines/ransac_icp_kitti.yaml", DATA_CONFIGS["kitti"]), False
+        "FPFH + RANSAC + ICP", "ransac", ("pipelines/ransac_icp_kitti.yaml", DATA_CONFIGS["kitti"]), False
     ),
 }
-"""Every benchmarked method by name (the one registry)."""
+"""Every benchmarked row by name (each on a library method of :data:`lcreg.methods.METHODS`)."""
 
 
 def method(name: str) -> MethodSpec:
