@@ -120,3 +120,31 @@ def test_refiner_is_a_constructor_argument_neither_a_submodule_nor_saved(tmp_pat
     model.load_state_dict(trained.state_dict())
     torch.testing.assert_close(model.shift, trained.shift)
     assert isinstance(model.refiner, ICP)
+
+
+# --- subclassing needs no ritual -----------------------------------------------------------------------------------
+class _Host(RegistrationModule):
+    """A host as a user writes one: build the layers, nothing else."""
+
+    def __init__(self, width: int = 8, **kwargs: object) -> None:
+        from lcreg.nn.pointnet import PointNetEncoder
+
+        super().__init__(**kwargs)  # type: ignore[arg-type]
+        self.encoder = PointNetEncoder([width, width], batch_norm=False)
+
+
+class _WiderHost(_Host):
+    def __init__(self, extra: int = 1, **kwargs: object) -> None:
+        super().__init__(width=4 * extra, **kwargs)  # type: ignore[arg-type]
+
+
+def test_hosts_save_their_arguments_and_bind_terms_without_ritual_calls() -> None:
+    from lcreg.models.loss_terms import LocalConsistencyLoss
+
+    host = _Host(width=16, loss_terms=[LocalConsistencyLoss()], max_bad_steps=3)
+    assert dict(host.hparams) == {"width": 16, "max_bad_steps": 3}  # the components are never hyper-parameters
+    assert host.state_dict()["loss_terms.0.local_consistency.metric.weight"].shape == (16, 32)  # bound after __init__
+    wider = _WiderHost(extra=2, loss_terms=[LocalConsistencyLoss()])
+    assert dict(wider.hparams) == {"extra": 2}  # the outermost constructor's arguments: what rebuilds it
+    assert wider.state_dict()["loss_terms.0.local_consistency.metric.weight"].shape == (8, 16)
+    assert type(wider)(**wider.hparams).encoder.feature_dim == 8

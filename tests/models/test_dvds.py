@@ -234,7 +234,6 @@ class MinimalHost(RegistrationModule):
     def __init__(self, **kwargs: object) -> None:
         super().__init__(**kwargs)  # type: ignore[arg-type]
         self.encoder = PointNetEncoder((16, 32))
-        self._bind_loss_terms()
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         b = points_src.shape[0]

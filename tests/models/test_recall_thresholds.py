@@ -31,7 +31,6 @@ class _Identity(RegistrationModule):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self._save_hparams()
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         eye = torch.eye(4, dtype=points_src.dtype, device=points_src.device)

@@ -356,7 +356,6 @@ class ICP(ClassicalRegistration):
         self.max_iterations = max_iterations
         self.relative_fitness = float(relative_fitness)
         self.relative_rmse = float(relative_rmse)
-        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:
@@ -542,7 +541,6 @@ class RANSAC(FeatureRegistration):
         self.max_iterations = max_iterations
         self.confidence = float(confidence)
         self.deterministic = deterministic
-        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:
@@ -649,7 +647,6 @@ class FGR(FeatureRegistration):
         self.tuple_scale = float(tuple_scale)
         self.maximum_tuple_count = maximum_tuple_count
         self.tuple_test = tuple_test
-        self._save_hparams()
 
     @property
     def max_correspondence_distance(self) -> float:

@@ -86,12 +86,10 @@ class DCP(RegistrationModule):
         super().__init__(**kwargs)
         if pointer not in ("transformer", "identity"):
             raise ValueError(f"`pointer` must be 'transformer' or 'identity', got {pointer!r}")
-        self._save_hparams()
         self.encoder = DGCNN(emb_dims, k, "static", channels=tuple(edge_channels), act="relu")
         self.pointer = PointerTransformer(emb_dims, heads, ff_dims, "relu") if pointer == "transformer" else None
         self.cycle = cycle
         self.return_probabilities = return_probabilities
-        self._bind_loss_terms()
         self.min_points = k
 
     def embed(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

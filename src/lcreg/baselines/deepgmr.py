@@ -173,10 +173,8 @@ class DeepGMR(RegistrationModule):
         super().__init__(**kwargs)
         if num_clusters < 1:
             raise ValueError(f"`num_clusters` must be >= 1, got {num_clusters}")
-        self._save_hparams()
         self.encoder = DeepGMREncoder(d_model, k, use_rri)
         self.cluster_head = PointwiseMLP((2 * d_model, 512, 256, 128, num_clusters), bias=False, last_plain=True)
-        self._bind_loss_terms()
         self.min_points = k + 1 if use_rri else 3
 
     def posteriors(self, points: torch.Tensor) -> torch.Tensor:

@@ -90,7 +90,6 @@ class FMRNet(LucasKanadeModule):
         )
         if pose_weight < 0:
             raise ValueError(f"`pose_weight` must be >= 0, got {pose_weight}")
-        self._save_hparams()
         self.decoder = MLPDecoder(self.encoder.feature_dim, decoder_hidden, decoder_points, batch_norm)
         self.pose_weight = pose_weight
 

@@ -324,14 +324,12 @@ class IDAM(RegistrationModule):
             raise ValueError(f"`num_kept` must be >= 1 or None, got {num_kept}")
         if positive_threshold <= 0:
             raise ValueError(f"`positive_threshold` must be > 0, got {positive_threshold}")
-        self._save_hparams()
         self.encoder = GNNEncoder(emb_dims, k, gnn_channels)
         self.score_head = PointwiseMLP([emb_dims, 64, 32, 1], last_plain=True)
         self.blocks = nn.ModuleList(SimilarityBlock(emb_dims, hidden) for _ in range(num_iters))
         self.num_iters = num_iters
         self.num_kept = num_kept
         self.positive_threshold = positive_threshold
-        self._bind_loss_terms()
         self.min_points = k
 
     def kept(self, num_src: int, num_ref: int) -> int:

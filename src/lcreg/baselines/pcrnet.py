@@ -106,9 +106,7 @@ class PCRNet(RegistrationModule):
             raise ValueError(f"`dropout` must be in [0, 1), got {dropout}")
         if num_iterations < 1:
             raise ValueError(f"`num_iterations` must be >= 1, got {num_iterations}")
-        self._save_hparams()
         self.encoder = PointNetEncoder(tuple(encoder_channels), batch_norm=False)
-        self._bind_loss_terms()
         k = self.encoder.feature_dim
         self.regressor = PointwiseMLP((2 * k, *regressor_hidden), batch_norm=False)
         self.dropout = nn.Dropout(dropout)

@@ -84,7 +84,6 @@ class PointNetLK(LucasKanadeModule):
             raise ValueError(
                 f"loss weights must be >= 0, got residual_weight={residual_weight}, pose_weight={pose_weight}"
             )
-        self._save_hparams()
         self.residual_weight = residual_weight
         self.pose_weight = pose_weight
 

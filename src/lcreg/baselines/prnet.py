@@ -187,7 +187,6 @@ class PRNet(RegistrationModule):
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        self._save_hparams()
         if sampler not in ("gumbel_softmax", "softmax"):
             raise ValueError(f"`sampler` must be 'gumbel_softmax' or 'softmax', got {sampler!r}")
         if num_keypoints < 3:
@@ -204,7 +203,6 @@ class PRNet(RegistrationModule):
         self.discount = discount
         self.feature_alignment_weight = feature_alignment_weight
         self.cycle_weight = cycle_weight
-        self._bind_loss_terms()
         self.min_points = max(k, 3)
 
     def head(

@@ -25,6 +25,7 @@ consecutive skipped steps stop training (:class:`NonFiniteTrainingError`).
 from __future__ import annotations
 
 import csv
+import functools
 import inspect
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
@@ -136,6 +137,7 @@ class RegistrationModule(LightningModule):
         recall_thresholds: Sequence[tuple[float, float]] | None = None,
     ) -> None:
         super().__init__()
+        self._save_constructor_hparams()
         if unit_scale is not None and not (isinstance(unit_scale, (int, float)) and 0 < unit_scale < float("inf")):
             raise ValueError(f"`unit_scale` must be a finite number > 0 or None, got {unit_scale!r}")
         self.unit_scale = None if unit_scale is None else float(unit_scale)
@@ -232,14 +234,48 @@ class RegistrationModule(LightningModule):
         return encoder
 
     def _bind_loss_terms(self) -> None:
-        """Let every injected term check itself against the built model (hosts call this at the end of __init__)."""
+        """Let every injected term check itself against the built model (run after the outermost constructor)."""
         for term in self.injected_terms:
             term.bind(self)
 
-    def _save_hparams(self) -> None:
-        """``save_hyperparameters`` of the calling constructor, without the injected components."""
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Wrap each subclass constructor: once the outermost one has returned, the loss terms are bound.
+
+        So a host needs no ritual call: its constructor builds its layers, and the injected terms see the finished
+        model (LC takes the encoder's width and builds its metric, whose parameters are then in the state dict).
+        """
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            return
+
+        @functools.wraps(init)
+        def __init__(self: RegistrationModule, *args: Any, **kw: Any) -> None:
+            init(self, *args, **kw)
+            if _constructor_owner(type(self)) is cls:
+                self._bind_loss_terms()
+
+        cls.__init__ = __init__  # type: ignore[method-assign]
+
+    def _save_constructor_hparams(self) -> None:
+        """``save_hyperparameters`` of the outermost constructor running for this model, without the components.
+
+        Called by the base constructor: the frames above it are the constructors of the subclasses (their arguments
+        are bound when they start), the outermost is the class the user built. Under LightningCLI, Lightning takes
+        the CLI's own record instead (with ``_class_path``).
+        """
         frame = inspect.currentframe()
-        self.save_hyperparameters(ignore=list(COMPONENT_ARGS), frame=frame.f_back if frame else None)
+        frame = frame.f_back if frame is not None else None
+        outermost = None
+        while frame is not None and frame.f_code.co_name == "__init__":
+            names = frame.f_code.co_varnames
+            if not names or frame.f_locals.get(names[0]) is not self:
+                break
+            if "__class__" in frame.f_locals:  # a constructor (the wrappers above have none)
+                outermost = frame
+            frame = frame.f_back
+        self.save_hyperparameters(ignore=list(COMPONENT_ARGS), frame=outermost)
+        del frame, outermost
 
     def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
         """The forward pass whose result ``training_losses`` receives during training.
@@ -519,6 +555,11 @@ class RegistrationModule(LightningModule):
             # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
         return {"optimizer": optimizer, "lr_scheduler": scheduler}
+
+
+def _constructor_owner(cls: type) -> type:
+    """The class whose ``__init__`` runs first when ``cls`` is built (the nearest that defines one)."""
+    return next(c for c in cls.__mro__ if "__init__" in c.__dict__)
 
 
 def _inputs_to_model_dtype(

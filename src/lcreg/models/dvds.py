@@ -105,7 +105,6 @@ class DVDs(LucasKanadeModule):
                 f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}, "
                 f"lambda_global={lambda_global}"
             )
-        self._save_hparams()
         k = self.encoder.feature_dim
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal

@@ -75,7 +75,6 @@ class LucasKanadeModule(RegistrationModule):
         if eval_iterations is not None and eval_iterations < 1:
             raise ValueError(f"`eval_iterations` must be >= 1 or None, got {eval_iterations}")
         self.encoder = PointNetEncoder(encoder_channels, batch_norm)
-        self._bind_loss_terms()
         self.solver = InverseCompositionalLK(
             max_iterations, tolerance, damping, jacobian, fd_step=fd_step, differentiable=differentiable
         )
