@@ -64,7 +64,7 @@ def test_training_step_on_a_float64_batch() -> None:
     src, ref = _pair(torch.float64)
     pose = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone()
     batch = RegistrationBatch(src, ref, transform_ref_src=pose, index=torch.arange(2))
-    loss = model._common_step(batch, "train")
+    loss = model.training_step(batch, 0)
     assert loss is not None and loss.dtype == torch.float32 and torch.isfinite(loss)
     loss.backward()
 

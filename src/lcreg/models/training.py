@@ -1,0 +1,194 @@
+"""Training: the model's losses plus the injected terms, the optimiser, and the guard against non-finite steps.
+
+:class:`TrainingLogic` is the training half of :class:`~lcreg.models.base.RegistrationModule`. A host implements
+``_compute_loss`` (its own objective, with a ``"loss"`` entry); :meth:`TrainingLogic.training_losses` adds every
+injected :class:`~lcreg.models.loss_terms.LossTerm` (each weighted and logged as ``{stage}/{name}``): the one public way
+to get a model's training losses. Optimisers are injected (``optimizer``/``lr_scheduler`` callables, LightningCLI
+style).
+
+A training step whose loss or gradient is not finite (NaN normals or poses in the data, a diverging model) is skipped
+before the optimiser sees it, with a warning naming the batch's dataset indices; ``max_bad_steps`` consecutive skipped
+steps stop training (:class:`NonFiniteTrainingError`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any, Literal
+
+import torch
+from lightning.pytorch.utilities import rank_zero_warn
+
+from lcreg.models.interface import RegistrationInterface
+from lcreg.models.loss_terms import LossTerm
+from lcreg.types import RegistrationBatch, RegistrationResult
+
+__all__ = ["NonFiniteTrainingError", "OptimizerFactory", "SchedulerFactory", "Stage", "TrainingLogic"]
+
+Stage = Literal["train", "val", "test"]
+OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
+# Typed return (not Any): jsonargparse only accepts a scheduler `class_path` for a callable returning a scheduler.
+SchedulerFactory = Callable[
+    [torch.optim.Optimizer], torch.optim.lr_scheduler.LRScheduler | torch.optim.lr_scheduler.ReduceLROnPlateau
+]
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Training stopped: too many consecutive steps had a non-finite loss or gradient."""
+
+
+class TrainingLogic(RegistrationInterface):
+    """The training step, its losses and optimiser (attributes set by the constructor of ``RegistrationModule``).
+
+    Class attribute ``has_loss``: ``False`` for methods with nothing to train (classical baselines).
+    """
+
+    has_loss: bool = True
+    loss_terms: torch.nn.ModuleList
+    optimizer_factory: OptimizerFactory
+    scheduler_factory: SchedulerFactory | None
+    max_bad_steps: int
+    _bad_steps: int = 0
+    _step_skipped: bool = False
+    _step_index: list[int] | None = None
+
+    def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """The model's own objective terms; must contain ``"loss"``. Call :meth:`training_losses`, not this."""
+        raise NotImplementedError
+
+    def training_losses(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
+        """Every loss term the shared step logs and optimises: the model's own plus each injected term.
+
+        This is the one public way to get a model's training losses (benchmarks and scripts use it too): the
+        result is ``_compute_loss`` with ``weight * term`` added to ``"loss"`` for every ``loss_terms`` entry, each
+        also reported under its name.
+
+        Args:
+            result: The estimate of :meth:`training_forward` (training) or ``forward`` (validation).
+            batch: The batch the estimate was made on.
+
+        Raises:
+            ValueError: If the model's own terms lack ``"loss"`` or reuse an injected term's name.
+        """
+        losses = dict(self._compute_loss(result, batch))
+        if "loss" not in losses:
+            raise ValueError(f"{type(self).__name__}._compute_loss must return a 'loss' entry, got {sorted(losses)}")
+        for term in self.injected_terms:
+            if term.name in losses:
+                raise ValueError(f"loss term {term.name!r} clashes with a term of {type(self).__name__}")
+            value = term(self, result, batch)
+            losses[term.name] = value
+            losses["loss"] = losses["loss"] + term.weight * value
+        self._log_loss_diagnostics(losses)
+        return losses
+
+    @property
+    def injected_terms(self) -> list[LossTerm]:
+        """The injected :class:`~lcreg.models.loss_terms.LossTerm` s, in order."""
+        return [term for term in self.loss_terms if isinstance(term, LossTerm)]
+
+    def _log_loss_diagnostics(self, losses: dict[str, torch.Tensor]) -> None:
+        """Hook run on every ``training_losses`` result (DVDs logs gradient norms); default does nothing."""
+
+    @property
+    def min_points(self) -> int:
+        """Smallest cloud accepted: the model's own minimum and every loss term's."""
+        return max([self._min_points, *(term.min_points for term in self.injected_terms)])
+
+    @min_points.setter
+    def min_points(self, value: int) -> None:
+        self._min_points = value
+
+    def _bind_loss_terms(self) -> None:
+        """Let every injected term check itself against the built model (run after the outermost constructor)."""
+        for term in self.injected_terms:
+            term.bind(self)
+
+    def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
+        """The forward pass whose result ``training_losses`` receives during training.
+
+        Default: ``forward`` on the batch's clouds. Override only when training needs more than the clouds (IDAM
+        samples its training points with the ground-truth correspondences).
+        """
+        return self(batch.points_src, batch.points_ref)
+
+    def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
+        """``forward`` with the autograd graph kept through the estimate (loss terms that train through it).
+
+        Default: ``forward``. Models whose own loss holds the estimate fixed (the IC-LK models) override it.
+        """
+        return self(points_src, points_ref)
+
+    def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor | None:
+        """One optimisation step on a batch; ``None`` (Lightning skips the step) when the loss is not finite."""
+        batch = self._model_batch(batch)
+        losses = self.training_losses(self.training_forward(batch), batch)
+        loss = losses["loss"]
+        self._step_index = None if batch.index is None else batch.index.detach().cpu().tolist()
+        self._step_skipped = not bool(torch.isfinite(loss.detach()).all())  # one host sync per step
+        if self._step_skipped:  # not logged: the epoch means stay finite
+            self._skip_step(f"non-finite loss ({float(loss.detach().float().sum())})")
+            return None
+        self._log_losses(losses, "train", len(batch))
+        return loss
+
+    def _log_losses(self, losses: dict[str, torch.Tensor], stage: Stage, batch_size: int) -> None:
+        """Log every loss term as ``{stage}/{name}`` (per step in training; epoch means over every process)."""
+        for name, value in losses.items():
+            self.log(
+                f"{stage}/{name}",
+                value.detach(),
+                batch_size=batch_size,
+                prog_bar=name == "loss",
+                on_step=stage == "train",
+                on_epoch=True,
+                sync_dist=stage != "train",  # epoch means over every process's pairs (DDP)
+            )
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Skip the update when a gradient is not finite.
+
+        Every gradient is dropped, so the optimiser leaves the parameters and its state as they are.
+        """
+        if self._step_skipped:
+            return
+        grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        if grads and not bool(torch.isfinite(torch.nn.utils.get_total_norm(grads))):
+            for group in optimizer.param_groups:
+                for param in group["params"]:
+                    param.grad = None
+            self._skip_step("non-finite gradient")
+            return
+        self._bad_steps = 0
+
+    def _skip_step(self, reason: str) -> None:
+        """Warn about a skipped step; stop after ``max_bad_steps`` in a row.
+
+        Raises:
+            NonFiniteTrainingError: At the ``max_bad_steps``-th consecutive skipped step.
+        """
+        self._bad_steps += 1
+        where = f"batch indices {self._step_index}" if self._step_index is not None else "a batch without indices"
+        if self._bad_steps >= self.max_bad_steps:
+            raise NonFiniteTrainingError(
+                f"training stopped at step {self.global_step}: {self._bad_steps} consecutive steps with a non-finite "
+                f"loss or gradient (last: {reason} on {where}); check the data for NaN/Inf (points, normals, poses) "
+                "or lower the learning rate"
+            )
+        rank_zero_warn(
+            f"step {self.global_step} skipped: {reason} on {where} "
+            f"({self._bad_steps} in a row; training stops at {self.max_bad_steps})"
+        )
+
+    def configure_optimizers(self) -> Any:
+        """Build the injected optimiser (trainable parameters only) and optional scheduler."""
+        self._bind_loss_terms()  # idempotent; every term's parameters exist before the optimiser sees them
+        params = [p for p in self.parameters() if p.requires_grad]
+        optimizer = self.optimizer_factory(params)
+        if self.scheduler_factory is None:
+            return optimizer
+        scheduler = self.scheduler_factory(optimizer)
+        if isinstance(scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
+            # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
+            return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
+        return {"optimizer": optimizer, "lr_scheduler": scheduler}
