@@ -116,6 +116,7 @@ def test_registry_links_point_to_registered_methods() -> None:
         if spec.lc_variant:
             assert METHODS[spec.lc_variant].learned and spec.learned
     assert METHODS["ransac_icp"].config_files() == ("models/ransac.yaml", "data/modelnet40.yaml", REFINE_CONFIG)
+    assert set(LIBRARY_METHODS) <= set(METHODS)  # every library method is benchmarked under its own name
     with pytest.raises(KeyError, match="unknown method 'nope'; known: dvds"):
         method("nope")
     with pytest.raises(FileNotFoundError, match=r"missing\.yaml"):
