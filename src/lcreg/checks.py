@@ -8,7 +8,9 @@ All checks raise typed errors that name the offending argument, never ``assert``
 * :class:`TooFewPointsError` (a ``ValueError``) for empty clouds or clouds smaller than a module needs, and its
   subclass :class:`DegenerateCloudError` for a cloud whose points all coincide (no rotation can be recovered);
 * :class:`PointCloudFileError` (a ``ValueError``) for a point-cloud file that exists but cannot be used;
-* :class:`DatasetLayoutError` (a ``ValueError``) for a dataset folder whose files do not follow the expected layout.
+* :class:`DatasetLayoutError` (a ``ValueError``) for a dataset folder whose files do not follow the expected layout;
+* :class:`MissingDependencyError` (an ``ImportError``) for an optional package a method needs (the message says how
+  to install it).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import torch
 __all__ = [
     "DatasetLayoutError",
     "DegenerateCloudError",
+    "MissingDependencyError",
     "NonFiniteError",
     "PointCloudFileError",
     "ShapeError",
@@ -81,6 +84,10 @@ class PointCloudFileError(ValueError):
 
 class DatasetLayoutError(ValueError):
     """A dataset folder exists but its files do not follow the expected layout (the message names the path)."""
+
+
+class MissingDependencyError(ImportError):
+    """An optional package a method needs is not installed (one line naming it and the install command)."""
 
 
 class DatasetNotFoundError(FileNotFoundError):

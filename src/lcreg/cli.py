@@ -59,6 +59,7 @@ from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCL
 from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.checkpoints import CheckpointError, check_class, check_keys, one_line, read_checkpoint
+from lcreg.checks import DatasetLayoutError, DatasetNotFoundError, MissingDependencyError
 from lcreg.config import ConfigFileError, ConfigValueError, UsageError, config_texts, expand_configs
 from lcreg.models.base import EVALUATION_ARGS, NonFiniteTrainingError, RegistrationModule
 
@@ -83,8 +84,14 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 }
 
 
-FILE_ERRORS = (CheckpointError, NonFiniteTrainingError)
-"""Errors that end the command line with exit code 1 (with the dataset and weights errors, imported late)."""
+FILE_ERRORS = (
+    CheckpointError,
+    NonFiniteTrainingError,
+    DatasetNotFoundError,
+    DatasetLayoutError,
+    MissingDependencyError,
+)
+"""Errors that end the command line with one line and exit code 1 (files, weights, data, optional packages)."""
 
 
 class NothingToTrainError(UsageError, RuntimeError):
@@ -427,11 +434,9 @@ def _exit_on(err: Exception) -> NoReturn:
     Exit codes: 2 for arguments and configs; 1 for dataset folders, files, checkpoints, weights and training stopped
     on non-finite losses.
     """
-    from lcreg.checks import DatasetLayoutError, DatasetNotFoundError
-
     if isinstance(err, UsageError):
         code = 2
-    elif isinstance(err, (CheckpointError, NonFiniteTrainingError, DatasetNotFoundError, DatasetLayoutError)):
+    elif isinstance(err, FILE_ERRORS):
         code = 1
     else:
         raise err

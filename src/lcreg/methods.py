@@ -95,9 +95,16 @@ METHODS: dict[str, MethodInfo] = {
         ),
         MethodInfo("ransac", "FPFH + RANSAC", f"{_CLASSICAL}.RANSAC", "FPFH + RANSAC (global)", learned=False),
         MethodInfo("fgr", "FPFH + FGR", f"{_CLASSICAL}.FGR", "FPFH + Fast Global Registration (global)", learned=False),
+        MethodInfo(
+            "kiss",
+            "KISS-Matcher",
+            "lcreg.baselines.kiss.KISSMatcher",
+            "KISS-Matcher (global; optional: pip install 'lcreg[kiss]', Linux x86_64 / macOS arm64)",
+            learned=False,
+        ),
     )
 }
-"""Every method by short name: 8 learned, 3 classical (Open3D)."""
+"""Every method by short name: 8 learned, 4 classical (3 Open3D, KISS-Matcher)."""
 
 
 def learned_methods() -> list[str]:

@@ -24,6 +24,7 @@ import torch
 from lcreg.checks import check_rigid, check_transform
 from lcreg.registration.inputs import Cloud, CloudLike, as_cloud
 from lcreg.registration.methods import (
+    GLOBAL_STEPS,
     Method,
     PreparedCache,
     evaluate,
@@ -178,7 +179,7 @@ def _coarse(name: str, src: Any, ref: Any, model: Any, learned_points: int, seed
     """The coarse step's ``(4, 4)`` estimate."""
     if name == "icp":
         return icp_step(src, ref, np.eye(4)).transform
-    if name in ("ransac", "fgr"):
+    if name in GLOBAL_STEPS:
         return global_step(name, src, ref).transform
     return learned_step(model, src.points, ref.points, learned_points, seed)
 

@@ -20,6 +20,7 @@ from typing import NoReturn
 
 import numpy as np
 
+from lcreg.checks import MissingDependencyError
 from lcreg.methods import METHODS
 from lcreg.registration.api import DEFAULT_METHOD, Registration, register
 from lcreg.registration.methods import CLASSICAL, LEARNED, MethodError
@@ -235,7 +236,7 @@ def _user_errors() -> tuple[type[Exception], ...]:
     """Errors about the user's files, clouds, weights or display (one line, exit code 1)."""
     from lcreg.checkpoints import CheckpointError  # the root of the weights and checkpoint errors
 
-    errors: tuple[type[Exception], ...] = (OSError, ValueError, CheckpointError)
+    errors: tuple[type[Exception], ...] = (OSError, ValueError, CheckpointError, MissingDependencyError)
     try:
         from lcreg.viz import DisplayUnavailableError
     except ImportError:  # pragma: no cover

@@ -6,6 +6,7 @@ A method is a coarse step, optionally followed by ICP refinement (``"ransac+icp"
 ``icp``         point-to-plane ICP from the identity (or the initial guess): a local method
 ``ransac``      FPFH features + RANSAC (global: any initial pose)
 ``fgr``         FPFH features + Fast Global Registration (global)
+``kiss``        KISS-Matcher (global; the optional package kiss-matcher, :mod:`lcreg.baselines.kiss`)
 learned         ``dvds``, ``pointnetlk``, ``fmr``, ``dcp``, ``prnet``, ``idam``, ``deepgmr``, ``pcrnet``:
                 the package's models with pretrained weights (a shipped name or a file): object-level
                 models trained on unit-sphere objects with limited rotations; the clouds are centred on
@@ -17,7 +18,8 @@ Every radius and gate is a multiple of one voxel size ``v`` (:mod:`lcreg.registr
 registration example's factors: normals ``2v`` (30 neighbours), FPFH ``5v`` (100 neighbours), RANSAC inlier
 distance ``1.5v`` (mutual filter, edge-length check 0.9, 100,000 iterations, confidence 0.999, seeded, one thread:
 reproducible), FGR correspondence distance ``0.5v`` (absolute scale, annealed), ICP gate ``2v`` (point-to-plane,
-at most 100 iterations). Clouds with more than the target number of points are voxel-downsampled at ``v`` first.
+at most 100 iterations), KISS-Matcher its own gains in voxels (normals ``3v``, FPFH ``5v``, sampling at ``v``).
+Clouds with more than the target number of points are voxel-downsampled at ``v`` first.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from lcreg.methods import METHODS
 
 if TYPE_CHECKING:
     from lcreg.baselines.classical import FGR, ICP, RANSAC, PairResult
+    from lcreg.baselines.kiss import KISSMatcher
     from lcreg.models.base import RegistrationModule
 
 __all__ = [
@@ -52,6 +55,8 @@ CLASSICAL: dict[str, str] = {name: info.summary for name, info in METHODS.items(
 LEARNED: dict[str, str] = {name: info.class_path for name, info in METHODS.items() if info.learned}
 """The learned methods: name -> class path (from :data:`lcreg.methods.METHODS`)."""
 REFINERS = ("icp",)
+GLOBAL_STEPS = ("ransac", "fgr", "kiss")
+"""Coarse steps that need no initial pose."""
 NORMAL_FACTOR, FEATURE_FACTOR = 2.0, 5.0
 RANSAC_DISTANCE, FGR_DISTANCE, ICP_DISTANCE = 1.5, 0.5, 2.0
 FITNESS_DISTANCE = 2.0
@@ -202,8 +207,21 @@ def _icp(voxel_size: float) -> ICP:
     return ICP(voxel_size=voxel_size, method="point_to_plane", distance_factor=ICP_DISTANCE)
 
 
+@functools.lru_cache(maxsize=16)
+def _kiss(voxel_size: float) -> KISSMatcher:
+    from lcreg.baselines.kiss import KISSMatcher
+
+    return KISSMatcher(voxel_size=voxel_size, distance_factor=FITNESS_DISTANCE)
+
+
 def global_step(name: str, src: Prepared, ref: Prepared) -> PairResult:
-    """RANSAC or FGR on two prepared clouds (their FPFH features are computed once and cached)."""
+    """RANSAC or FGR on two prepared clouds (their FPFH features are computed once and cached), or KISS-Matcher.
+
+    Raises:
+        lcreg.checks.MissingDependencyError: ``kiss`` without the optional package kiss-matcher.
+    """
+    if name == "kiss":
+        return _kiss(src.voxel_size).register_pair(src.pcd, ref.pcd, None)
     solver = _ransac(src.voxel_size) if name == "ransac" else _fgr(src.voxel_size)
     return solver.register_featured(src.pcd, ref.pcd, src.features(), ref.features())
 
