@@ -143,3 +143,23 @@ def test_console_reports_dropped_nan_rows_in_one_line(tmp_path, pair):
     assert out.returncode == 0, out.stderr
     assert "lcreg register: warning: points_src (src.npy): dropped 7 of 3000 points with NaN/Inf" in out.stderr
     assert "(2993 points)" in out.stdout
+
+
+def test_a_damaged_file_fails_its_pair_with_the_reason_and_the_run_goes_on(files, tmp_path, capsys):
+    src, ref, gt = files
+    (tmp_path / "damaged.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9\n")
+    (tmp_path / "empty.ply").write_bytes(b"")
+    flat = " ".join(map(str, gt.reshape(-1)))
+    lines = [f"{src.name},{ref.name},{flat}", f"damaged.ply,{ref.name},{flat}", f"{src.name},empty.ply,{flat}"]
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text("\n".join([*lines, f"{src.name},{ref.name},{flat}"]) + "\n")
+    results = tmp_path / "res.csv"
+    main(["register", "--pairs", str(pairs), "--method", "fgr+icp", "--results", str(results), "--no-progress"])
+    rows = list(csv.DictReader(results.open()))
+    assert [r["success"] for r in rows] == ["1", "0", "0", "1"]
+    assert rows[0]["error"] == "" and "damaged.ply" in rows[1]["error"] and "empty.ply" in rows[2]["error"]
+    assert rows[1]["method"] == "fgr+icp" and rows[1]["coarse_success"] == "0"
+    summary = json.loads(results.with_suffix(".summary.json").read_text())
+    assert summary["overall"]["recall"] == 0.5 and summary["overall"]["failed"] == 2
+    assert summary["coarse"]["overall"]["pairs"] == 4
+    assert "2 pairs could not be registered" in capsys.readouterr().out

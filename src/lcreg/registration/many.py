@@ -25,6 +25,7 @@ import functools
 import json
 import math
 import sys
+import time
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from lcreg.checkpoints import CheckpointError, one_line
+from lcreg.checks import MissingDependencyError
 from lcreg.data.pairlists import ListedPair, read_pair_list
 from lcreg.registration.api import DEFAULT_METHOD, Registration, register_clouds
 from lcreg.registration.inputs import Cloud, as_cloud
@@ -45,10 +48,12 @@ __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_p
 COLUMNS = (
     "name", "group", "source", "reference", "method", "voxel_size", "fitness", "inlier_rmse", "time_ms",
     "rre_deg", "rte", "success", "rmse", "scored", *(f"t{i}{j}" for i in range(4) for j in range(4)),
-    "coarse_time_ms", "coarse_rre_deg", "coarse_rte", "coarse_success", "coarse_rmse",
+    "coarse_time_ms", "coarse_rre_deg", "coarse_rte", "coarse_success", "coarse_rmse", "error",
 )  # fmt: skip
 """Columns of the results CSV; ``coarse_*`` hold the coarse step of a pipeline (``ransac`` of ``ransac+icp``):
-its time and errors, so one run also scores the coarse method alone (the same computation, its time included)."""
+its time and errors, so one run also scores the coarse method alone (the same computation, its time included).
+``error`` is empty for a registered pair; for a pair that could not be registered (a damaged, empty or missing file)
+it holds the reason, the pair counts as failed (a 3DMatch-scored pair too) and the run goes on."""
 
 
 @dataclass(frozen=True)
@@ -77,39 +82,53 @@ def default_thresholds(pairs: Sequence[ListedPair]) -> Thresholds:
 
 @dataclass
 class PairRow:
-    """One pair's result: the registration and its errors (NaN without ground truth)."""
+    """One pair's result: the registration and its errors (NaN without ground truth), or why it failed."""
 
     pair: ListedPair
-    result: Registration
+    result: Registration | None
     rre_deg: float
     rte: float
     rmse: float
     success: bool | None
     coarse: tuple[float, float, float, bool | None] | None = None
+    error: str = ""
+    time_s: float = 0.0
+    method: str = ""
+
+    @classmethod
+    def failed(cls, pair: ListedPair, method: Method, error: str, time_s: float) -> PairRow:
+        """The row of a pair that could not be registered: a failure wherever it is scored."""
+        has_gt = pair.transform_ref_src is not None
+        rmse = math.inf if pair.info is not None else math.nan  # scored pairs count as failed
+        coarse = (math.nan, math.nan, rmse, False if has_gt else None) if method.refine is not None else None
+        return cls(pair, None, math.nan, math.nan, rmse, False if has_gt else None, coarse, error, time_s, method.name)
 
     def as_csv(self) -> dict[str, Any]:
         """The CSV row (:data:`COLUMNS`)."""
+        result = self.result
         out = {
             "name": self.pair.name,
             "group": self.pair.group,
             "source": str(self.pair.path_src),
             "reference": str(self.pair.path_ref),
-            "method": self.result.method,
-            "voxel_size": f"{self.result.voxel_size:.6g}",
-            "fitness": f"{self.result.fitness:.6f}",
-            "inlier_rmse": f"{self.result.inlier_rmse:.6g}",
-            "time_ms": f"{1000 * self.result.time_s:.1f}",
+            "method": self.method if result is None else result.method,
+            "voxel_size": "" if result is None else f"{result.voxel_size:.6g}",
+            "fitness": "" if result is None else f"{result.fitness:.6f}",
+            "inlier_rmse": "" if result is None else f"{result.inlier_rmse:.6g}",
+            "time_ms": f"{1000 * (self.time_s if result is None else result.time_s):.1f}",
             "rre_deg": f"{self.rre_deg:.6g}",
             "rte": f"{self.rte:.6g}",
             "success": "" if self.success is None else int(self.success),
             "rmse": f"{self.rmse:.6g}",
             "scored": int(self.pair.scored),
+            "error": self.error,
         }
-        out |= {f"t{i}{j}": f"{self.result.transform[i, j]:.10g}" for i in range(4) for j in range(4)}
-        coarse_time = self.result.coarse_time_s
+        transform = np.full((4, 4), np.nan) if result is None else result.transform
+        out |= {f"t{i}{j}": f"{transform[i, j]:.10g}" for i in range(4) for j in range(4)}
+        coarse_time = self.time_s if result is None else result.coarse_time_s
         rre, rte, rmse, success = self.coarse or (math.nan, math.nan, math.nan, None)
         return out | {
-            "coarse_time_ms": "" if coarse_time is None else f"{1000 * coarse_time:.1f}",
+            "coarse_time_ms": "" if coarse_time is None or self.coarse is None else f"{1000 * coarse_time:.1f}",
             "coarse_rre_deg": "" if self.coarse is None else f"{rre:.6g}",
             "coarse_rte": "" if self.coarse is None else f"{rte:.6g}",
             "coarse_success": "" if success is None else int(success),
@@ -183,11 +202,19 @@ def register_pairs(
     """
     clouds, cache = _Clouds(target_points), PreparedCache(size=64)
     for pair in pairs:
-        src, ref = clouds.read(pair.path_src, "points_src"), clouds.read(pair.path_ref, "points_ref")
-        v = voxel_size or round_voxel_size(max(clouds.voxel(pair.path_src), clouds.voxel(pair.path_ref)))
-        result = register_clouds(
-            src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache
-        )
+        start = time.perf_counter()
+        try:
+            src, ref = clouds.read(pair.path_src, "points_src"), clouds.read(pair.path_ref, "points_ref")
+            v = voxel_size or round_voxel_size(max(clouds.voxel(pair.path_src), clouds.voxel(pair.path_ref)))
+            result = register_clouds(
+                src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache
+            )
+        except (CheckpointError, MissingDependencyError):
+            raise  # the run's weights or method, not this pair: nothing else would register either
+        except (OSError, ValueError) as err:  # this pair's files: damaged, empty, missing, too small
+            reason = f"{type(err).__name__}: {one_line(str(err))}"
+            yield PairRow.failed(pair, method, reason, time.perf_counter() - start)
+            continue
         rre, rte, rmse = _errors(pair, result.transform)
         coarse = None
         if result.coarse_transform is not None:
@@ -218,6 +245,7 @@ def _group_scores(
     with_gt = [r for r in rows if r[f"{p}success"] != ""]
     out: dict[str, Any] = {
         "pairs": len(rows),
+        "failed": sum(1 for r in rows if r["error"]),
         "pairs_with_gt": len(with_gt),
         "ms_per_pair": float(np.mean([float(r[f"{p}time_ms"]) for r in rows])) if rows else math.nan,
     }
@@ -278,6 +306,10 @@ def _read_done(path: Path, method: str) -> list[dict[str, Any]]:
     """Rows of an existing results CSV of the same method (for ``--resume``)."""
     with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
+        if reader.fieldnames is not None and list(reader.fieldnames) == list(COLUMNS[:-1]):
+            raise ValueError(
+                f"--resume: {str(path)!r} was written by an older lcreg (no 'error' column); start a new --results file"
+            )
         if reader.fieldnames is None or list(reader.fieldnames) != list(COLUMNS):
             raise ValueError(f"--resume: {str(path)!r} is not a results CSV of lcreg register (other columns)")
         rows = list(reader)
@@ -385,5 +417,7 @@ def _print_summary(summary: dict[str, Any]) -> None:
             _format(s.get("rte_median", "-")), f"{s['ms_per_pair']:.0f}",
         ]  # fmt: skip
         print(" | ".join(str(c) for c in cells))
+    if summary["overall"]["failed"]:
+        print(f"{summary['overall']['failed']} pairs could not be registered (counted as failed): see the error column")
     if "threedmatch_recall_scene_mean" in summary["overall"]:
         print(f"3DMatch recall, mean over scenes: {100 * summary['overall']['threedmatch_recall_scene_mean']:.1f} %")
