@@ -38,16 +38,18 @@ def test_any_unit_gives_the_same_motion(pair):
     src, ref, _gt = pair
     metres = register(src, ref)
     millimetres = register(src * 1000, ref * 1000)
+    # The automatic voxel sizes are exactly 1000 apart, so the two runs are the same computation at two scales.
+    assert np.isclose(millimetres.voxel_size / metres.voxel_size, 1000, rtol=1e-9)
     np.testing.assert_allclose(millimetres.transform[:3, :3], metres.transform[:3, :3], atol=1e-3)
     np.testing.assert_allclose(millimetres.transform[:3, 3], 1000 * metres.transform[:3, 3], atol=1.0)
-    assert np.isclose(millimetres.voxel_size / metres.voxel_size, 1000, rtol=0.2)
 
 
 def test_containers_and_dtypes_agree(pair):
     src, ref, _ = pair
     base = register(src, ref).transform
-    for a, b in ((src.astype(np.float32), ref.astype(np.float32)), (torch.from_numpy(src), torch.from_numpy(ref))):
-        np.testing.assert_allclose(register(a, b).transform, base, atol=1e-4)
+    np.testing.assert_allclose(register(torch.from_numpy(src), torch.from_numpy(ref)).transform, base, atol=1e-12)
+    # float32 rounds the points (1e-7 relative): ICP stops at a relative change of 1e-6, within 0.06 degrees
+    np.testing.assert_allclose(register(src.astype(np.float32), ref.astype(np.float32)).transform, base, atol=1e-3)
 
 
 def test_result_helpers(pair):

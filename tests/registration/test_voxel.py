@@ -36,8 +36,8 @@ def test_scale_equivariant_on_the_rounding_grid(pair):
     src, ref, _ = pair
     v = auto_voxel_size(src, ref)
     assert v == round_voxel_size(v)
-    assert np.isclose(auto_voxel_size(src * 16, ref * 16), 16 * v)  # 16 = 2^(16/4): on the grid
-    assert np.isclose(auto_voxel_size(src * 1000, ref * 1000) / v, 1000, rtol=0.2)
+    for factor in (10.0, 1000.0, 0.001):  # decimal units: the same point of the grid, scaled
+        assert np.isclose(auto_voxel_size(src * factor, ref * factor), factor * v, rtol=1e-9)
 
 
 def test_rounding_grid():
