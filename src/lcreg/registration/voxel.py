@@ -103,7 +103,7 @@ def cloud_voxel_size(points: np.ndarray, target: int = TARGET_POINTS, seed: int 
 
 
 def auto_voxel_size(points_src: np.ndarray, points_ref: np.ndarray, target: int = TARGET_POINTS) -> float:
-    """The voxel size of a pair: the larger of the two clouds' values, rounded up to the grid of :func:`round_voxel_size`.
+    """The voxel size of a pair: the larger of the two clouds' values, rounded up (:func:`round_voxel_size`).
 
     Args:
         points_src: ``(N, 3)`` float64 source points.
