@@ -129,3 +129,18 @@ def test_learned_weights_from_a_checkpoint_or_an_export(pair, tmp_path, kind):
     np.testing.assert_allclose(by_ckpt.transform, by_export.transform, atol=1e-5)  # the same network either way
     with pytest.raises(MethodError, match="dvds"):
         register(src, ref, "dvds", weights=str(checkpoint))  # weights of another method
+
+
+def test_a_low_fitness_result_runs_the_fallback_and_keeps_the_better(pair):
+    src, ref, gt = pair
+    result = register(src, ref, "icp", fallback="ransac+icp", min_fitness=0.9)  # ICP alone cannot reach 60 degrees
+    assert result.method == "ransac+icp" and errors(result.transform, gt)[0] < 1.0
+    record = result.extra["fallback"]
+    assert record["first"] == "icp" and record["first_fitness"] < 0.9 <= record["ran_fitness"]
+    assert record["kept"] == "ransac+icp" and result.to_dict()["fallback"] == record
+    good = register(src, ref, "ransac+icp", fallback="fgr", min_fitness=0.5)  # above: no second run
+    assert "fallback" not in good.extra
+    with pytest.raises(ValueError, match="min_fitness"):
+        register(src, ref, "icp", min_fitness=1.5)
+    with pytest.raises(MethodError, match="unknown method 'nope'"):
+        register(src, ref, "icp", fallback="nope")

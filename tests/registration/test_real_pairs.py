@@ -64,3 +64,32 @@ def test_the_same_scans_in_millimetres_and_metres_give_the_same_transform():
     rre = float(rotation_error_deg(torch.tensor(in_metres)[None], torch.tensor(metres.transform)[None])[0])
     assert rre < 0.01 and np.abs(in_metres[:3, 3] - metres.transform[:3, 3]).max() < 1e-4  # was 0.43 vs 0.195 deg
     assert np.isclose(millimetres.voxel_size, 1000 * metres.voxel_size, rtol=1e-9)
+
+
+def _halves_of_a_fragment() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two overlapping parts of a 3DMatch fragment (about 46 % of each in common), the second moved by 20 degrees."""
+    from scipy.spatial.transform import Rotation
+
+    from lcreg.data.io import read_points
+
+    points = read_points(shared_data("3dmatch") / "fragments" / "7-scenes-redkitchen" / "cloud_bin_0.ply")
+    points = points.astype(np.float64)
+    low, high = np.quantile(points[:, 0], [0.35, 0.65])
+    gt = np.eye(4)
+    gt[:3, :3] = Rotation.from_euler("z", 20, degrees=True).as_matrix()
+    gt[:3, 3] = (0.1, -0.05, 0.05)
+    second = points[points[:, 0] > low]
+    return points[points[:, 0] < high], second @ gt[:3, :3].T + gt[:3, 3], gt
+
+
+def test_a_learned_object_method_on_partial_scans_warns_or_falls_back():
+    import lcreg
+    from lcreg.registration import LowFitnessWarning
+
+    src, ref, gt = _halves_of_a_fragment()
+    with pytest.warns(LowFitnessWarning, match=r"dvds\+icp: fitness 0\.\d+ is below 0\.5.*ransac\+icp"):
+        failed = lcreg.register(src, ref, "dvds+icp")
+    assert np.linalg.norm(failed.transform[:3, 3] - gt[:3, 3]) > 0.2  # the object model fails here (about 0.7 m)
+    rescued = lcreg.register(src, ref, "dvds+icp", fallback="ransac+icp")
+    assert rescued.method == "ransac+icp" and rescued.extra["fallback"]["first"] == "dvds+icp"
+    assert np.linalg.norm(rescued.transform[:3, 3] - gt[:3, 3]) < 0.05

@@ -163,3 +163,10 @@ def test_a_damaged_file_fails_its_pair_with_the_reason_and_the_run_goes_on(files
     assert summary["overall"]["recall"] == 0.5 and summary["overall"]["failed"] == 2
     assert summary["coarse"]["overall"]["pairs"] == 4
     assert "2 pairs could not be registered" in capsys.readouterr().out
+
+
+def test_fallback_options_print_what_ran(files, capsys):
+    src, ref, gt = files
+    main(["register", str(src), str(ref), "--method", "icp", "--fallback", "ransac+icp", "--min-fitness", "0.9"])
+    text = capsys.readouterr().out
+    assert "fallback:  icp fitness" in text and "ran ransac+icp" in text and "kept ransac+icp" in text

@@ -6,7 +6,7 @@ by short name and their steps), :mod:`.api` (:func:`register`, :class:`Registrat
 written), :mod:`.many` (``--pairs``: many pairs, scores), :mod:`.command` (``lcreg register``).
 """
 
-from lcreg.registration.api import DEFAULT_METHOD, Registration, register
+from lcreg.registration.api import DEFAULT_METHOD, LowFitnessWarning, Registration, register
 from lcreg.registration.methods import MethodError, available_methods
 
-__all__ = ["DEFAULT_METHOD", "MethodError", "Registration", "available_methods", "register"]
+__all__ = ["DEFAULT_METHOD", "LowFitnessWarning", "MethodError", "Registration", "available_methods", "register"]

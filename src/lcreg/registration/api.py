@@ -15,6 +15,7 @@ run the method (:mod:`lcreg.registration.methods`), compose the result with the 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,10 +37,24 @@ from lcreg.registration.methods import (
 )
 from lcreg.registration.voxel import TARGET_POINTS, auto_voxel_size
 
-__all__ = ["DEFAULT_METHOD", "Registration", "register", "register_clouds"]
+__all__ = [
+    "DEFAULT_METHOD",
+    "LEARNED_MIN_FITNESS",
+    "LowFitnessWarning",
+    "Registration",
+    "register",
+    "register_clouds",
+]
 
 DEFAULT_METHOD = "ransac+icp"
 """The method of ``method="default"``: the best on the validation pairs of ``docs/results/register.md``."""
+LEARNED_MIN_FITNESS = 0.5
+"""A learned object method's result below this fitness is flagged (:class:`LowFitnessWarning`): those networks were
+trained on complete objects that overlap fully, where a correct result has a fitness near 1."""
+
+
+class LowFitnessWarning(UserWarning):
+    """A result's fitness says the registration probably failed (the message says what to use instead)."""
 
 
 @dataclass
@@ -99,6 +114,8 @@ class Registration:
         }
         if self.coarse_transform is not None:
             out["coarse_transform_ref_src"] = self.coarse_transform.tolist()
+        if "fallback" in self.extra:
+            out["fallback"] = dict(self.extra["fallback"])
         return out
 
 
@@ -123,8 +140,14 @@ def register_clouds(
     learned_points: int = 1024,
     seed: int = 0,
     cache: PreparedCache | None = None,
+    fallback: Method | None = None,
+    min_fitness: float | None = None,
 ) -> Registration:
     """Register two validated clouds (the work of :func:`register`; ``cache`` reuses files' features across pairs).
+
+    A result whose fitness is below ``min_fitness`` (for learned methods, by default :data:`LEARNED_MIN_FITNESS`) is
+    run again with ``fallback`` when one is given (the result with the higher fitness is kept, both recorded in
+    ``extra["fallback"]``, the times added), else a learned method's result comes with a :class:`LowFitnessWarning`.
 
     Args:
         src: Source cloud.
@@ -137,10 +160,53 @@ def register_clouds(
         learned_points: Points per cloud fed to a network.
         seed: Seed of the networks' point samples.
         cache: Prepared clouds shared by pairs (files only; keys are the file paths).
+        fallback: Method run when the fitness is below ``min_fitness``.
+        min_fitness: Fitness below which the result counts as failed (``None``: :data:`LEARNED_MIN_FITNESS` for
+            learned methods, no check for classical ones).
 
     Returns:
         The :class:`Registration`.
     """
+    first = _register_once(src, ref, method, weights, voxel_size, init, target_points, learned_points, seed, cache)
+    threshold = min_fitness if min_fitness is not None else (LEARNED_MIN_FITNESS if method.learned else None)
+    if threshold is None or first.fitness >= threshold:
+        return first
+    if fallback is None:
+        if method.learned:
+            warnings.warn(LowFitnessWarning(_low_fitness_message(first, threshold)), stacklevel=3)
+        return first
+    second = _register_once(src, ref, fallback, weights, voxel_size, init, target_points, learned_points, seed, cache)
+    kept = second if second.fitness > first.fitness else first
+    kept.extra["fallback"] = {
+        "first": first.method, "first_fitness": first.fitness, "min_fitness": threshold,
+        "ran": second.method, "ran_fitness": second.fitness, "kept": kept.method,
+    }  # fmt: skip
+    kept.time_s = first.time_s + second.time_s
+    return kept
+
+
+def _low_fitness_message(result: Registration, threshold: float) -> str:
+    coarse = result.method.partition("+")[0]
+    return (
+        f"{result.method}: fitness {result.fitness:.2f} is below {threshold:g}, the registration probably failed; "
+        f"{coarse} is an object model trained on complete objects that overlap fully: for partial scans use "
+        "ransac+icp or kiss+icp, or ask for a fallback (fallback='ransac+icp', --fallback ransac+icp)"
+    )
+
+
+def _register_once(
+    src: Cloud,
+    ref: Cloud,
+    method: Method,
+    weights: str | None,
+    voxel_size: float | None,
+    init: np.ndarray | None,
+    target_points: int,
+    learned_points: int,
+    seed: int,
+    cache: PreparedCache | None,
+) -> Registration:
+    """One method on one pair (see :func:`register_clouds`)."""
     start = time.perf_counter()
     model = learned_model(method.coarse, weights) if method.learned else None
     v = auto_voxel_size(src.points, ref.points, target_points) if voxel_size is None else float(voxel_size)
@@ -196,6 +262,8 @@ def register(
     target_points: int = TARGET_POINTS,
     learned_points: int = 1024,
     seed: int = 0,
+    fallback: str | None = None,
+    min_fitness: float | None = None,
 ) -> Registration:
     """Register ``src`` onto ``ref``: the rigid motion mapping the source's points into the reference's frame.
 
@@ -216,6 +284,11 @@ def register(
         target_points: Points per cloud after downsampling.
         learned_points: Points per cloud given to a network.
         seed: Seed of the networks' point samples (classical steps are seeded too: results are reproducible).
+        fallback: A method run when the result's fitness is below ``min_fitness`` (e.g. ``"ransac+icp"`` after a
+            learned object method on partial scans); the result with the higher fitness is returned.
+        min_fitness: Fitness below which a result counts as failed (``None``: 0.5 for learned methods, whose
+            result below it also comes with a :class:`LowFitnessWarning` when no fallback is given; no check for
+            classical methods, whose correct results on partial scans can have any fitness).
 
     Returns:
         :class:`Registration`: ``transform (4, 4)``, ``fitness``, ``inlier_rmse``, ``time_s`` and diagnostics.
@@ -227,7 +300,10 @@ def register(
         ValueError: A bad ``init``, ``voxel_size`` or count.
     """
     chosen = parse_method(DEFAULT_METHOD if method == "default" else method, refine)
+    second = None if fallback is None else parse_method(DEFAULT_METHOD if fallback == "default" else fallback)
     _check_options(voxel_size, target_points, learned_points)
+    if min_fitness is not None and not (isinstance(min_fitness, (int, float)) and 0 <= min_fitness <= 1):
+        raise ValueError(f"`min_fitness` must be a number in [0, 1] or None, got {min_fitness!r}")
     init_matrix = None if init is None else _check_init(init)
     cloud_src, cloud_ref = as_cloud(src, "points_src"), as_cloud(ref, "points_ref")
     return register_clouds(
@@ -240,6 +316,8 @@ def register(
         target_points=target_points,
         learned_points=learned_points,
         seed=seed,
+        fallback=second,
+        min_fitness=min_fitness,
     )
 
 

@@ -41,6 +41,10 @@ def _methods_help() -> str:
         names = [n for n in shipped if REGISTRY[n].class_path == class_path]
         weights = f"shipped weights: {', '.join(names)}" if names else "needs --weights (.ckpt or .pt)"
         lines.append(f"  {name:<13} {METHODS[name].summary}; {weights}")
+    lines.append(
+        "  (learned methods are object models: complete objects that overlap fully, any unit; on partial scans "
+        "they fail, use ransac+icp or kiss+icp, or --fallback)"
+    )
     lines.append("  X+icp         any of the above but icp, then ICP refinement (e.g. ransac+icp, fgr+icp, dvds+icp)")
     return "\n".join(lines)
 
@@ -74,6 +78,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--init", help="initial guess: a 4x4 transform file (.txt, .npy or .json)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the learned methods' point samples")
+    parser.add_argument(
+        "--fallback",
+        help="method run when the result's fitness is below --min-fitness (e.g. ransac+icp after dvds+icp on partial "
+        "scans); the result with the higher fitness is kept",
+    )
+    parser.add_argument(
+        "--min-fitness",
+        type=float,
+        help="fitness below which a result counts as failed (default: 0.5 for learned methods, which then warn "
+        "unless --fallback is given; no check for classical methods)",
+    )
     parser.add_argument("--out", help="write the 4x4 transform: .txt, .json (with diagnostics) or .npy")
     parser.add_argument("--save-aligned", help="write the moved source as a .ply")
     parser.add_argument("--plot", help="write a before/after picture (.png, three orthogonal views)")
@@ -140,6 +155,12 @@ def _print_result(result: Registration) -> None:
         f"method:    {result.method}, voxel size {result.voxel_size:.6g} (clouds' unit), "
         f"{result.used_points[0]} + {result.used_points[1]} points used"
     )
+    if "fallback" in result.extra:
+        f = result.extra["fallback"]
+        print(
+            f"fallback:  {f['first']} fitness {f['first_fitness']:.3f} < {f['min_fitness']:g}: ran {f['ran']} "
+            f"(fitness {f['ran_fitness']:.3f}), kept {f['kept']}"
+        )
     print("transform (maps source points into the reference frame):")
     for row in result.transform:
         print("  " + "  ".join(f"{x: .6f}" for x in row))
@@ -161,6 +182,8 @@ def _one_pair(args: argparse.Namespace) -> None:
         init=init,
         target_points=args.target_points,
         seed=args.seed,
+        fallback=args.fallback,
+        min_fitness=args.min_fitness,
     )
     _print_result(result)
     if args.out:

@@ -48,12 +48,14 @@ __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_p
 COLUMNS = (
     "name", "group", "source", "reference", "method", "voxel_size", "fitness", "inlier_rmse", "time_ms",
     "rre_deg", "rte", "success", "rmse", "scored", *(f"t{i}{j}" for i in range(4) for j in range(4)),
-    "coarse_time_ms", "coarse_rre_deg", "coarse_rte", "coarse_success", "coarse_rmse", "error",
+    "coarse_time_ms", "coarse_rre_deg", "coarse_rte", "coarse_success", "coarse_rmse", "error", "fallback",
 )  # fmt: skip
 """Columns of the results CSV; ``coarse_*`` hold the coarse step of a pipeline (``ransac`` of ``ransac+icp``):
 its time and errors, so one run also scores the coarse method alone (the same computation, its time included).
 ``error`` is empty for a registered pair; for a pair that could not be registered (a damaged, empty or missing file)
-it holds the reason, the pair counts as failed (a 3DMatch-scored pair too) and the run goes on."""
+it holds the reason, the pair counts as failed (a 3DMatch-scored pair too) and the run goes on. ``fallback`` is
+empty unless ``--fallback`` ran on the pair (its fitness was below ``--min-fitness``): then it names the method whose
+result was kept. ``method`` is always the method asked for."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +113,7 @@ class PairRow:
             "group": self.pair.group,
             "source": str(self.pair.path_src),
             "reference": str(self.pair.path_ref),
-            "method": self.method if result is None else result.method,
+            "method": self.method,
             "voxel_size": "" if result is None else f"{result.voxel_size:.6g}",
             "fitness": "" if result is None else f"{result.fitness:.6f}",
             "inlier_rmse": "" if result is None else f"{result.inlier_rmse:.6g}",
@@ -122,6 +124,7 @@ class PairRow:
             "rmse": f"{self.rmse:.6g}",
             "scored": int(self.pair.scored),
             "error": self.error,
+            "fallback": "" if result is None else result.extra.get("fallback", {}).get("kept", ""),
         }
         transform = np.full((4, 4), np.nan) if result is None else result.transform
         out |= {f"t{i}{j}": f"{transform[i, j]:.10g}" for i in range(4) for j in range(4)}
@@ -185,6 +188,8 @@ def register_pairs(
     voxel_size: float | None = None,
     target_points: int = TARGET_POINTS,
     seed: int = 0,
+    fallback: str | None = None,
+    min_fitness: float | None = None,
 ) -> Iterable[PairRow]:
     """Register each pair (files read, voxel sizes and features computed once per file), yielding its row.
 
@@ -196,19 +201,23 @@ def register_pairs(
         voxel_size: One ``v`` for every pair (``None``: automatic per pair, rounded to the ``2^(k/4)`` grid).
         target_points: Points per cloud after downsampling.
         seed: Seed of the networks' point samples.
+        fallback: Method run on a pair whose result's fitness is below ``min_fitness`` (:func:`register_clouds`).
+        min_fitness: Fitness below which a result counts as failed.
 
     Yields:
         One :class:`PairRow` per pair, in order.
     """
     clouds, cache = _Clouds(target_points), PreparedCache(size=64)
+    second = None if fallback is None else parse_method(DEFAULT_METHOD if fallback == "default" else fallback)
     for pair in pairs:
         start = time.perf_counter()
         try:
             src, ref = clouds.read(pair.path_src, "points_src"), clouds.read(pair.path_ref, "points_ref")
             v = voxel_size or round_voxel_size(max(clouds.voxel(pair.path_src), clouds.voxel(pair.path_ref)))
             result = register_clouds(
-                src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache
-            )
+                src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache,
+                fallback=second, min_fitness=min_fitness,
+            )  # fmt: skip
         except (CheckpointError, MissingDependencyError):
             raise  # the run's weights or method, not this pair: nothing else would register either
         except (OSError, ValueError) as err:  # this pair's files: damaged, empty, missing, too small
@@ -220,7 +229,8 @@ def register_pairs(
         if result.coarse_transform is not None:
             c_rre, c_rte, c_rmse = _errors(pair, result.coarse_transform)
             coarse = (c_rre, c_rte, c_rmse, _success(pair, c_rre, c_rte, thresholds))
-        yield PairRow(pair, result, rre, rte, rmse, _success(pair, rre, rte, thresholds), coarse)
+        success = _success(pair, rre, rte, thresholds)
+        yield PairRow(pair, result, rre, rte, rmse, success, coarse, method=method.name)
 
 
 def _median(values: list[float]) -> float:
@@ -306,9 +316,10 @@ def _read_done(path: Path, method: str) -> list[dict[str, Any]]:
     """Rows of an existing results CSV of the same method (for ``--resume``)."""
     with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        if reader.fieldnames is not None and list(reader.fieldnames) == list(COLUMNS[:-1]):
+        if reader.fieldnames is not None and list(reader.fieldnames) == list(COLUMNS[:-2]):
             raise ValueError(
-                f"--resume: {str(path)!r} was written by an older lcreg (no 'error' column); start a new --results file"
+                f"--resume: {str(path)!r} was written by an older lcreg (no 'error' and 'fallback' columns); start a "
+                "new --results file"
             )
         if reader.fieldnames is None or list(reader.fieldnames) != list(COLUMNS):
             raise ValueError(f"--resume: {str(path)!r} is not a results CSV of lcreg register (other columns)")
@@ -350,7 +361,7 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
         bar = _progress(todo, args.no_progress)
         for row in register_pairs(
             bar, method, thresholds, weights=args.weights, voxel_size=args.voxel_size,
-            target_points=args.target_points, seed=args.seed,
+            target_points=args.target_points, seed=args.seed, fallback=args.fallback, min_fitness=args.min_fitness,
         ):  # fmt: skip
             record = row.as_csv()
             writer.writerow(record)
