@@ -144,3 +144,15 @@ def test_a_low_fitness_result_runs_the_fallback_and_keeps_the_better(pair):
         register(src, ref, "icp", min_fitness=1.5)
     with pytest.raises(MethodError, match="unknown method 'nope'"):
         register(src, ref, "icp", fallback="nope")
+
+
+def test_threads_change_the_speed_not_the_result(pair):
+    import open3d as o3d
+
+    src, ref, _ = pair
+    before = (o3d.utility.get_max_threads(), torch.get_num_threads())
+    one = register(src, ref, "ransac+icp", threads=1)
+    assert (o3d.utility.get_max_threads(), torch.get_num_threads()) == before  # restored
+    np.testing.assert_allclose(register(src, ref, "ransac+icp", threads=2).transform, one.transform, atol=1e-9)
+    with pytest.raises(ValueError, match="threads"):
+        register(src, ref, threads=0)

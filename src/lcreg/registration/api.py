@@ -35,6 +35,7 @@ from lcreg.registration.methods import (
     learned_step,
     parse_method,
 )
+from lcreg.registration.methods import threads as threads_limit
 from lcreg.registration.voxel import TARGET_POINTS, auto_voxel_size
 
 __all__ = [
@@ -264,6 +265,7 @@ def register(
     seed: int = 0,
     fallback: str | None = None,
     min_fitness: float | None = None,
+    threads: int | None = None,
 ) -> Registration:
     """Register ``src`` onto ``ref``: the rigid motion mapping the source's points into the reference's frame.
 
@@ -289,6 +291,8 @@ def register(
         min_fitness: Fitness below which a result counts as failed (``None``: 0.5 for learned methods, whose
             result below it also comes with a :class:`LowFitnessWarning` when no fallback is given; no check for
             classical methods, whose correct results on partial scans can have any fitness).
+        threads: CPU threads of Open3D and torch during the call (``None``: their defaults); RANSAC always runs on
+            one thread, so results do not depend on it.
 
     Returns:
         :class:`Registration`: ``transform (4, 4)``, ``fitness``, ``inlier_rmse``, ``time_s`` and diagnostics.
@@ -306,19 +310,20 @@ def register(
         raise ValueError(f"`min_fitness` must be a number in [0, 1] or None, got {min_fitness!r}")
     init_matrix = None if init is None else _check_init(init)
     cloud_src, cloud_ref = as_cloud(src, "points_src"), as_cloud(ref, "points_ref")
-    return register_clouds(
-        cloud_src,
-        cloud_ref,
-        chosen,
-        weights=weights,
-        voxel_size=voxel_size,
-        init=init_matrix,
-        target_points=target_points,
-        learned_points=learned_points,
-        seed=seed,
-        fallback=second,
-        min_fitness=min_fitness,
-    )
+    with threads_limit(threads):
+        return register_clouds(
+            cloud_src,
+            cloud_ref,
+            chosen,
+            weights=weights,
+            voxel_size=voxel_size,
+            init=init_matrix,
+            target_points=target_points,
+            learned_points=learned_points,
+            seed=seed,
+            fallback=second,
+            min_fitness=min_fitness,
+        )
 
 
 def _check_options(voxel_size: float | None, target_points: int, learned_points: int) -> None:

@@ -79,6 +79,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init", help="initial guess: a 4x4 transform file (.txt, .npy or .json)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the learned methods' point samples")
     parser.add_argument(
+        "--threads",
+        type=int,
+        help="CPU threads of Open3D and torch (default: theirs, all cores); RANSAC always uses one thread, so the "
+        "result does not depend on it (KISS-Matcher schedules its own)",
+    )
+    parser.add_argument(
         "--fallback",
         help="method run when the result's fitness is below --min-fitness (e.g. ransac+icp after dvds+icp on partial "
         "scans); the result with the higher fitness is kept",
@@ -184,6 +190,7 @@ def _one_pair(args: argparse.Namespace) -> None:
         seed=args.seed,
         fallback=args.fallback,
         min_fitness=args.min_fitness,
+        threads=args.threads,
     )
     _print_result(result)
     if args.out:

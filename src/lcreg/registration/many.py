@@ -40,7 +40,7 @@ from lcreg.checks import MissingDependencyError
 from lcreg.data.pairlists import ListedPair, read_pair_list
 from lcreg.registration.api import DEFAULT_METHOD, Registration, register_clouds
 from lcreg.registration.inputs import Cloud, as_cloud
-from lcreg.registration.methods import Method, PreparedCache, parse_method
+from lcreg.registration.methods import Method, PreparedCache, parse_method, threads
 from lcreg.registration.voxel import TARGET_POINTS, cloud_voxel_size, round_voxel_size
 
 __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_pairs", "run_pairs", "summarize"]
@@ -359,15 +359,8 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
         if not done:
             writer.writeheader()
         bar = _progress(todo, args.no_progress)
-        for row in register_pairs(
-            bar, method, thresholds, weights=args.weights, voxel_size=args.voxel_size,
-            target_points=args.target_points, seed=args.seed, fallback=args.fallback, min_fitness=args.min_fitness,
-        ):  # fmt: skip
-            record = row.as_csv()
-            writer.writerow(record)
-            fh.flush()
-            rows.append({k: str(v) for k, v in record.items()})
-            _postfix(bar, rows)
+        with threads(args.threads):
+            _write_rows(bar, writer, fh, rows, method, thresholds, args)
     summary = summarize(rows, thresholds, default_thresholds(pairs))
     summary |= {"method": method.name, "pairs_file": str(args.pairs)}
     summary_path = results.with_suffix(".summary.json")
@@ -375,6 +368,34 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
     _print_summary(summary)
     print(f"wrote {results} and {summary_path}")
     return summary
+
+
+def _write_rows(
+    bar: Any,
+    writer: csv.DictWriter,
+    fh: Any,
+    rows: list[dict[str, Any]],
+    method: Method,
+    thresholds: Thresholds,
+    args: argparse.Namespace,
+) -> None:
+    """Register the pairs of ``bar``, writing (and flushing) each row as it comes, appending it to ``rows``."""
+    for row in register_pairs(
+        bar,
+        method,
+        thresholds,
+        weights=args.weights,
+        voxel_size=args.voxel_size,
+        target_points=args.target_points,
+        seed=args.seed,
+        fallback=args.fallback,
+        min_fitness=args.min_fitness,
+    ):
+        record = row.as_csv()
+        writer.writerow(record)
+        fh.flush()
+        rows.append({k: str(v) for k, v in record.items()})
+        _postfix(bar, rows)
 
 
 def _progress(pairs: list[ListedPair], disabled: bool) -> Any:

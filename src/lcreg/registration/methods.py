@@ -24,8 +24,10 @@ Clouds with more than the target number of points are voxel-downsampled at ``v``
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -184,6 +186,33 @@ class PreparedCache:
                 self._items.popitem(last=False)
         self._items.move_to_end((key, voxel_size))
         return item
+
+
+@contextlib.contextmanager
+def threads(count: int | None) -> Iterator[None]:
+    """Open3D's and torch's CPU threads set to ``count`` inside the block (``None``: unchanged), then restored.
+
+    Normals, FPFH, ICP, FGR and the networks use them; RANSAC keeps one thread (reproducible, ``deterministic``);
+    KISS-Matcher schedules its own threads (TBB).
+
+    Raises:
+        ValueError: ``count`` is not an int >= 1.
+    """
+    if count is None:
+        yield
+        return
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"`threads` must be an int >= 1 or None, got {count!r}")
+    import open3d as o3d
+
+    previous = (o3d.utility.get_max_threads(), torch.get_num_threads())
+    o3d.utility.set_max_threads(count)
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(previous[0])
+        torch.set_num_threads(previous[1])
 
 
 @functools.lru_cache(maxsize=16)
