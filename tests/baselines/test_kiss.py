@@ -73,3 +73,15 @@ def test_invalid_settings_are_named() -> None:
         KISSMatcher(robin_noise_bound_gain=0.0)
     with pytest.raises(ValueError, match="num_max_corr"):
         KISSMatcher(num_max_corr=2)
+
+
+def test_no_solution_warns_or_runs_the_fallback(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("kiss_matcher")
+    src, ref, gt = make_pair()
+    monkeypatch.setattr(KISSMatcher, "estimate_pair", lambda self, a, b: (np.eye(4), False))  # too few inliers
+    with pytest.warns(lcreg.registration.LowFitnessWarning, match="kiss found no solution"):
+        alone = lcreg.register(src, ref, "kiss+icp")
+    assert alone.extra["coarse_valid"] is False
+    rescued = lcreg.register(src, ref, "kiss+icp", fallback="ransac+icp")
+    assert rescued.method == "ransac+icp" and rescued.extra["fallback"]["no_solution"] is True
+    assert errors(rescued.transform, gt)[0] < 1.0

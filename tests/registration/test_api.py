@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import torch
 
 import lcreg
 from _register_pairs import errors, motion  # type: ignore[import-not-found]
-from lcreg.registration import DEFAULT_METHOD, MethodError, available_methods, register
+from lcreg.registration import MethodError, available_methods, register
+from lcreg.registration.api import DEFAULT, DEFAULT_WITHOUT_KISS, default_pipeline
 from lcreg.registration.methods import parse_method
 
 
@@ -19,7 +22,7 @@ def test_global_pipelines_recover_a_large_motion(pair, method):
     rre, rte = errors(result.transform, gt)
     assert rre < 1.0 and rte < 0.01, (rre, rte)
     assert result.fitness > 0.9 and result.inlier_rmse < result.voxel_size
-    assert result.method == (DEFAULT_METHOD if method == "default" else method)
+    assert result.method == (default_pipeline().method if method == "default" else method)
     assert result.coarse_transform is not None and result.num_points == (3000, 3000)
 
 
@@ -58,7 +61,7 @@ def test_result_helpers(pair):
     moved = result.apply(src)
     np.testing.assert_allclose(moved, src @ result.transform[:3, :3].T + result.transform[:3, 3])
     record = result.to_dict()
-    assert np.array(record["transform_ref_src"]).shape == (4, 4) and record["method"] == DEFAULT_METHOD
+    assert np.array(record["transform_ref_src"]).shape == (4, 4) and record["method"] == default_pipeline().method
 
 
 def test_learned_method_with_shipped_weights(pair):
@@ -156,3 +159,14 @@ def test_threads_change_the_speed_not_the_result(pair):
     np.testing.assert_allclose(register(src, ref, "ransac+icp", threads=2).transform, one.transform, atol=1e-9)
     with pytest.raises(ValueError, match="threads"):
         register(src, ref, threads=0)
+
+
+def test_the_default_is_kiss_with_a_ransac_fallback_and_plain_ransac_without_kiss(pair, monkeypatch):
+    src, ref, gt = pair
+    pytest.importorskip("kiss_matcher")
+    assert default_pipeline() == DEFAULT and DEFAULT.method == "kiss+icp" and DEFAULT.fallback == "ransac+icp"
+    assert register(src, ref, min_fitness=1.0).extra["fallback"]["ran"] == "ransac+icp"  # below: the fallback ran
+    monkeypatch.setitem(sys.modules, "kiss_matcher", None)  # a platform without the wheel
+    assert default_pipeline() == DEFAULT_WITHOUT_KISS
+    result = register(src, ref)
+    assert result.method == "ransac+icp" and errors(result.transform, gt)[0] < 1.0

@@ -93,3 +93,17 @@ def test_a_learned_object_method_on_partial_scans_warns_or_falls_back():
     rescued = lcreg.register(src, ref, "dvds+icp", fallback="ransac+icp")
     assert rescued.method == "ransac+icp" and rescued.extra["fallback"]["first"] == "dvds+icp"
     assert np.linalg.norm(rescued.transform[:3, 3] - gt[:3, 3]) < 0.05
+
+
+def test_the_default_on_the_readme_pair_falls_back_where_kiss_finds_no_solution():
+    pytest.importorskip("kiss_matcher")
+    import lcreg
+    from lcreg.metrics.functional import rotation_error_deg, translation_error
+
+    folder = shared_data("3dmatch") / "fragments" / "7-scenes-redkitchen"
+    scene = shared_data("3dmatch") / "benchmarks" / "3DMatch" / "7-scenes-redkitchen"
+    gt = next(p for p in read_pair_list(scene) if p.name.endswith("/24-35")).transform_ref_src
+    result = lcreg.register(folder / "cloud_bin_35.ply", folder / "cloud_bin_24.ply")
+    assert result.extra["fallback"]["no_solution"] and result.method == "ransac+icp"
+    pred, truth = torch.tensor(result.transform)[None], torch.tensor(gt)[None]
+    assert float(rotation_error_deg(pred, truth)[0]) < 1.0 and float(translation_error(pred, truth)[0]) < 0.06

@@ -11,6 +11,7 @@ import pytest
 from _register_pairs import errors  # type: ignore[import-not-found]
 from lcreg.cli import main
 from lcreg.data.io import read_points
+from lcreg.registration.api import default_pipeline
 from lcreg.registration.outputs import read_transform, write_ply
 
 
@@ -37,7 +38,7 @@ def test_one_pair_prints_and_writes_everything(files, tmp_path, capsys):
     assert errors(estimate, gt)[0] < 1.0
     moved = read_points(aligned)
     np.testing.assert_allclose(moved, read_points(src) @ estimate[:3, :3].T + estimate[:3, 3], atol=1e-4)
-    assert json.loads(out.read_text())["method"] == "ransac+icp"
+    assert json.loads(out.read_text())["method"] == default_pipeline().method
 
 
 def test_init_file_is_used(files, tmp_path, capsys):
@@ -166,7 +167,7 @@ def test_a_damaged_file_fails_its_pair_with_the_reason_and_the_run_goes_on(files
 
 
 def test_fallback_options_print_what_ran(files, capsys):
-    src, ref, gt = files
+    src, ref, _gt = files
     main(["register", str(src), str(ref), "--method", "icp", "--fallback", "ransac+icp", "--min-fitness", "0.9"])
     text = capsys.readouterr().out
     assert "fallback:  icp fitness" in text and "ran ransac+icp" in text and "kept ransac+icp" in text

@@ -174,11 +174,15 @@ def _open3d_threads(limit: int | None) -> Iterator[None]:
 
 @dataclass
 class PairResult:
-    """Open3D's answer for one pair: ``transform (4, 4)`` float64, ``fitness`` in [0, 1], ``inlier_rmse``."""
+    """The answer for one pair: ``transform (4, 4)`` float64, ``fitness`` in [0, 1], ``inlier_rmse``, ``valid``.
+
+    ``valid`` is ``False`` when the method itself reports that it found no solution (KISS-Matcher: too few inliers).
+    """
 
     transform: np.ndarray
     fitness: float
     inlier_rmse: float
+    valid: bool = True
 
 
 class ClassicalRegistration(RegistrationModule):

@@ -8,12 +8,16 @@ Building the class and listing the method need nothing.
 
 Every radius is a multiple of one voxel size ``v``, as for the Open3D methods: KISS-Matcher's own gains are in
 voxels too (normals ``normal_factor v``, FPFH ``feature_factor v``), so the scale rule of
-:mod:`lcreg.registration.voxel` carries over unchanged. Fitness and inlier RMSE are Open3D's at the gate
-``distance_factor v`` (KISS-Matcher reports inlier counts, not these).
+:mod:`lcreg.registration.voxel` carries over. KISS-Matcher also has constants in metres (it clamps its noise bounds
+to 1 m, and the same clouds in millimetres fail its solve), so both clouds are scaled by a power of ten that puts
+``v`` in ``[0.01, 0.1)`` (:func:`unit_factor`; 3DMatch and ModelNet40 voxels are already there) and the translation
+is scaled back: the same scans in millimetres and in metres give the same transform. Fitness and inlier RMSE are
+Open3D's at the gate ``distance_factor v`` (KISS-Matcher reports inlier counts, not these).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -21,9 +25,14 @@ import numpy as np
 from lcreg.baselines.classical import ClassicalRegistration, PairResult, _check_bool, _check_int, _check_positive
 from lcreg.checks import MissingDependencyError
 
-__all__ = ["KISSMatcher", "require_kiss_matcher"]
+__all__ = ["KISSMatcher", "require_kiss_matcher", "unit_factor"]
 
 INSTALL_HINT = "pip install 'lcreg[kiss]' (kiss-matcher wheels exist for Linux x86_64 and macOS arm64)"
+
+
+def unit_factor(voxel_size: float) -> float:
+    """The power of ten ``k`` with ``k * voxel_size`` in ``[0.01, 0.1)`` (``k(1000 v) = k(v) / 1000``)."""
+    return float(10.0 ** (-math.floor(math.log10(voxel_size) + 1e-12) - 2))
 
 
 def require_kiss_matcher() -> Any:
@@ -43,6 +52,9 @@ def require_kiss_matcher() -> Any:
 
 class KISSMatcher(ClassicalRegistration):
     """KISS-Matcher global registration (``init`` is ignored: the method is global).
+
+    A pair KISS-Matcher finds no solution for (too few inliers) gets the identity with fitness 0 and
+    ``valid=False`` (``lcreg.register`` then runs its fallback, if any).
 
     Args:
         voxel_size: ``v`` (point units): KISS-Matcher's sampling voxel and the unit of every radius.
@@ -95,15 +107,15 @@ class KISSMatcher(ClassicalRegistration):
         """KISS-Matcher's solve reports no iterations: 1 (one global solve)."""
         return 1
 
-    def config(self) -> Any:
-        """The ``KISSMatcherConfig`` of these settings.
+    def config(self, scale: float = 1.0) -> Any:
+        """The ``KISSMatcherConfig`` of these settings, for clouds multiplied by ``scale``.
 
         Raises:
             MissingDependencyError: kiss-matcher is not installed.
         """
         km = require_kiss_matcher()
         return km.KISSMatcherConfig(
-            voxel_size=self.voxel_size,
+            voxel_size=self.voxel_size * scale,
             use_voxel_sampling=True,
             use_quatro=self.use_quatro,
             num_max_corr=self.num_max_corr,
@@ -113,26 +125,30 @@ class KISSMatcher(ClassicalRegistration):
             solver_noise_bound_gain=self.solver_noise_bound_gain,
         )
 
-    def estimate_pair(self, points_src: np.ndarray, points_ref: np.ndarray) -> np.ndarray:
-        """KISS-Matcher's ``(4, 4)`` float64 estimate for ``points_src (N, 3)`` onto ``points_ref (M, 3)``.
+    def estimate_pair(self, points_src: np.ndarray, points_ref: np.ndarray) -> tuple[np.ndarray, bool]:
+        """KISS-Matcher's (4, 4) estimate for ``points_src (N, 3)`` onto ``points_ref (M, 3)`` and validity.
 
-        A solve KISS-Matcher marks invalid (too few inliers) returns the identity.
+        An invalid solve (too few inliers) gives the identity and ``False``.
         """
         km = require_kiss_matcher()
-        solution = km.KISSMatcher(self.config()).estimate(
-            np.ascontiguousarray(points_src, dtype=np.float32), np.ascontiguousarray(points_ref, dtype=np.float32)
+        scale = unit_factor(self.voxel_size)
+        solution = km.KISSMatcher(self.config(scale)).estimate(
+            np.ascontiguousarray(points_src * scale, dtype=np.float32),
+            np.ascontiguousarray(points_ref * scale, dtype=np.float32),
         )
         transform = np.eye(4)
         if solution.valid:
             transform[:3, :3] = np.asarray(solution.rotation, dtype=np.float64)
-            transform[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3)
-        return transform
+            transform[:3, 3] = np.asarray(solution.translation, dtype=np.float64).reshape(3) / scale
+        return transform, bool(solution.valid)
 
     def register_pair(self, source: Any, target: Any, init: np.ndarray | None) -> PairResult:
         """KISS-Matcher on two Open3D clouds, then Open3D's fitness at ``distance_factor * v``."""
         import open3d as o3d
 
-        transform = self.estimate_pair(np.asarray(source.points), np.asarray(target.points))
+        transform, valid = self.estimate_pair(np.asarray(source.points), np.asarray(target.points))
+        if not valid:  # no solution: nothing aligned (fitness 0), so `converged` is False
+            return PairResult(transform, 0.0, 0.0, valid=False)
         gate = self.distance_factor * self.voxel_size
         out = o3d.pipelines.registration.evaluate_registration(source, target, gate, transform)
         return PairResult(transform, float(out.fitness), float(out.inlier_rmse))

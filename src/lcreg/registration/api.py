@@ -40,16 +40,73 @@ from lcreg.registration.methods import threads as threads_limit
 from lcreg.registration.voxel import TARGET_POINTS, auto_voxel_size
 
 __all__ = [
+    "DEFAULT",
     "DEFAULT_METHOD",
+    "DEFAULT_WITHOUT_KISS",
     "LEARNED_MIN_FITNESS",
+    "DefaultPipeline",
     "LowFitnessWarning",
     "Registration",
+    "default_pipeline",
     "register",
     "register_clouds",
+    "resolve_methods",
 ]
 
-DEFAULT_METHOD = "ransac+icp"
-"""The method of ``method="default"``: the best on the validation pairs of ``docs/results/register.md``."""
+
+@dataclass(frozen=True)
+class DefaultPipeline:
+    """What ``method="default"`` runs: a method, and a fallback below a fitness (both optional)."""
+
+    method: str
+    fallback: str | None = None
+    min_fitness: float | None = None
+
+    def describe(self) -> str:
+        """``"kiss+icp, then ransac+icp below fitness 0.1"``."""
+        tail = "" if self.fallback is None else f", then {self.fallback} below fitness {self.min_fitness:g}"
+        return self.method + tail
+
+
+DEFAULT = DefaultPipeline("kiss+icp", "ransac+icp", 0.1)
+"""``method="default"``: chosen on the validation pairs (``docs/results/register.md``)."""
+DEFAULT_WITHOUT_KISS = DefaultPipeline("ransac+icp")
+"""The default where the optional kiss-matcher is not installed (no wheel for the platform)."""
+
+
+def default_pipeline() -> DefaultPipeline:
+    """:data:`DEFAULT`, or :data:`DEFAULT_WITHOUT_KISS` when kiss-matcher cannot be imported."""
+    try:
+        import kiss_matcher  # noqa: F401
+    except ImportError:
+        return DEFAULT_WITHOUT_KISS
+    return DEFAULT
+
+
+def resolve_methods(
+    method: str, refine: str | None, fallback: str | None, min_fitness: float | None
+) -> tuple[Method, Method | None, float | None]:
+    """The parsed method (``"default"``: :func:`default_pipeline`'s, with its fallback unless given) and fallback.
+
+    Raises:
+        MethodError: An unknown method or fallback.
+        ValueError: ``min_fitness`` outside [0, 1].
+    """
+    if min_fitness is not None and not (isinstance(min_fitness, (int, float)) and 0 <= min_fitness <= 1):
+        raise ValueError(f"`min_fitness` must be a number in [0, 1] or None, got {min_fitness!r}")
+    if method == "default":
+        policy = default_pipeline()
+        method = policy.method
+        if fallback is None:  # the default's fallback, at the default's level unless one is given
+            fallback, min_fitness = policy.fallback, policy.min_fitness if min_fitness is None else min_fitness
+    second = (
+        None if fallback is None else parse_method(default_pipeline().method if fallback == "default" else fallback)
+    )
+    return parse_method(method, refine), second, min_fitness
+
+
+DEFAULT_METHOD = DEFAULT.method
+"""The method of :data:`DEFAULT` (kept for scripts that read the name)."""
 LEARNED_MIN_FITNESS = 0.5
 """A learned object method's result below this fitness is flagged (:class:`LowFitnessWarning`): those networks were
 trained on complete objects that overlap fully, where a correct result has a fitness near 1."""
@@ -147,9 +204,10 @@ def register_clouds(
 ) -> Registration:
     """Register two validated clouds (the work of :func:`register`; ``cache`` reuses files' features across pairs).
 
-    A result whose fitness is below ``min_fitness`` (for learned methods, by default :data:`LEARNED_MIN_FITNESS`) is
-    run again with ``fallback`` when one is given (the result with the higher fitness is kept, both recorded in
-    ``extra["fallback"]``, the times added), else a learned method's result comes with a :class:`LowFitnessWarning`.
+    A result whose fitness is below ``min_fitness`` (for learned methods, by default :data:`LEARNED_MIN_FITNESS`), or
+    whose coarse step reports no solution (KISS-Matcher), is run again with ``fallback`` when one is given (the result
+    with the higher fitness is kept, both recorded in ``extra["fallback"]``, the times added); without a fallback, a
+    learned method's low fitness or a step's missing solution comes with a :class:`LowFitnessWarning`.
 
     Args:
         src: Source cloud.
@@ -182,24 +240,30 @@ def register_clouds(
     steps = (weights, init, learned_points, seed)
     first = _run_method(method, src, ref, clouds, steps, start)
     threshold = min_fitness if min_fitness is not None else (LEARNED_MIN_FITNESS if method.learned else None)
-    if threshold is None or first.fitness >= threshold:
+    no_solution = first.extra.get("coarse_valid") is False  # the coarse step says it found none (KISS-Matcher)
+    if not no_solution and (threshold is None or first.fitness >= threshold):
         return first
     if fallback is None:
-        if method.learned:
-            warnings.warn(LowFitnessWarning(_low_fitness_message(first, threshold)), stacklevel=3)
+        if no_solution or method.learned:
+            warnings.warn(LowFitnessWarning(_failure_message(first, threshold, no_solution)), stacklevel=3)
         return first
     second = _run_method(fallback, src, ref, clouds, steps, time.perf_counter())  # same prepared clouds
     kept = second if second.fitness > first.fitness else first
     kept.extra["fallback"] = {
         "first": first.method, "first_fitness": first.fitness, "min_fitness": threshold,
-        "ran": second.method, "ran_fitness": second.fitness, "kept": kept.method,
+        "ran": second.method, "ran_fitness": second.fitness, "kept": kept.method, "no_solution": no_solution,
     }  # fmt: skip
     kept.time_s = first.time_s + second.time_s
     return kept
 
 
-def _low_fitness_message(result: Registration, threshold: float) -> str:
+def _failure_message(result: Registration, threshold: float | None, no_solution: bool) -> str:
     coarse = result.method.partition("+")[0]
+    if no_solution:
+        return (
+            f"{result.method}: {coarse} found no solution (too few consistent correspondences), the result is the "
+            "identity refined; use ransac+icp, or ask for a fallback (fallback='ransac+icp', --fallback ransac+icp)"
+        )
     return (
         f"{result.method}: fitness {result.fitness:.2f} is below {threshold:g}, the registration probably failed; "
         f"{coarse} is an object model trained on complete objects that overlap fully: for partial scans use "
@@ -219,7 +283,7 @@ def _run_method(
     weights, init, learned_points, seed = steps
     p_src, p_ref = clouds
     model = learned_model(method.coarse, weights) if method.learned else None
-    coarse = _coarse(method.coarse, p_src, p_ref, model, learned_points, seed)
+    coarse, valid = _coarse(method.coarse, p_src, p_ref, model, learned_points, seed)
     coarse_time = time.perf_counter() - start
     transform = coarse if method.refine is None else icp_step(p_src, p_ref, coarse).transform
     fitness, rmse = evaluate(p_src, p_ref, transform)
@@ -238,16 +302,18 @@ def _run_method(
         coarse_transform=None if method.refine is None else coarse,
         coarse_time_s=None if method.refine is None else coarse_time,
         sources=(src.label, ref.label),
+        extra={} if valid else {"coarse_valid": False},
     )
 
 
-def _coarse(name: str, src: Any, ref: Any, model: Any, learned_points: int, seed: int) -> np.ndarray:
-    """The coarse step's ``(4, 4)`` estimate."""
+def _coarse(name: str, src: Any, ref: Any, model: Any, learned_points: int, seed: int) -> tuple[np.ndarray, bool]:
+    """The coarse step's ``(4, 4)`` estimate, and whether the step reports a solution (KISS-Matcher may not)."""
     if name == "icp":
-        return icp_step(src, ref, np.eye(4)).transform
+        return icp_step(src, ref, np.eye(4)).transform, True
     if name in GLOBAL_STEPS:
-        return global_step(name, src, ref).transform
-    return learned_step(model, src.points, ref.points, learned_points, seed)
+        out = global_step(name, src, ref)
+        return out.transform, out.valid
+    return learned_step(model, src.points, ref.points, learned_points, seed), True
 
 
 def register(
@@ -272,7 +338,8 @@ def register(
         src: Source cloud: a file path (``.ply``, ``.pcd``, ``.xyz``, ``.pts``, ``.npy``, KITTI ``.bin``, ...), an
             ``(N, 3)`` numpy array (float32/float64/int) or torch tensor, or an Open3D ``PointCloud``.
         ref: Reference cloud, same kinds.
-        method: ``"default"`` (:data:`DEFAULT_METHOD`), or a name of
+        method: ``"default"`` (:data:`DEFAULT`: ``kiss+icp``, then ``ransac+icp`` below fitness 0.1; ``ransac+icp``
+            where kiss-matcher is not installed), or a name of
             :func:`lcreg.registration.methods.available_methods` (``"icp"``, ``"ransac"``, ``"fgr"``, ``"dvds"``,
             ``"ransac+icp"``, ``"dvds+icp"``, ...).
         weights: Learned methods only: a shipped name (``lcreg.pretrained_names()``), an exported ``.pt`` file or a
@@ -302,11 +369,8 @@ def register(
         lcreg.registration.methods.MethodError: Unknown method, or a learned method without weights.
         ValueError: A bad ``init``, ``voxel_size`` or count.
     """
-    chosen = parse_method(DEFAULT_METHOD if method == "default" else method, refine)
-    second = None if fallback is None else parse_method(DEFAULT_METHOD if fallback == "default" else fallback)
+    chosen, second, min_fitness = resolve_methods(method, refine, fallback, min_fitness)
     _check_options(voxel_size, target_points, learned_points)
-    if min_fitness is not None and not (isinstance(min_fitness, (int, float)) and 0 <= min_fitness <= 1):
-        raise ValueError(f"`min_fitness` must be a number in [0, 1] or None, got {min_fitness!r}")
     init_matrix = None if init is None else _check_init(init)
     cloud_src, cloud_ref = as_cloud(src, "points_src"), as_cloud(ref, "points_ref")
     with threads_limit(threads):

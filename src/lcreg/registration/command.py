@@ -22,7 +22,7 @@ import numpy as np
 
 from lcreg.checks import MissingDependencyError
 from lcreg.methods import METHODS
-from lcreg.registration.api import DEFAULT_METHOD, Registration, register
+from lcreg.registration.api import DEFAULT, DEFAULT_WITHOUT_KISS, Registration, register
 from lcreg.registration.methods import CLASSICAL, LEARNED, MethodError
 from lcreg.registration.outputs import TRANSFORM_SUFFIXES, check_suffix, read_transform, write_ply, write_transform
 from lcreg.registration.voxel import TARGET_POINTS
@@ -35,7 +35,10 @@ def _methods_help() -> str:
     from lcreg.weights import REGISTRY, shipped_names
 
     shipped = shipped_names()
-    lines = [f"  default       {DEFAULT_METHOD} (best on the validation pairs, docs/results/register.md)"]
+    lines = [
+        f"  default       {DEFAULT.describe()} (chosen on the validation pairs, docs/results/register.md); "
+        f"{DEFAULT_WITHOUT_KISS.describe()} where kiss-matcher is not installed"
+    ]
     lines += [f"  {name:<13} {text}" for name, text in CLASSICAL.items()]
     for name, class_path in LEARNED.items():
         names = [n for n in shipped if REGISTRY[n].class_path == class_path]

@@ -38,9 +38,9 @@ import torch
 from lcreg.checkpoints import CheckpointError, one_line
 from lcreg.checks import MissingDependencyError
 from lcreg.data.pairlists import ListedPair, read_pair_list
-from lcreg.registration.api import DEFAULT_METHOD, Registration, register_clouds
+from lcreg.registration.api import Registration, register_clouds, resolve_methods
 from lcreg.registration.inputs import Cloud, as_cloud
-from lcreg.registration.methods import Method, PreparedCache, parse_method, threads
+from lcreg.registration.methods import Method, PreparedCache, threads
 from lcreg.registration.voxel import TARGET_POINTS, cloud_voxel_size, round_voxel_size
 
 __all__ = ["COLUMNS", "PairRow", "Thresholds", "default_thresholds", "register_pairs", "run_pairs", "summarize"]
@@ -188,7 +188,7 @@ def register_pairs(
     voxel_size: float | None = None,
     target_points: int = TARGET_POINTS,
     seed: int = 0,
-    fallback: str | None = None,
+    fallback: Method | None = None,
     min_fitness: float | None = None,
 ) -> Iterable[PairRow]:
     """Register each pair (files read, voxel sizes and features computed once per file), yielding its row.
@@ -208,7 +208,6 @@ def register_pairs(
         One :class:`PairRow` per pair, in order.
     """
     clouds, cache = _Clouds(target_points), PreparedCache(size=64)
-    second = None if fallback is None else parse_method(DEFAULT_METHOD if fallback == "default" else fallback)
     for pair in pairs:
         start = time.perf_counter()
         try:
@@ -216,7 +215,7 @@ def register_pairs(
             v = voxel_size or round_voxel_size(max(clouds.voxel(pair.path_src), clouds.voxel(pair.path_ref)))
             result = register_clouds(
                 src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache,
-                fallback=second, min_fitness=min_fitness,
+                fallback=fallback, min_fitness=min_fitness,
             )  # fmt: skip
         except (CheckpointError, MissingDependencyError):
             raise  # the run's weights or method, not this pair: nothing else would register either
@@ -341,7 +340,7 @@ def _thresholds(args: argparse.Namespace, pairs: Sequence[ListedPair]) -> Thresh
 
 def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
     """The ``--pairs`` mode of ``lcreg register``: register, write the CSV and summary, print the scores."""
-    method = parse_method(DEFAULT_METHOD if args.method == "default" else args.method, args.refine)
+    method, fallback, min_fitness = resolve_methods(args.method, args.refine, args.fallback, args.min_fitness)
     pairs = read_pair_list(args.pairs)
     if args.limit is not None:
         pairs = pairs[: max(args.limit, 0)]
@@ -360,7 +359,7 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
             writer.writeheader()
         bar = _progress(todo, args.no_progress)
         with threads(args.threads):
-            _write_rows(bar, writer, fh, rows, method, thresholds, args)
+            _write_rows(bar, writer, fh, rows, (method, fallback, min_fitness), thresholds, args)
     summary = summarize(rows, thresholds, default_thresholds(pairs))
     summary |= {"method": method.name, "pairs_file": str(args.pairs)}
     summary_path = results.with_suffix(".summary.json")
@@ -375,11 +374,12 @@ def _write_rows(
     writer: csv.DictWriter,
     fh: Any,
     rows: list[dict[str, Any]],
-    method: Method,
+    methods: tuple[Method, Method | None, float | None],
     thresholds: Thresholds,
     args: argparse.Namespace,
 ) -> None:
     """Register the pairs of ``bar``, writing (and flushing) each row as it comes, appending it to ``rows``."""
+    method, fallback, min_fitness = methods
     for row in register_pairs(
         bar,
         method,
@@ -388,8 +388,8 @@ def _write_rows(
         voxel_size=args.voxel_size,
         target_points=args.target_points,
         seed=args.seed,
-        fallback=args.fallback,
-        min_fitness=args.min_fitness,
+        fallback=fallback,
+        min_fitness=min_fitness,
     ):
         record = row.as_csv()
         writer.writerow(record)
