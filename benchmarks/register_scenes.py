@@ -173,50 +173,6 @@ def _rows(data: str, method: str, s: dict[str, Any]) -> list[list[Any]]:
     return rows
 
 
-def _rows_of(folder: Path, data: str, method: str) -> dict[tuple[str, str], dict[str, str]]:
-    """The results CSV rows of ``method`` on ``data`` (all parts), by ``(part, pair name)``."""
-    import csv
-
-    rows = {}
-    stem = f"{data}__{method.replace('+', '-')}"
-    for path in sorted([*folder.glob(f"{stem}.csv"), *folder.glob(f"{stem}.part*.csv")]):
-        part = path.name.removeprefix(stem)
-        rows |= {(part, r["name"]): r for r in csv.DictReader(path.open())}
-    return rows
-
-
-def fallback_table(folder: Path, first: str, second: str, levels: Sequence[float]) -> str:
-    """Markdown: ``first --fallback second --min-fitness f`` for each ``f``, from the two methods' results CSVs.
-
-    Both methods are deterministic, so a pair's outcome under the policy is read from the two runs: below ``f`` the
-    result with the higher fitness is kept and the pair costs both times (exactly what ``--fallback`` does).
-    """
-    header = ["data", "min fitness", "fallback runs", "recall (RRE, RTE)", "3DMatch recall (scored)", "ms/pair"]
-    rows = []
-    for data in sorted({p.name.split("__")[0] for p in folder.glob(f"*__{first.replace('+', '-')}*.csv")}):
-        a, b = _rows_of(folder, data, first), _rows_of(folder, data, second)
-        keys = [k for k in a if k in b]
-        if not keys:
-            continue
-        for level in levels:
-            kept, times, runs = [], [], 0
-            for key in keys:
-                fa, fb = float(a[key]["fitness"] or 0), float(b[key]["fitness"] or 0)
-                if fa < level:
-                    runs += 1
-                    kept.append(b[key] if fb > fa else a[key])
-                    times.append(float(a[key]["time_ms"]) + float(b[key]["time_ms"]))
-                else:
-                    kept.append(a[key])
-                    times.append(float(a[key]["time_ms"]))
-            recall = np.mean([r["success"] == "1" for r in kept])
-            scored = [r for r in kept if r["scored"] == "1"]
-            official = f"{_cell(np.mean([float(r['rmse']) <= 0.2 for r in scored]), True)} ({len(scored)})"
-            rows.append([data, level, f"{runs}/{len(keys)}", _cell(float(recall), True),
-                         official if scored else "-", f"{np.mean(times):.0f}"])  # fmt: skip
-    return markdown_table(header, rows)
-
-
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--set", choices=("validation", "test"), default="validation")
@@ -226,12 +182,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--results", help="results folder (default: runs/register_bench; a temporary one with --smoke)")
     parser.add_argument("--table-only", action="store_true", help="only rebuild the table from the results found")
     parser.add_argument("--tag", default="", help="suffix of the results files and method labels (with --extra)")
-    parser.add_argument(
-        "--fallback-table",
-        nargs=2,
-        metavar=("FIRST", "SECOND"),
-        help="also tabulate FIRST --fallback SECOND at several --min-fitness levels, from both methods' results",
-    )
     parser.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more lcreg register options")
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
@@ -245,10 +195,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         for method in methods:
             run_one(pairs, method, folder / f"{data}__{method.replace('+', '-')}{args.tag}.csv", args.extra)
     text = f"Machine: {machine_line()}\n\n{table(folder)}\n"
-    if args.fallback_table:
-        first, second = args.fallback_table
-        levels = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
-        text += f"\n{first} --fallback {second} --min-fitness f:\n\n{fallback_table(folder, first, second, levels)}\n"
     print(text)
     if args.out:
         write_text(args.out, text)
