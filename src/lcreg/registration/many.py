@@ -38,7 +38,7 @@ import torch
 from lcreg.checkpoints import CheckpointError, one_line
 from lcreg.checks import MissingDependencyError
 from lcreg.data.pairlists import ListedPair, read_pair_list
-from lcreg.registration.api import Registration, register_clouds, resolve_methods
+from lcreg.registration.api import LowFitnessWarning, Registration, register_clouds, resolve_methods
 from lcreg.registration.inputs import Cloud, as_cloud
 from lcreg.registration.methods import Method, PreparedCache, threads
 from lcreg.registration.voxel import TARGET_POINTS, cloud_voxel_size, round_voxel_size
@@ -213,10 +213,17 @@ def register_pairs(
         try:
             src, ref = clouds.read(pair.path_src, "points_src"), clouds.read(pair.path_ref, "points_ref")
             v = voxel_size or round_voxel_size(max(clouds.voxel(pair.path_src), clouds.voxel(pair.path_ref)))
-            result = register_clouds(
-                src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed, cache=cache,
-                fallback=fallback, min_fitness=min_fitness,
-            )  # fmt: skip
+            with warnings.catch_warnings(record=True) as caught:  # one line per run, not per pair (run_pairs)
+                warnings.simplefilter("always", LowFitnessWarning)
+                result = register_clouds(
+                    src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed,
+                    cache=cache, fallback=fallback, min_fitness=min_fitness,
+                )  # fmt: skip
+            for warning in caught:
+                if not issubclass(warning.category, LowFitnessWarning):
+                    warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+            if any(issubclass(w.category, LowFitnessWarning) for w in caught):
+                result.extra["warned"] = True
         except (CheckpointError, MissingDependencyError):
             raise  # the run's weights or method, not this pair: nothing else would register either
         except (OSError, ValueError) as err:  # this pair's files: damaged, empty, missing, too small
@@ -380,6 +387,7 @@ def _write_rows(
 ) -> None:
     """Register the pairs of ``bar``, writing (and flushing) each row as it comes, appending it to ``rows``."""
     method, fallback, min_fitness = methods
+    warned: list[str] = []
     for row in register_pairs(
         bar,
         method,
@@ -395,7 +403,15 @@ def _write_rows(
         writer.writerow(record)
         fh.flush()
         rows.append({k: str(v) for k, v in record.items()})
+        if row.result is not None and row.result.extra.get("warned"):
+            warned.append(row.pair.name)
         _postfix(bar, rows)
+    if warned:
+        print(
+            f"lcreg register: warning: {len(warned)} pairs ({warned[0]}, ...): {method.name} found no solution or its "
+            "fitness says it failed; --fallback ransac+icp reruns such pairs",
+            file=sys.stderr,
+        )
 
 
 def _progress(pairs: list[ListedPair], disabled: bool) -> Any:
