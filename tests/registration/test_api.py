@@ -14,6 +14,9 @@ from lcreg.registration import MethodError, available_methods, register
 from lcreg.registration.api import DEFAULT, DEFAULT_WITHOUT_KISS, default_pipeline
 from lcreg.registration.methods import parse_method
 
+SMALL_CLOUDS = default_pipeline().small or default_pipeline().method
+"""The default's method for the 3,000-point test clouds (at most ``target_points``: objects)."""
+
 
 @pytest.mark.parametrize("method", ["default", "ransac+icp", "fgr+icp"])
 def test_global_pipelines_recover_a_large_motion(pair, method):
@@ -22,7 +25,7 @@ def test_global_pipelines_recover_a_large_motion(pair, method):
     rre, rte = errors(result.transform, gt)
     assert rre < 1.0 and rte < 0.01, (rre, rte)
     assert result.fitness > 0.9 and result.inlier_rmse < result.voxel_size
-    assert result.method == (default_pipeline().method if method == "default" else method)
+    assert result.method == (SMALL_CLOUDS if method == "default" else method)
     assert result.coarse_transform is not None and result.num_points == (3000, 3000)
 
 
@@ -61,7 +64,7 @@ def test_result_helpers(pair):
     moved = result.apply(src)
     np.testing.assert_allclose(moved, src @ result.transform[:3, :3].T + result.transform[:3, 3])
     record = result.to_dict()
-    assert np.array(record["transform_ref_src"]).shape == (4, 4) and record["method"] == default_pipeline().method
+    assert np.array(record["transform_ref_src"]).shape == (4, 4) and record["method"] == SMALL_CLOUDS
 
 
 def test_learned_method_with_shipped_weights(pair):
@@ -165,8 +168,10 @@ def test_the_default_is_kiss_with_a_ransac_fallback_and_plain_ransac_without_kis
     src, ref, gt = pair
     pytest.importorskip("kiss_matcher")
     assert default_pipeline() == DEFAULT and DEFAULT.method == "kiss+icp" and DEFAULT.fallback == "ransac+icp"
-    assert register(src, ref, min_fitness=1.0).extra["fallback"]["ran"] == "ransac+icp"  # below: the fallback ran
+    assert register(src, ref).method == DEFAULT.small == "ransac+icp"  # 3,000 points: an object
+    scan = register(src, ref, target_points=1000)  # more points than the target: a scan
+    assert scan.method == "kiss+icp" and errors(scan.transform, gt)[0] < 1.0  # the fallback: test_kiss.py
     monkeypatch.setitem(sys.modules, "kiss_matcher", None)  # a platform without the wheel
     assert default_pipeline() == DEFAULT_WITHOUT_KISS
-    result = register(src, ref)
+    result = register(src, ref, target_points=1000)
     assert result.method == "ransac+icp" and errors(result.transform, gt)[0] < 1.0

@@ -62,7 +62,7 @@ def test_the_same_scans_in_millimetres_and_metres_give_the_same_transform():
     in_metres = millimetres.transform.copy()
     in_metres[:3, 3] /= 1000
     rre = float(rotation_error_deg(torch.tensor(in_metres)[None], torch.tensor(metres.transform)[None])[0])
-    assert rre < 0.01 and np.abs(in_metres[:3, 3] - metres.transform[:3, 3]).max() < 1e-4  # was 0.43 vs 0.195 deg
+    assert rre < 0.01 and np.abs(in_metres[:3, 3] - metres.transform[:3, 3]).max() < 1e-3  # was 0.43 vs 0.195 deg
     assert np.isclose(millimetres.voxel_size, 1000 * metres.voxel_size, rtol=1e-9)
 
 

@@ -190,6 +190,7 @@ def register_pairs(
     seed: int = 0,
     fallback: Method | None = None,
     min_fitness: float | None = None,
+    small: Method | None = None,
 ) -> Iterable[PairRow]:
     """Register each pair (files read, voxel sizes and features computed once per file), yielding its row.
 
@@ -203,6 +204,7 @@ def register_pairs(
         seed: Seed of the networks' point samples.
         fallback: Method run on a pair whose result's fitness is below ``min_fitness`` (:func:`register_clouds`).
         min_fitness: Fitness below which a result counts as failed.
+        small: Method for pairs of clouds with at most ``target_points`` points each.
 
     Yields:
         One :class:`PairRow` per pair, in order.
@@ -217,7 +219,7 @@ def register_pairs(
                 warnings.simplefilter("always", LowFitnessWarning)
                 result = register_clouds(
                     src, ref, method, weights=weights, voxel_size=v, target_points=target_points, seed=seed,
-                    cache=cache, fallback=fallback, min_fitness=min_fitness,
+                    cache=cache, fallback=fallback, min_fitness=min_fitness, small=small,
                 )  # fmt: skip
             for warning in caught:
                 if not issubclass(warning.category, LowFitnessWarning):
@@ -347,7 +349,7 @@ def _thresholds(args: argparse.Namespace, pairs: Sequence[ListedPair]) -> Thresh
 
 def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
     """The ``--pairs`` mode of ``lcreg register``: register, write the CSV and summary, print the scores."""
-    method, fallback, min_fitness = resolve_methods(args.method, args.refine, args.fallback, args.min_fitness)
+    method, fallback, min_fitness, small = resolve_methods(args.method, args.refine, args.fallback, args.min_fitness)
     pairs = read_pair_list(args.pairs)
     if args.limit is not None:
         pairs = pairs[: max(args.limit, 0)]
@@ -366,7 +368,7 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
             writer.writeheader()
         bar = _progress(todo, args.no_progress)
         with threads(args.threads):
-            _write_rows(bar, writer, fh, rows, (method, fallback, min_fitness), thresholds, args)
+            _write_rows(bar, writer, fh, rows, (method, fallback, min_fitness, small), thresholds, args)
     summary = summarize(rows, thresholds, default_thresholds(pairs))
     summary |= {"method": method.name, "pairs_file": str(args.pairs)}
     summary_path = results.with_suffix(".summary.json")
@@ -381,12 +383,12 @@ def _write_rows(
     writer: csv.DictWriter,
     fh: Any,
     rows: list[dict[str, Any]],
-    methods: tuple[Method, Method | None, float | None],
+    methods: tuple[Method, Method | None, float | None, Method | None],
     thresholds: Thresholds,
     args: argparse.Namespace,
 ) -> None:
     """Register the pairs of ``bar``, writing (and flushing) each row as it comes, appending it to ``rows``."""
-    method, fallback, min_fitness = methods
+    method, fallback, min_fitness, small = methods
     warned: list[str] = []
     for row in register_pairs(
         bar,
@@ -398,6 +400,7 @@ def _write_rows(
         seed=args.seed,
         fallback=fallback,
         min_fitness=min_fitness,
+        small=small,
     ):
         record = row.as_csv()
         writer.writerow(record)
