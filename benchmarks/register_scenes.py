@@ -115,8 +115,8 @@ def _summaries(folder: Path) -> list[dict[str, Any]]:
     for path in sorted(folder.glob("*.summary.json")):
         data, _, label = path.name.removesuffix(".summary.json").partition("__")
         summary = json.loads(path.read_text())
-        tag = label.split(".part")[0].partition("@")[2]
-        method = summary["method"] + (f" ({tag})" if tag else "")
+        name, _, tag = label.split(".part")[0].partition("@")
+        method = name.replace("-", "+") + (f" ({tag})" if tag else "")  # as asked ("default"), from the file name
         rows.append({**summary, "data": data.split(".part")[0], "part": path.name, "method": method})
     return rows
 
@@ -150,7 +150,7 @@ def table(folder: Path) -> str:
 def _variants(summary: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
     """``(method label, scores)``: the method, then its coarse step when it is a pipeline."""
     out = [(summary["method"], summary)]
-    if "coarse" in summary:
+    if "coarse" in summary and summary["method"] != "default":
         coarse = summary["method"].partition("+")[0]
         out.append((f"{coarse} (coarse step of {summary['method']})", summary["coarse"]))
     return out

@@ -173,3 +173,11 @@ def test_fallback_options_print_what_ran(files, capsys):
     main(["register", str(src), str(ref), "--method", "icp", "--fallback", "ransac+icp", "--min-fitness", "0.9"])
     text = capsys.readouterr().out
     assert "fallback:  icp fitness" in text and "ran ransac+icp" in text and "kept ransac+icp" in text
+
+
+def test_the_default_pipeline_is_recorded_as_default(files, tmp_path):
+    pairs, results = _pairs_csv(tmp_path, files, rows=1), tmp_path / "res.csv"
+    main(["register", "--pairs", str(pairs), "--results", str(results), "--no-progress"])
+    assert [r["method"] for r in csv.DictReader(results.open())] == ["default"]
+    assert json.loads(results.with_suffix(".summary.json").read_text())["method"] == "default"
+    main(["register", "--pairs", str(pairs), "--results", str(results), "--resume"])  # resumes its own method

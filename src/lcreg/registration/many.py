@@ -98,12 +98,13 @@ class PairRow:
     method: str = ""
 
     @classmethod
-    def failed(cls, pair: ListedPair, method: Method, error: str, time_s: float) -> PairRow:
+    def failed(cls, pair: ListedPair, method: Method, error: str, time_s: float, label: str | None = None) -> PairRow:
         """The row of a pair that could not be registered: a failure wherever it is scored."""
         has_gt = pair.transform_ref_src is not None
         rmse = math.inf if pair.info is not None else math.nan  # scored pairs count as failed
         coarse = (math.nan, math.nan, rmse, False if has_gt else None) if method.refine is not None else None
-        return cls(pair, None, math.nan, math.nan, rmse, False if has_gt else None, coarse, error, time_s, method.name)
+        success = False if has_gt else None
+        return cls(pair, None, math.nan, math.nan, rmse, success, coarse, error, time_s, label or method.name)
 
     def as_csv(self) -> dict[str, Any]:
         """The CSV row (:data:`COLUMNS`)."""
@@ -191,6 +192,7 @@ def register_pairs(
     fallback: Method | None = None,
     min_fitness: float | None = None,
     small: Method | None = None,
+    label: str | None = None,
 ) -> Iterable[PairRow]:
     """Register each pair (files read, voxel sizes and features computed once per file), yielding its row.
 
@@ -205,6 +207,7 @@ def register_pairs(
         fallback: Method run on a pair whose result's fitness is below ``min_fitness`` (:func:`register_clouds`).
         min_fitness: Fitness below which a result counts as failed.
         small: Method for pairs of clouds with at most ``target_points`` points each.
+        label: The ``method`` of the rows (default: ``method``'s name; ``"default"`` for the default pipeline).
 
     Yields:
         One :class:`PairRow` per pair, in order.
@@ -230,7 +233,7 @@ def register_pairs(
             raise  # the run's weights or method, not this pair: nothing else would register either
         except (OSError, ValueError) as err:  # this pair's files: damaged, empty, missing, too small
             reason = f"{type(err).__name__}: {one_line(str(err))}"
-            yield PairRow.failed(pair, method, reason, time.perf_counter() - start)
+            yield PairRow.failed(pair, method, reason, time.perf_counter() - start, label)
             continue
         rre, rte, rmse = _errors(pair, result.transform)
         coarse = None
@@ -238,7 +241,7 @@ def register_pairs(
             c_rre, c_rte, c_rmse = _errors(pair, result.coarse_transform)
             coarse = (c_rre, c_rte, c_rmse, _success(pair, c_rre, c_rte, thresholds))
         success = _success(pair, rre, rte, thresholds)
-        yield PairRow(pair, result, rre, rte, rmse, success, coarse, method=method.name)
+        yield PairRow(pair, result, rre, rte, rmse, success, coarse, method=label or method.name)
 
 
 def _median(values: list[float]) -> float:
@@ -350,17 +353,18 @@ def _thresholds(args: argparse.Namespace, pairs: Sequence[ListedPair]) -> Thresh
 def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
     """The ``--pairs`` mode of ``lcreg register``: register, write the CSV and summary, print the scores."""
     method, fallback, min_fitness, small = resolve_methods(args.method, args.refine, args.fallback, args.min_fitness)
+    label = "default" if args.method == "default" else method.name  # the CSV's and summary's method: as asked
     pairs = read_pair_list(args.pairs)
     if args.limit is not None:
         pairs = pairs[: max(args.limit, 0)]
     thresholds = _thresholds(args, pairs)
     results = Path(args.results or "register_results.csv").expanduser()
-    done = _read_done(results, method.name) if args.resume and results.is_file() else []
+    done = _read_done(results, label) if args.resume and results.is_file() else []
     if results.exists() and not args.resume:
         raise FileExistsError(f"{str(results)!r} exists: pass --resume to continue it, or another --results file")
     names = {r["name"] for r in done}
     todo = [p for p in pairs if p.name not in names]
-    print(f"{len(pairs)} pairs from {args.pairs} ({len(done)} already in {results}), method {method.name}")
+    print(f"{len(pairs)} pairs from {args.pairs} ({len(done)} already in {results}), method {label}")
     rows = list(done)
     with results.open("a" if done else "w", newline="", encoding="utf-8") as fh:
         writer = csv.DictWriter(fh, fieldnames=COLUMNS)
@@ -370,7 +374,7 @@ def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
         with threads(args.threads):
             _write_rows(bar, writer, fh, rows, (method, fallback, min_fitness, small), thresholds, args)
     summary = summarize(rows, thresholds, default_thresholds(pairs))
-    summary |= {"method": method.name, "pairs_file": str(args.pairs)}
+    summary |= {"method": label, "pairs_file": str(args.pairs)}
     summary_path = results.with_suffix(".summary.json")
     summary_path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
     _print_summary(summary)
@@ -389,6 +393,7 @@ def _write_rows(
 ) -> None:
     """Register the pairs of ``bar``, writing (and flushing) each row as it comes, appending it to ``rows``."""
     method, fallback, min_fitness, small = methods
+    label = "default" if args.method == "default" else method.name
     warned: list[str] = []
     for row in register_pairs(
         bar,
@@ -401,6 +406,7 @@ def _write_rows(
         fallback=fallback,
         min_fitness=min_fitness,
         small=small,
+        label=label,
     ):
         record = row.as_csv()
         writer.writerow(record)
