@@ -28,7 +28,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("lcreg.metrics", "lcreg.nn", "lcreg.data"),
     ("lcreg.models",),
     ("lcreg.baselines",),
-    ("lcreg.weights", "lcreg.resume", "lcreg.callbacks", "lcreg.viz", "lcreg.registration"),
+    ("lcreg.weights", "lcreg.resume", "lcreg.callbacks", "lcreg.viz", "lcreg.registration", "lcreg.deploy"),
     ("lcreg.cli",),
     ("lcreg.experiments",),
     ("lcreg.__main__",),

@@ -1,0 +1,77 @@
+"""lcreg.deploy: an IC-LK model as a fixed-iteration graph, equal to the eager solve; TorchScript and ONNX files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lcreg.deploy import DeployedLK, _cholesky_solve, export_registrar
+from lcreg.geometry import se3
+
+from _weights_files import tiny_model  # type: ignore[import-not-found]
+
+
+def _pairs(b: int = 3, n: int = 200) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    src = torch.rand(b, n, 3, generator=g) - 0.5
+    twist = torch.tensor([0.15, -0.1, 0.2, 0.05, 0.08, -0.04]) * torch.linspace(0.5, 1.5, b)[:, None]
+    return src, se3.transform_points(se3.exp(twist), src)
+
+
+def _eager(model: torch.nn.Module, src: torch.Tensor, ref: torch.Tensor, iterations: int) -> torch.Tensor:
+    model.solver.tolerance = 0.0  # every item runs all iterations, as the graph does
+    with torch.no_grad():
+        return model.solver(model.encoder.eval(), src, ref, max_iterations=iterations).transform_ref_src
+
+
+@pytest.mark.parametrize(("kind", "jacobian"), [("dvds", "analytic"), ("pointnetlk", "finite_difference")])
+def test_the_graph_equals_the_eager_solve(kind: str, jacobian: str) -> None:
+    model = tiny_model(kind, seed=1, jacobian=jacobian).eval()
+    src, ref = _pairs()
+    graph = DeployedLK(model, iterations=5).eval()
+    with torch.no_grad():
+        out = graph(src, ref)
+    torch.testing.assert_close(out, _eager(model, src, ref, 5), atol=1e-5, rtol=0)
+
+
+def test_cholesky_solve_matches_torch_solve() -> None:
+    g = torch.Generator().manual_seed(2)
+    m = torch.randn(4, 6, 6, generator=g, dtype=torch.float64)
+    a, rhs = m @ m.transpose(1, 2) + 0.1 * torch.eye(6, dtype=torch.float64), torch.randn(4, 6, 9, dtype=torch.float64)
+    torch.testing.assert_close(_cholesky_solve(a, rhs), torch.linalg.solve(a, rhs), atol=1e-9, rtol=1e-9)
+
+
+def test_torchscript_file_runs_alone_and_agrees(tmp_path: Path) -> None:
+    model = tiny_model("dvds", seed=3).eval()
+    path = export_registrar(model, tmp_path / "dvds.ts", "torchscript", points=200, iterations=4)
+    src, ref = _pairs(b=2, n=150)  # other batch and size than the example
+    with torch.no_grad():
+        expected = DeployedLK(model, iterations=4)(src, ref)
+    torch.testing.assert_close(torch.jit.load(str(path))(src, ref), expected, atol=1e-6, rtol=0)
+
+
+def test_onnx_file_runs_in_onnxruntime_and_agrees(tmp_path: Path) -> None:
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    model = tiny_model("dvds", seed=4).eval()
+    path = export_registrar(model, tmp_path / "dvds.onnx", "onnx", points=200, iterations=4)
+    src, ref = _pairs(b=2, n=150)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    out = session.run(None, {"points_src": src.numpy(), "points_ref": ref.numpy()})[0]
+    with torch.no_grad():
+        expected = DeployedLK(model, iterations=4)(src, ref).numpy()
+    np.testing.assert_allclose(out, expected, atol=1e-5)
+
+
+def test_other_models_and_settings_are_refused() -> None:
+    from lcreg.baselines.classical import ICP
+
+    with pytest.raises(TypeError, match="IC-LK model"):
+        DeployedLK(ICP())
+    with pytest.raises(ValueError, match="autodiff"):
+        DeployedLK(tiny_model("dvds", jacobian="autodiff"))
+    with pytest.raises(ValueError, match="export format"):
+        export_registrar(tiny_model("dvds"), "x.bin", "tflite")  # type: ignore[arg-type]
