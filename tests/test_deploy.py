@@ -75,3 +75,30 @@ def test_other_models_and_settings_are_refused() -> None:
         DeployedLK(tiny_model("dvds", jacobian="autodiff"))
     with pytest.raises(ValueError, match="export format"):
         export_registrar(tiny_model("dvds"), "x.bin", "tflite")  # type: ignore[arg-type]
+
+
+def test_the_command_writes_a_file_from_shipped_weights(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from lcreg.cli import main
+
+    out = tmp_path / "dvds.ts"
+    main(["export", "dvds-modelnet40", "--format", "torchscript", "--out", str(out), "--points", "128"])
+    assert f"wrote {out}" in capsys.readouterr().out
+    src, ref = _pairs(b=1, n=128)
+    assert torch.jit.load(str(out))(src, ref).shape == (1, 4, 4)
+    with pytest.raises(SystemExit) as info:
+        main(["export", "no-such-weights", "--format", "torchscript", "--out", str(out)])
+    assert info.value.code == 1 and "no-such-weights" in capsys.readouterr().err
+
+
+def test_onnx_without_its_packages_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import sys
+
+    from lcreg.deploy import main
+
+    monkeypatch.setitem(sys.modules, "onnxscript", None)
+    with pytest.raises(SystemExit) as info:
+        main(["dvds-modelnet40", "--format", "onnx", "--out", "x.onnx"])
+    err = capsys.readouterr().err
+    assert info.value.code == 1 and "pip install 'lcreg[export]'" in err and len(err.strip().splitlines()) == 1

@@ -37,6 +37,7 @@ _LAZY = {
     "pretrained": "lcreg.weights",
     "pretrained_names": "lcreg.weights",
     "register": "lcreg.registration.api",
+    "export_registrar": "lcreg.deploy",
     "Registration": "lcreg.registration.api",
 }
 

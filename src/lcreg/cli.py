@@ -391,7 +391,8 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         save_config_kwargs={"overwrite": True},
         parser_kwargs={
             "description": "lcreg: train, test and compare registration networks (fit, validate, test, predict). "
-            "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`). To rerun the paper's "
+            "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`). To deploy a learned "
+            "registrar: `lcreg export NAME --format onnx|torchscript --out FILE`. To rerun the paper's "
             "tables: `lcreg reproduce EXPERIMENT --budget smoke|cpu|paper` (`lcreg reproduce --help`).",
         },
         trainer_defaults=TRAINER_DEFAULTS,
@@ -412,6 +413,11 @@ def main(args: ArgsType = None) -> None:
         from lcreg.registration.command import main as register_main
 
         register_main([str(a) for a in argv[1:]])
+        return
+    if argv[:1] == ["export"]:  # not a Lightning subcommand either
+        from lcreg.deploy import main as export_main
+
+        export_main([str(a) for a in argv[1:]])
         return
     if argv[:1] == ["reproduce"]:  # the experiments' command: the library does not import them
         raise UsageError(

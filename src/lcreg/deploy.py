@@ -19,6 +19,9 @@ applied (give clouds at the training scale, or scale them as :meth:`Registration
 
 from __future__ import annotations
 
+import argparse
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -27,7 +30,7 @@ from torch import nn
 
 from lcreg.geometry import se3
 
-__all__ = ["DeployedLK", "ExportFormat", "export_registrar"]
+__all__ = ["DeployedLK", "ExportFormat", "build_parser", "export_registrar", "main"]
 
 ExportFormat = Literal["torchscript", "onnx"]
 
@@ -213,3 +216,53 @@ def export_registrar(
     else:
         raise ValueError(f"unknown export format {fmt!r}; expected 'torchscript' or 'onnx'")
     return path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``lcreg export``."""
+    parser = argparse.ArgumentParser(
+        prog="lcreg export",
+        description="Write a learned IC-LK registrar (DVDs, PointNetLK, FMR-Net) as a file that registers a pair "
+        "without lcreg: TorchScript (torch.jit.load) or ONNX (ONNX Runtime; pip install 'lcreg[export]').",
+        epilog="example: lcreg export dvds-modelnet40 --format onnx --out dvds.onnx\n"
+        "inputs points_src (B, N, 3), points_ref (B, M, 3) float32 at the training scale; output transform_ref_src "
+        "(B, 4, 4); a fixed number of iterations (the eager solver may stop earlier)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("weights", help="a shipped name (lcreg.pretrained_names()), an exported .pt or a .ckpt")
+    parser.add_argument("--format", choices=("onnx", "torchscript"), required=True, dest="fmt")
+    parser.add_argument("--out", required=True, help="the file to write (.onnx, .pt)")
+    parser.add_argument("--points", type=int, default=1024, help="points per cloud of the example (default: 1024)")
+    parser.add_argument("--iterations", type=int, help="fixed IC-LK iterations (default: the model's)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    """``lcreg export``: one line on stderr and exit code 1 (2 for arguments) for a user error."""
+    from lcreg.checkpoints import CheckpointError
+    from lcreg.checks import MissingDependencyError
+    from lcreg.weights import pretrained
+
+    args = build_parser().parse_args(argv)
+    try:
+        if args.fmt == "onnx":
+            _require_onnx()
+        path = export_registrar(pretrained(args.weights), args.out, args.fmt, args.points, args.iterations)
+    except (CheckpointError, MissingDependencyError, TypeError, ValueError, OSError) as err:
+        sys.stderr.write(f"lcreg export: error: {err}\n")
+        raise SystemExit(1) from err
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, {args.fmt})")
+    return path
+
+
+def _require_onnx() -> None:
+    """Raise :class:`~lcreg.checks.MissingDependencyError` unless onnx and onnxscript import."""
+    from lcreg.checks import MissingDependencyError
+
+    try:
+        import onnx  # noqa: F401
+        import onnxscript  # noqa: F401
+    except ImportError as err:
+        raise MissingDependencyError(
+            f"ONNX export needs onnx and onnxscript ({err.name} is missing): pip install 'lcreg[export]'"
+        ) from err
