@@ -20,6 +20,7 @@ RUNS = {
     "bench_dvds": [],
     "bench_dvds_step": [],
     "bench_runtime": [],
+    "bench_export": [],
     "compare_methods": [],
     "eval_modelnet40_dvds": [],
     "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],
