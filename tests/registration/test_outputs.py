@@ -45,3 +45,20 @@ def test_refusals_write_nothing(tmp_path):
         read_transform(bad)
     with pytest.raises(FileNotFoundError, match=r"nope.npy"):
         read_transform(tmp_path / "nope.npy")
+
+
+def test_written_files_follow_the_umask_like_open(tmp_path):
+    import os
+
+    import numpy as np
+
+    from lcreg.registration.outputs import write_transform
+
+    previous = os.umask(0o022)
+    try:
+        path = write_transform(tmp_path / "T.txt", np.eye(4))
+        reference = tmp_path / "plain.txt"
+        reference.write_text("x")
+        assert (path.stat().st_mode & 0o777) == (reference.stat().st_mode & 0o777) == 0o644  # was 0o600
+    finally:
+        os.umask(previous)

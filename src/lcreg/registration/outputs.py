@@ -32,11 +32,19 @@ def _atomic(path: Path, write: Callable[[IO[bytes]], object]) -> Path:
     try:
         with os.fdopen(handle, "wb") as fh:
             write(fh)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600: give the file the mode open() would
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _umask() -> int:
+    """The process's umask (read by setting it, then restored)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def check_suffix(path: str | Path, allowed: tuple[str, ...], option: str) -> Path:
