@@ -148,3 +148,22 @@ def test_hosts_save_their_arguments_and_bind_terms_without_ritual_calls() -> Non
     assert dict(wider.hparams) == {"extra": 2}  # the outermost constructor's arguments: what rebuilds it
     assert wider.state_dict()["loss_terms.0.local_consistency.metric.weight"].shape == (8, 16)
     assert type(wider)(**wider.hparams).encoder.feature_dim == 8
+
+
+def test_assigning_a_component_after_construction_works_or_raises() -> None:
+    import lcreg
+
+    from _weights_files import tiny_model  # type: ignore[import-not-found]
+
+    model = tiny_model("dvds")
+    model.refiner = lcreg.ICP()  # was filed under _modules and ignored: model.refiner stayed None
+    assert isinstance(model.refiner, lcreg.ICP) and "refiner" not in dict(model.named_modules())
+    assert not any(key.startswith("refiner") for key in model.state_dict())  # never saved
+    model.voxel_grid = lcreg.VoxelGrid()
+    assert isinstance(model.voxel_grid, lcreg.VoxelGrid)
+    with pytest.raises(TypeError, match="`refiner` must be a RegistrationModule"):
+        model.refiner = torch.nn.Linear(2, 2)
+    with pytest.raises(TypeError, match="`voxel_grid` must be"):
+        model.voxel_grid = "27"
+    model.refiner = None
+    assert model.refiner is None

@@ -121,11 +121,7 @@ class RegistrationModule(EvaluationLogic):
         self.optimizer_factory = optimizer
         self.scheduler_factory = lr_scheduler
         self.loss_terms = torch.nn.ModuleList(_checked_terms(loss_terms))
-        if refiner is not None and not isinstance(refiner, RegistrationModule):
-            raise TypeError(
-                f"`refiner` must be a RegistrationModule (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}"
-            )
-        object.__setattr__(self, "_refiner", refiner)  # plain attribute: not trained, not saved
+        self.refiner = refiner  # a plain attribute, checked (RegistrationInterface.__setattr__): not saved
         self.recall_thresholds = None if recall_thresholds is None else check_recall_thresholds(recall_thresholds)
         self._use_recall_thresholds(self.recall_thresholds or ())
         self.test_pairs = PerPairErrors()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from lightning.pytorch import LightningModule
@@ -34,6 +34,31 @@ class RegistrationInterface(LightningModule):
 
     _min_points: int = 3
     _refiner: RegistrationInterface | None = None
+    _plain_components: ClassVar[tuple[str, ...]] = ("refiner",)
+    """Components kept as plain attributes (not submodules: never trained nor saved), set through ``_set_<name>``."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """``model.refiner = ICP()`` (and the other plain components) goes through its check, like the constructor.
+
+        ``nn.Module`` would file a module under ``_modules`` past the read-only property, silently ignored.
+        """
+        if name in type(self)._plain_components:
+            getattr(self, f"_set_{name}")(value)
+        else:
+            super().__setattr__(name, value)
+
+    def _set_refiner(self, refiner: Any) -> None:
+        """Check and set the refiner (``None`` or a registration model able to refine, e.g. ICP).
+
+        Raises:
+            TypeError: Not a registration model.
+        """
+        if refiner is not None and not isinstance(refiner, RegistrationInterface):
+            raise TypeError(
+                f"`refiner` must be a RegistrationModule (e.g. lcreg.baselines.classical.ICP), got {type(refiner)}"
+            )
+        object.__setattr__(self, "_refiner", refiner)
+
     unit_scale: float | None = None
     _input_dtypes: list[torch.dtype]
 
@@ -76,9 +101,13 @@ class RegistrationInterface(LightningModule):
         return encoder
 
     @property
-    def refiner(self) -> RegistrationInterface | None:
+    def refiner(self) -> RegistrationInterface | None:  # set: model.refiner = ICP() (checked, __setattr__)
         """The refinement step run after ``forward`` outside training (``None``: none)."""
         return self._refiner
+
+    @refiner.setter
+    def refiner(self, refiner: RegistrationInterface | None) -> None:
+        self._set_refiner(refiner)
 
     def estimate(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """``forward``, then the refiner (if any) from its estimate.

@@ -16,7 +16,7 @@ collapsing self-supervised descriptor shows there first (issue 12); ``benchmarks
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
@@ -69,9 +69,7 @@ class LucasKanadeModule(RegistrationModule):
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
-        if voxel_grid is not None and not isinstance(voxel_grid, VoxelGrid):
-            raise TypeError(f"`voxel_grid` must be an lcreg.nn.voxel_lk.VoxelGrid or None, got {type(voxel_grid)}")
-        object.__setattr__(self, "_voxel_grid", voxel_grid)  # plain attribute: not a submodule, not saved
+        self.voxel_grid = voxel_grid  # a plain attribute, checked (_set_voxel_grid): not a submodule, not saved
         if eval_iterations is not None and eval_iterations < 1:
             raise ValueError(f"`eval_iterations` must be >= 1 or None, got {eval_iterations}")
         self.encoder = PointNetEncoder(encoder_channels, batch_norm)
@@ -81,11 +79,26 @@ class LucasKanadeModule(RegistrationModule):
         self.eval_iterations = eval_iterations
 
     _voxel_grid: VoxelGrid | None = None
+    _plain_components: ClassVar[tuple[str, ...]] = ("refiner", "voxel_grid")
+
+    def _set_voxel_grid(self, voxel_grid: Any) -> None:
+        """Check and set the voxelisation (``model.voxel_grid = VoxelGrid()`` works after construction too).
+
+        Raises:
+            TypeError: Not a :class:`~lcreg.nn.voxel_lk.VoxelGrid` or ``None``.
+        """
+        if voxel_grid is not None and not isinstance(voxel_grid, VoxelGrid):
+            raise TypeError(f"`voxel_grid` must be an lcreg.nn.voxel_lk.VoxelGrid or None, got {type(voxel_grid)}")
+        object.__setattr__(self, "_voxel_grid", voxel_grid)
 
     @property
     def voxel_grid(self) -> VoxelGrid | None:
         """The voxelisation used outside training (``None``: one descriptor per cloud)."""
         return self._voxel_grid
+
+    @voxel_grid.setter
+    def voxel_grid(self, voxel_grid: VoxelGrid | None) -> None:
+        self._set_voxel_grid(voxel_grid)
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """IC-LK registration with the current descriptor (``eval_iterations`` and the voxel grid outside training)."""
