@@ -269,3 +269,13 @@ def test_clouds_smaller_than_local_consistency_fail_before_the_first_step(tmp_pa
         trainer.fit(model, datamodule=dm)
     assert trainer.global_step == 0
     assert all(torch.equal(a, b) for a, b in zip(before, model.parameters()))
+
+
+@pytest.mark.parametrize(
+    ("option", "value"), [("batch_size", "2"), ("batch_size", 2.5), ("batch_size", 0), ("num_workers", -1)]
+)
+def test_loader_sizes_of_the_wrong_type_are_named(option: str, value: object) -> None:
+    from lcreg.data.datamodule import SyntheticDataModule
+
+    with pytest.raises(ValueError, match=f"`{option}` must be an integer"):  # was a TypeError from deep inside
+        SyntheticDataModule(**{option: value})

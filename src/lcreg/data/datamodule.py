@@ -131,10 +131,10 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         return pair
 
 
-def _check_pairs_per_object(value: Any, name: str = "pairs_per_object") -> int:
-    """``value`` as an int ``>= 1`` (bools and non-integers refused with a ``ValueError`` naming ``name``)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"`{name}` must be an integer >= 1, got {value!r}")
+def _check_pairs_per_object(value: Any, name: str = "pairs_per_object", minimum: int = 1) -> int:
+    """``value`` as an int ``>= minimum`` (bools and non-integers refused with a ``ValueError`` naming ``name``)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"`{name}` must be an integer >= {minimum}, got {value!r}")
     return value
 
 
@@ -188,10 +188,8 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
         self.val_pairs_per_object = _check_pairs_per_object(val_pairs_per_object, "val_pairs_per_object")
-        if batch_size < 1:
-            raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
-        if num_workers < 0:
-            raise ValueError(f"`num_workers` must be >= 0, got {num_workers}")
+        _check_pairs_per_object(batch_size, "batch_size")  # '2' and 2.5 too: one line naming the argument
+        _check_pairs_per_object(num_workers, "num_workers", minimum=0)
         if not 0.0 <= val_fraction < 1.0:
             raise ValueError(f"`val_fraction` must be in [0, 1), got {val_fraction}")
         self.pair_protocol = PairProtocol(
