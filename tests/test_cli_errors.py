@@ -43,8 +43,10 @@ def _lcreg(*args: str, cwd: Path, debug: bool = False) -> subprocess.CompletedPr
     [
         (["fit", "--config", DVDS, "--model.init_args.max_iterations", "abc"], 2, "--model.init_args.max_iterations"),
         (["test", "--config", DVDS, "--ckpt_path", "broken.ckpt"], 1, "broken.ckpt"),
+        (["fit", "--config", DVDS, "--data.init_args.batch_size", "-4"], 2, "`batch_size` must be"),
+        (["fit", "--config", DVDS, "--model.init_args.max_iterations", "-1"], 2, "DVDs: `max_iterations` must be"),
     ],
-    ids=["bad-value", "bad-ckpt"],
+    ids=["bad-value", "bad-ckpt", "refused-data-value", "refused-model-value"],  # the last two: 80-line tracebacks
 )
 def test_a_user_error_is_two_lines_and_an_exit_code(tmp_path: Path, args: list[str], code: int, names: str) -> None:
     """Before: exit 2 with 60 lines (usage + report) or exit 1 with a 40-line traceback ending in an UnpicklingError."""

@@ -284,8 +284,15 @@ class LcregCLI(LightningCLI):
         )
 
     def instantiate_classes(self) -> None:
-        """Build model, data and trainer; refuse ``fit`` without a loss; check the checkpoint's keys; load weights."""
-        super().instantiate_classes()
+        """Build model, data and trainer; refuse ``fit`` without a loss; check the checkpoint's keys; load weights.
+
+        Raises:
+            ConfigValueError: A constructor refused its arguments (one line: the class and its reasons).
+        """
+        try:
+            super().instantiate_classes()
+        except (ValueError, TypeError) as err:  # a constructor's own check, wrapped by jsonargparse in many lines
+            raise ConfigValueError(_constructor_error(err)) from err
         if self.subcommand == "fit" and not getattr(self.model, "has_loss", True):
             _refuse_nothing_to_train(type(self.model).__name__)
         if self._checkpoint_keys is not None and getattr(self.model, "strict_loading", True):
@@ -432,6 +439,19 @@ def main(args: ArgsType = None) -> None:
         build_cli(argv)
     except Exception as err:
         _exit_on(err)
+
+
+def _constructor_error(err: Exception) -> str:
+    """One line from jsonargparse's report of a refused constructor: the class and the constructor's reasons."""
+    text = str(err)
+    reasons = [
+        line.strip()[2:]
+        for line in text.splitlines()
+        if line.strip().startswith("- ") and not line.strip().startswith("- Expected a <class 'NoneType'>")
+    ]
+    found = re.findall(r"class_path='([\w.]+)'", text)
+    where = f"{found[0].rpartition('.')[2]}: " if found else ""
+    return where + ("; ".join(reasons) if reasons else one_line(text))
 
 
 def _exit_on(err: Exception) -> NoReturn:
