@@ -58,7 +58,7 @@ def test_a_user_error_is_two_lines_and_an_exit_code(tmp_path: Path, args: list[s
 
 
 def _assert_two_lines(stderr: str, names: str) -> None:
-    lines = stderr.splitlines()
+    lines = [line for line in stderr.splitlines() if not line.startswith("Seed set to")]  # Lightning's info line
     assert len(lines) <= 2 and lines[0].startswith("lcreg: error: ") and names in lines[0], stderr
     assert "Traceback" not in stderr and "LCREG_DEBUG=1" in lines[-1]
 
