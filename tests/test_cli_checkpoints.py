@@ -95,7 +95,7 @@ def _damaged(kind: str, trained: Trained, directory: Path) -> Path:
     ("kind", "reason"),
     [
         ("truncated", "not a readable weights-only torch file"),
-        ("random", "not a readable weights-only torch file"),
+        ("random", "not a torch.save file"),
         ("empty", "empty file"),
         ("no_state_dict", "no 'state_dict'"),
         ("missing", "no such file"),

@@ -44,13 +44,16 @@ def _lcreg(*args: str, cwd: Path, debug: bool = False) -> subprocess.CompletedPr
         (["fit", "--config", DVDS, "--model.init_args.max_iterations", "abc"], 2, "--model.init_args.max_iterations"),
         (["test", "--config", DVDS, "--ckpt_path", "broken.ckpt"], 1, "broken.ckpt"),
         (["fit", "--config", DVDS, "--data.init_args.batch_size", "-4"], 2, "`batch_size` must be"),
+        (["fit", "--config", DVDS, "--trainer.max_epochs", "abc"], 2, "expected int or None, got 'abc'"),
+        (["test", "--config", DVDS, "--ckpt_path", "notes.txt"], 1, "notes.txt': not a torch.save file"),
         (["fit", "--config", DVDS, "--model.init_args.max_iterations", "-1"], 2, "DVDs: `max_iterations` must be"),
     ],
-    ids=["bad-value", "bad-ckpt", "refused-data-value", "refused-model-value"],  # the last two: 80-line tracebacks
+    ids=["bad-value", "bad-ckpt", "refused-data-value", "union-value", "text-as-ckpt", "refused-model-value"],
 )
 def test_a_user_error_is_two_lines_and_an_exit_code(tmp_path: Path, args: list[str], code: int, names: str) -> None:
     """Before: exit 2 with 60 lines (usage + report) or exit 1 with a 40-line traceback ending in an UnpicklingError."""
     (tmp_path / "broken.ckpt").write_bytes(b"\x80\x02not a checkpoint")
+    (tmp_path / "notes.txt").write_text("hello notes")  # was "(KeyError: 101)"
     result = _lcreg(*args, cwd=tmp_path)
     assert result.returncode == code, result.stderr
     _assert_two_lines(result.stderr, names)

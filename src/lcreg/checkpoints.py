@@ -79,6 +79,10 @@ def read_torch_file(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointNotFoundError(path, "no such file")
     if path.stat().st_size == 0:
         raise CheckpointReadError(path, "empty file")
+    with path.open("rb") as fh:
+        head = fh.read(8)
+    if not head.startswith((b"PK", b"\x80")):  # torch.save writes a zip archive (or, legacy, a pickle)
+        raise CheckpointReadError(path, f"not a torch.save file (a zip archive); it starts with {head!r}")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises EOFError, UnpicklingError, RuntimeError, ... depending on the damage

@@ -122,8 +122,18 @@ def condense_parser_error(message: str) -> str:
     if not key:
         return one_line(message)
     if "Union subtypes" in detail:  # the reason is under "Problem with given class_path 'x':", not in the summary
-        detail = _class_path_problem(lines) or detail
+        detail = _class_path_problem(lines) or _union_problem(lines) or detail
     return one_line(f"--{key}: {detail}")
+
+
+def _union_problem(lines: list[str]) -> str | None:
+    """``expected int or None, got 'abc'`` from a plain union's report (``Expected a <class 'int'>`` lines)."""
+    types = [m.group(1) for line in lines for m in [re.match(r"Expected a <class '(\w+)'>", line)] if m]
+    given = next((line.partition(":")[2].strip() for line in lines if line.startswith("Given value:")), None)
+    if not types or given is None:
+        return None
+    names = [{"NoneType": "None"}.get(t, t) for t in dict.fromkeys(types)]
+    return f"expected {' or '.join(names)}, got {given!r}"
 
 
 def _class_path_problem(lines: list[str]) -> str | None:

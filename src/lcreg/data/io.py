@@ -98,6 +98,8 @@ def read_points(path: str | Path, nonfinite: NonFinite = "error") -> np.ndarray:
         raise ValueError(
             f"point-cloud file {str(path)!r}: unsupported extension {suffix!r}; expected one of {SUFFIXES}"
         )
+    if path.stat().st_size == 0:
+        raise PointCloudFileError(path, "empty file (0 bytes)")
     try:
         columns = READERS[suffix](path)
     except formats.FileFormatError as err:
