@@ -178,3 +178,11 @@ def test_safe_norm_value_and_gradient_at_zero(dtype: torch.dtype) -> None:
     norm.sum().backward()
     assert x.grad is not None
     torch.testing.assert_close(x.grad, torch.tensor([[0.0, 0.0, 0.0], [0.6, 0.8, 0.0]], dtype=dtype))
+
+
+def test_gather_points_from_an_empty_cloud_is_a_typed_error() -> None:
+    from lcreg.checks import TooFewPointsError
+
+    with pytest.raises(TooFewPointsError, match="`points` has no rows"):  # was an index-out-of-bounds RuntimeError
+        gather_points(torch.zeros(2, 0, 3), torch.zeros(2, 5, dtype=torch.long))
+    assert gather_points(torch.zeros(2, 0, 3), torch.zeros(2, 0, dtype=torch.long)).shape == (2, 0, 3)

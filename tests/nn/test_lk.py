@@ -232,3 +232,15 @@ def test_solver_returns_its_jacobian_and_a_per_call_differentiable_override() ->
     torch.testing.assert_close(kept.transform_ref_src.detach(), plain.transform_ref_src)
     grads = torch.autograd.grad(kept.transform_ref_src.sum(), list(encoder.parameters()), allow_unused=True)
     assert any(g is not None and g.abs().sum() > 0 for g in grads)
+
+
+def test_float64_clouds_with_a_float32_encoder() -> None:
+    from lcreg.nn.pointnet import PointNetEncoder
+
+    torch.manual_seed(0)
+    encoder = PointNetEncoder([16, 32]).eval()
+    src = torch.rand(2, 64, 3, dtype=torch.float64) - 0.5
+    out64 = InverseCompositionalLK(max_iterations=3)(encoder, src, src)  # was "expected scalar type Float"
+    out32 = InverseCompositionalLK(max_iterations=3)(encoder, src.float(), src.float())
+    assert out64.transform_ref_src.dtype == torch.float64
+    torch.testing.assert_close(out64.transform_ref_src.float(), out32.transform_ref_src)

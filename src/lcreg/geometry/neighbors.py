@@ -95,6 +95,7 @@ def gather_points(points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     Raises:
         ShapeError: If ``points`` is not 3-D or the batch sizes differ.
         TypeError: If ``idx`` is not an integer tensor.
+        TooFewPointsError: If ``points`` has no rows (``(B, 0, C)``) and ``idx`` asks for some.
 
     Example:
         >>> points = torch.arange(6.0).reshape(1, 3, 2)
@@ -108,6 +109,8 @@ def gather_points(points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         raise ShapeError("points", ("B", "N", "C"), points.shape)
     if idx.ndim < 1 or idx.shape[0] != points.shape[0]:
         raise ShapeError("idx", (points.shape[0], "..."), idx.shape)
+    if points.shape[1] == 0 and idx.numel() > 0:
+        raise TooFewPointsError(f"`points` has no rows ({tuple(points.shape)}): there is nothing to gather")
     batch, channels = points.shape[0], points.shape[2]
     flat = idx.reshape(batch, -1, 1).long().expand(-1, -1, channels)  # (B, K, C)
     out = torch.gather(points, 1, flat)  # (B, K, C)

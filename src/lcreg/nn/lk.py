@@ -27,6 +27,7 @@ from torch import nn
 
 from lcreg.checks import check_points, check_same_batch
 from lcreg.geometry import se3
+from lcreg.nn.dtypes import to_module_dtype
 from lcreg.types import RegistrationResult
 
 __all__ = ["TWIST_NAMES", "InverseCompositionalLK", "JacobianMode", "jacobian_diagnostics", "twist_jacobian"]
@@ -185,13 +186,18 @@ class InverseCompositionalLK(nn.Module):
         check_points(points_src, "points_src")
         check_points(points_ref, "points_ref")
         check_same_batch(points_src=points_src, points_ref=points_ref)
+        dtype = points_src.dtype
+        if isinstance(encoder, nn.Module):  # float64 clouds, float32 encoder (or the reverse): compute in its dtype
+            points_src, points_ref = to_module_dtype(encoder, (points_src, points_ref))
         was_training = isinstance(encoder, nn.Module) and encoder.training
         if isinstance(encoder, nn.Module):
             encoder.eval()
         try:
             grad = self.differentiable if differentiable is None else differentiable
             with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
-                return self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations)
+                result = self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations)
+            result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
+            return result
         finally:
             if was_training and isinstance(encoder, nn.Module):
                 encoder.train()
