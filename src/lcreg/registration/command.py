@@ -166,10 +166,10 @@ def _print_result(result: Registration) -> None:
     )
     if "fallback" in result.extra:
         f = result.extra["fallback"]
-        print(
-            f"fallback:  {f['first']} fitness {f['first_fitness']:.3f} < {f['min_fitness']:g}: ran {f['ran']} "
-            f"(fitness {f['ran_fitness']:.3f}), kept {f['kept']}"
+        why = (
+            "found no solution" if f.get("no_solution") else f"fitness {f['first_fitness']:.3f} < {f['min_fitness']:g}"
         )
+        print(f"fallback:  {f['first']} {why}: ran {f['ran']} (fitness {f['ran_fitness']:.3f}), kept {f['kept']}")
     print("transform (maps source points into the reference frame):")
     for row in result.transform:
         print("  " + "  ".join(f"{x: .6f}" for x in row))
