@@ -189,6 +189,19 @@ class TrainingLogic(RegistrationInterface):
             return optimizer
         scheduler = self.scheduler_factory(optimizer)
         if isinstance(scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
-            # Plateau schedulers step on a metric: the validation loss (label-free for self-supervised models).
-            return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss"}}
+            return {"optimizer": optimizer, "lr_scheduler": self._plateau_config(scheduler)}
         return {"optimizer": optimizer, "lr_scheduler": scheduler}
+
+    def _plateau_config(self, scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau) -> dict[str, Any]:
+        """A plateau scheduler steps on the validation loss (label-free for self-supervised models), when it exists.
+
+        With validation every N steps (``val_check_interval=N``, ``check_val_every_n_epoch=None``) it steps every N
+        steps, right after each validation; an epoch end without a validation skips it (``strict=False``) instead of
+        stopping the run.
+        """
+        config: dict[str, Any] = {"scheduler": scheduler, "monitor": "val/loss", "strict": False}
+        trainer = self._trainer
+        interval = getattr(trainer, "val_check_interval", None)
+        if trainer is not None and trainer.check_val_every_n_epoch is None and isinstance(interval, int):
+            config |= {"interval": "step", "frequency": interval}
+        return config
