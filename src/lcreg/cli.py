@@ -52,6 +52,9 @@ import importlib
 import os
 import re
 import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, NoReturn
 
 from lightning.pytorch import LightningDataModule
@@ -70,8 +73,10 @@ __all__ = [
     "LcregCLI",
     "NothingToTrainError",
     "UsageError",
+    "ConfigLayers",
     "build_cli",
     "expand_configs",
+    "instantiate",
     "main",
 ]
 
@@ -162,6 +167,42 @@ class LcregArgumentParser(LightningArgumentParser):
         self.exit(2)
 
 
+@dataclass(frozen=True)
+class ConfigLayers:
+    """What :func:`instantiate` builds from: config files, then typed values (no command-line strings).
+
+    Attributes:
+        files: Config files in order (later ones override earlier ones; ``compose:`` lists already expanded).
+        values: Python values by dotted key (``{"data.init_args.num_points": 512, "trainer.max_steps": 10}``),
+            applied after the files, in order, as jsonargparse merges configs (a ``class_path`` value replaces the
+            class, keeping the arguments it shares with the previous one).
+    """
+
+    files: tuple[str, ...] = ()
+    values: Mapping[str, Any] = field(default_factory=dict)
+
+
+def nested(values: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"a.b.c": 1}`` as ``{"a": {"b": {"c": 1}}}`` (a dotted key under another key's dict value is merged in).
+
+    Raises:
+        ConfigValueError: If a key is empty, or one key sets a value that another key descends into.
+    """
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        parts = key.split(".")
+        if not all(parts):
+            raise ConfigValueError(f"config value key {key!r}: expected dotted names such as 'data.init_args.x'")
+        node = out
+        for part in parts[:-1]:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ConfigValueError(f"config value key {key!r}: {part!r} is already set to {child!r}")
+            node = child
+        node[parts[-1]] = value
+    return out
+
+
 class LcregCLI(LightningCLI):
     """LightningCLI with lcreg's base classes in subclass mode, the shared trainer defaults and ``compose``.
 
@@ -180,8 +221,13 @@ class LcregCLI(LightningCLI):
         rank_zero_info(f"lcreg: this run logs to {self.trainer.log_dir}")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
-        """Parse ``args`` (:func:`build_cli` reads ``sys.argv``, so Lightning's warning about both does not apply)."""
-        if isinstance(args, dict):
+        """Parse ``args``: a list of arguments (:func:`build_cli` reads ``sys.argv``, so Lightning's warning about
+        both does not apply), a dict, or :class:`ConfigLayers` (:func:`instantiate`)."""
+        if isinstance(args, ConfigLayers):
+            self.config = parser.parse_args([arg for file in args.files for arg in ("--config", file)])
+            for key, value in args.values.items():  # one at a time, in order: each merges like another --config
+                self.config = parser.parse_object(nested({key: value}), self.config)
+        elif isinstance(args, dict):
             self.config = parser.parse_object(args)
         else:
             self.config = parser.parse_args(args)  # type: ignore[arg-type]  # a list of strings here
@@ -387,7 +433,7 @@ def _wandb_offline_if_no_account(argv: list[str]) -> None:
         print("lcreg: no WANDB_API_KEY found, logging to wandb in offline mode (sync later with `wandb sync`)")
 
 
-def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
+def build_cli(args: ArgsType | ConfigLayers = None, run: bool = True) -> LcregCLI:
     """The ``lcreg`` CLI; ``run=False`` only instantiates model, data and trainer (scripts and tests use it).
 
     Args:
@@ -417,6 +463,35 @@ def build_cli(args: ArgsType = None, run: bool = True) -> LcregCLI:
         args=args,
         run=run,
     )
+
+
+def instantiate(configs: Sequence[str | Path] = (), values: Mapping[str, Any] | None = None) -> LcregCLI:
+    """Model, data and trainer of config files and typed values, as ``lcreg fit`` builds them; nothing runs.
+
+    The experiments and scripts build methods with it: the YAML files are read as ``--config`` would read them, and
+    ``values`` are Python objects merged after them (no command-line strings written and parsed again).
+
+    Args:
+        configs: Config files, later ones overriding earlier ones (a ``configs/...`` path is found in the package's
+            configs, ``compose:`` lists are expanded: :func:`lcreg.config.expand_configs`).
+        values: Dotted keys and their values, applied after the files in order, e.g.
+            ``{"data.init_args.num_points": 512, "trainer.max_steps": 10, "seed_everything": 0}``.
+
+    Returns:
+        The :class:`LcregCLI` with ``model``, ``datamodule`` and ``trainer`` built (seeded by ``seed_everything``).
+
+    Raises:
+        ConfigFileError: A config file is missing. ConfigValueError: A malformed key or a value a constructor refuses.
+    """
+    from lcreg.config import find_config
+
+    for file in configs:
+        if find_config(file) is None:
+            raise ConfigFileError(f"config file {str(file)!r} not found")
+    args = expand_configs([arg for file in configs for arg in ("--config", str(file))])
+    files = tuple(args[i + 1] for i, arg in enumerate(args) if arg == "--config")
+    extra = {"compose": None} if "--compose=null" in args else {}
+    return build_cli(ConfigLayers(files, {**extra, **dict(values or {})}), run=False)
 
 
 def main(args: ArgsType = None) -> None:
