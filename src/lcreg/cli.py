@@ -68,12 +68,12 @@ from lcreg.models.base import EVALUATION_ARGS, NonFiniteTrainingError, Registrat
 
 __all__ = [
     "ConfigFileError",
+    "ConfigLayers",
     "ConfigValueError",
     "LcregArgumentParser",
     "LcregCLI",
     "NothingToTrainError",
     "UsageError",
-    "ConfigLayers",
     "build_cli",
     "expand_configs",
     "instantiate",
@@ -221,8 +221,11 @@ class LcregCLI(LightningCLI):
         rank_zero_info(f"lcreg: this run logs to {self.trainer.log_dir}")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
-        """Parse ``args``: a list of arguments (:func:`build_cli` reads ``sys.argv``, so Lightning's warning about
-        both does not apply), a dict, or :class:`ConfigLayers` (:func:`instantiate`)."""
+        """Parse ``args``: arguments, a dict, or :class:`ConfigLayers` (:func:`instantiate`).
+
+        :func:`build_cli` reads ``sys.argv`` only when ``args`` is ``None``, so Lightning's warning about both does not
+        apply.
+        """
         if isinstance(args, ConfigLayers):
             self.config = parser.parse_args([arg for file in args.files for arg in ("--config", file)])
             for key, value in args.values.items():  # one at a time, in order: each merges like another --config
@@ -460,7 +463,7 @@ def build_cli(args: ArgsType | ConfigLayers = None, run: bool = True) -> LcregCL
         },
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
-        args=args,
+        args=args,  # type: ignore[arg-type]  # ConfigLayers: parse_arguments above reads them
         run=run,
     )
 
