@@ -40,6 +40,7 @@ from lcreg.weights import (
     pretrained,
     pretrained_names,
     read_weights,
+    registered_names,
     resolve_class,
     shipped_names,
     training_only,
@@ -263,8 +264,18 @@ def test_listing_names_stays_light() -> None:
 
 def test_lazy_exports_and_names() -> None:
     assert lcreg.pretrained is pretrained and lcreg.pretrained_names is pretrained_names
-    assert pretrained_names() == sorted(REGISTRY) and {"dvds-modelnet40", "pointnetlk-modelnet40"} <= set(REGISTRY)
+    assert registered_names() == sorted(REGISTRY) and {"dvds-modelnet40", "pointnetlk-modelnet40"} <= set(REGISTRY)
     assert set(shipped_names()) <= set(REGISTRY)
+    assert pretrained_names() == shipped_names()  # only what loads: a registered name without its file is left out
+
+
+def test_pretrained_names_lists_only_what_loads(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(weights_module, "weights_dir", lambda: tmp_path)
+    assert pretrained_names() == []
+    exported(tiny_model("pointnetlk"), tmp_path, name="pointnetlk-modelnet40")
+    assert pretrained_names() == ["pointnetlk-modelnet40"]
+    for name in pretrained_names():
+        lcreg.pretrained(name)
 
 
 @pytest.mark.parametrize("name", sorted(REGISTRY))
@@ -303,7 +314,7 @@ def _shipped(name: str) -> Path:
     return weights_dir() / f"{name}.pt"
 
 
-@pytest.mark.parametrize("name", pretrained_names())
+@pytest.mark.parametrize("name", registered_names())
 def test_shipped_file_is_slim_strict_and_matches_its_card(name: str) -> None:
     path = _shipped(name)
     data = path.read_bytes()
@@ -348,7 +359,7 @@ NOT_YET_BEYOND_THE_SPREAD = {"dvds-modelnet40": "the issue-12 weights are within
         pytest.param(n, marks=pytest.mark.xfail(reason=NOT_YET_BEYOND_THE_SPREAD[n], strict=True))
         if n in NOT_YET_BEYOND_THE_SPREAD
         else n
-        for n in pretrained_names()
+        for n in registered_names()
     ],
 )
 def test_shipped_weights_register_real_pairs_better_than_untrained_beyond_the_spread(name: str) -> None:

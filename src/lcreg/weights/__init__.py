@@ -73,6 +73,7 @@ __all__ = [
     "pretrained",
     "pretrained_names",
     "read_weights",
+    "registered_names",
     "resolve",
     "resolve_class",
     "shipped_names",
@@ -199,14 +200,19 @@ def weights_dir() -> Path:
     return Path(__file__).resolve().parent
 
 
-def pretrained_names() -> list[str]:
-    """Every registered name (:data:`REGISTRY`), shipped or not yet; :func:`shipped_names` lists the files present."""
+def registered_names() -> list[str]:
+    """Every registered name (:data:`REGISTRY`), shipped or not yet; :func:`pretrained_names` lists the loadable."""
     return sorted(REGISTRY)
 
 
 def shipped_names() -> list[str]:
-    """The registered names whose ``<name>.pt`` file is in this installation."""
-    return [name for name in pretrained_names() if (weights_dir() / f"{name}.pt").is_file()]
+    """The registered names whose ``<name>.pt`` file is in this installation (what :func:`pretrained` loads)."""
+    return [name for name in registered_names() if (weights_dir() / f"{name}.pt").is_file()]
+
+
+def pretrained_names() -> list[str]:
+    """The names :func:`pretrained` loads here: :func:`shipped_names` (a registered name not shipped is left out)."""
+    return shipped_names()
 
 
 def resolve(name_or_path: str | Path) -> Path:
@@ -229,7 +235,7 @@ def resolve(name_or_path: str | Path) -> Path:
             raise PretrainedNotFoundError(text, "no such file")
         return path
     shipped = shipped_names()
-    known = ", ".join(f"{n} ({'shipped' if n in shipped else 'not shipped'})" for n in pretrained_names())
+    known = ", ".join(f"{n} ({'shipped' if n in shipped else 'not shipped'})" for n in registered_names())
     raise UnknownPretrainedError(text, f"unknown name; known: {known}; or pass the path of an exported .pt file")
 
 
