@@ -198,6 +198,18 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     assert "seed_everything" not in raw and set(raw["trainer"]) == {"max_epochs"}  # no file repeats the defaults
 
 
+def test_default_root_dir_moves_the_default_logger_and_resume_finds_the_run(tmp_path: Path) -> None:
+    """``--trainer.default_root_dir D`` logs under D/lcreg/version_k (not ./runs); an explicit save_dir stays."""
+    root = tmp_path / "root"
+    main(["fit", "--config", str(DVDS), *TINY, f"--trainer.default_root_dir={root}"])
+    assert (root / "lcreg" / "version_0" / "checkpoints" / "last.ckpt").is_file()
+    main(["fit", "--config", str(DVDS), *TINY, f"--trainer.default_root_dir={root}", "--ckpt_path=last"])
+    assert not (root / "lcreg" / "version_1").exists() and not Path("runs", "lcreg").exists()
+    explicit = [f"--trainer.default_root_dir={root}", f"--trainer.logger.init_args.save_dir={tmp_path / 'logs'}"]
+    cli = build_cli(["--config", str(DVDS), *explicit], run=False)
+    assert Path(cli.trainer.logger.save_dir) == tmp_path / "logs"
+
+
 # --- compose -----------------------------------------------------------------------------------------------------
 def _write(path: Path, text: str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,8 @@ Models are any :class:`~lcreg.models.base.RegistrationModule` subclass (``model.
 LightningDataModule that yields :class:`~lcreg.types.RegistrationBatch` (``data.class_path``: the object
 :class:`~lcreg.data.datamodule.PairDataModule` family or the scene :class:`~lcreg.data.scenes.ScenePairDataModule`
 family); both are picked in YAML.
-Shared trainer defaults live here, once: seed 1234, CSV logging under ``runs/<name>/version_<k>/``, checkpoints
+Shared trainer defaults live here, once: seed 1234, CSV logging under ``runs/<name>/version_<k>/`` (under
+``<D>/<name>/version_<k>/`` with ``--trainer.default_root_dir D``), checkpoints
 selected on the validation registration error ``val/rre_mean_deg`` (validation pairs carry a known pose; the
 label-free ``val/loss`` of self-supervised models keeps falling while registration degrades) plus ``last.ckpt``, and a
 TQDM bar redrawn by time (:class:`lcreg.callbacks.TimedProgressBar`). A config that lists its own ``ModelCheckpoint``
@@ -248,6 +249,7 @@ class LcregCLI(LightningCLI):
             lcreg.weights.PretrainedError: Unknown weights name or missing weights file (a CheckpointError too).
         """
         subcommand = self.config.get("subcommand")
+        _logger_under_root_dir(self.config[subcommand] if subcommand else self.config)
         if not subcommand:
             return
         config = self.config[subcommand]
@@ -408,6 +410,21 @@ class LcregCLI(LightningCLI):
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TimedProgressBar())
         return super()._instantiate_trainer(config, callbacks)
+
+
+def _logger_under_root_dir(config: Any) -> None:
+    """``--trainer.default_root_dir D`` moves the default logger too: its ``save_dir`` ``runs`` becomes ``D``.
+
+    A logger ``save_dir`` set to anything other than the default stays as set.
+    """
+    trainer = config.get("trainer")
+    root = trainer.get("default_root_dir") if trainer is not None else None
+    logger = trainer.get("logger") if root else None
+    default = TRAINER_DEFAULTS["logger"]
+    if logger is None or isinstance(logger, bool) or logger.get("class_path") != default["class_path"]:
+        return
+    if logger.get("init_args") is not None and logger.init_args.get("save_dir") == default["init_args"]["save_dir"]:
+        logger.init_args.save_dir = str(root)
 
 
 def _refuse_nothing_to_train(class_path: str) -> None:
