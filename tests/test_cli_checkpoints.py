@@ -88,6 +88,11 @@ def _damaged(kind: str, trained: Trained, directory: Path) -> Path:
         path.write_bytes(b"")
     elif kind == "no_state_dict":
         torch.save({"epoch": 0, "global_step": 1}, path)
+    elif kind == "nan_weight":  # a diverged run's state: before, `fit` went on into a raw LinAlgError
+        content = torch.load(trained.dvds, map_location="cpu", weights_only=False)
+        key = next(k for k, v in content["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
+        content["state_dict"][key].view(-1)[0] = float("inf")
+        torch.save(content, path)
     return path
 
 
@@ -98,6 +103,7 @@ def _damaged(kind: str, trained: Trained, directory: Path) -> Path:
         ("random", "not a torch.save file"),
         ("empty", "empty file"),
         ("no_state_dict", "no 'state_dict'"),
+        ("nan_weight", r"tensor `\S+` holds 1 NaN/Inf value\(s\): take an earlier checkpoint"),
         ("missing", "no such file"),
     ],
 )

@@ -62,6 +62,11 @@ class LatestCheckpoint(Checkpoint):
             dirpath = Path(trainer.log_dir or trainer.default_root_dir) / "checkpoints"
         return Path(dirpath) / self.filename
 
+    def saved_state(self, trainer: Trainer) -> tuple[Path, int] | None:
+        """``last.ckpt`` and its optimiser step, if this run wrote it (the state a stopped run resumes from)."""
+        path = self.path(trainer)
+        return (path, self._saved_step) if self._saved_step >= 0 and path.is_file() else None
+
     def _save(self, trainer: Trainer) -> None:
         if (
             bool(getattr(trainer, "fast_dev_run", False))

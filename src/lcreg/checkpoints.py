@@ -12,7 +12,7 @@ is a :class:`CheckpointNotFoundError` too), so ``except CheckpointError`` catche
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,7 @@ __all__ = [
     "CheckpointReadError",
     "check_class",
     "check_keys",
+    "first_non_finite",
     "one_line",
     "read_checkpoint",
     "read_torch_file",
@@ -96,12 +97,27 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     Raises:
         CheckpointNotFoundError: ``path`` is not a file.
         CheckpointReadError: The file cannot be read as a weights-only ``torch.save`` file.
-        CheckpointFormatError: The content is not a dict with a ``state_dict``.
+        CheckpointFormatError: The content is not a dict with a ``state_dict``, or a tensor of it holds NaN/Inf.
     """
     content = read_torch_file(path, map_location)
     if not isinstance(content, dict) or not isinstance(content.get("state_dict"), dict):
         raise CheckpointFormatError(path, "no 'state_dict' (not a Lightning checkpoint)")
+    bad = first_non_finite(content["state_dict"])
+    if bad is not None:
+        raise CheckpointFormatError(
+            path, f"tensor `{bad[0]}` holds {bad[1]} NaN/Inf value(s): take an earlier checkpoint"
+        )
     return content
+
+
+def first_non_finite(state: Mapping[str, Any]) -> tuple[str, int] | None:
+    """The first floating tensor of ``state`` holding NaN/Inf, with the count of such values (``None``: all finite)."""
+    for key, value in state.items():
+        if torch.is_tensor(value) and value.is_floating_point():
+            bad = int((~torch.isfinite(value)).sum())
+            if bad:
+                return key, bad
+    return None
 
 
 def check_class(path: str | Path, checkpoint: dict[str, Any], class_path: str) -> None:

@@ -141,3 +141,59 @@ def test_consecutive_bad_steps_stop_training_with_a_clear_error() -> None:
         _fit(model, [good, bad, bad, good])
     with pytest.raises(ValueError, match="max_bad_steps"):
         _model_and_batches("--model.init_args.max_bad_steps=0")
+
+
+# --- a non-finite parameter or a diverging model: one line, and last.ckpt keeps the last good state ---------------
+class _PoisonAt(Callback):
+    """Fill the first trainable parameter with NaN before the batch of optimiser step ``step`` (a step gone wrong)."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_start(self, trainer: Trainer, pl_module: LightningModule, *args: Any) -> None:
+        if trainer.global_step == self.step:
+            with torch.no_grad():
+                next(p for p in pl_module.parameters() if p.requires_grad).fill_(float("nan"))
+
+
+def test_a_non_finite_parameter_stops_training_naming_it_and_last_ckpt_resumes_from_the_last_good_step() -> None:
+    """Before: the run went on into a raw LinAlgError or a NonFiniteError naming an internal argument, and the
+    periodic last.ckpt could record the NaN weights. Now: stop at once, name step and parameter and the last good
+    state; last.ckpt holds that state and ``--ckpt_path last`` finishes the run from it."""
+    from lcreg.callbacks import LatestCheckpoint
+    from lcreg.cli import main
+    from lcreg.models.base import NonFiniteTrainingError
+
+    args = [*DVDS, "--trainer.max_steps=8", "--trainer.max_epochs=-1", "--trainer.enable_progress_bar=false"]
+    cli = build_cli(args, run=False)
+    (latest,) = [c for c in cli.trainer.callbacks if isinstance(c, LatestCheckpoint)]
+    latest.every_n_train_steps = 2
+    cli.trainer.callbacks.append(_PoisonAt(5))
+    name = next(n for n, p in cli.model.named_parameters() if p.requires_grad)
+    last = latest.path(cli.trainer)
+    with pytest.raises(NonFiniteTrainingError) as stop:
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule)
+    message = str(stop.value)
+    assert f"parameter `{name}` holds" in message and "NaN/Inf" in message and "\n" not in message
+    assert f"the last good state is {last} (step 4)" in message and "--ckpt_path last" in message
+    saved = torch.load(last, map_location="cpu", weights_only=False)
+    assert saved["global_step"] == 4
+    assert all(torch.isfinite(v).all() for v in saved["state_dict"].values() if v.is_floating_point())
+    main(["fit", *args, "--ckpt_path=last"])
+    resumed = torch.load(last, map_location="cpu", weights_only=False)
+    assert resumed["global_step"] == 8
+    assert all(torch.isfinite(v).all() for v in resumed["state_dict"].values() if v.is_floating_point())
+
+
+def test_a_diverging_run_stops_with_one_line_that_says_so() -> None:
+    """SGD-like blow-up (Adam at lr 1e12): before, ``NonFiniteError: `points_a` contains ...`` from deep inside."""
+    from lcreg.cli import main
+    from lcreg.models.base import NonFiniteTrainingError
+
+    args = [*DVDS, "--trainer.max_steps=6", "--model.init_args.optimizer.init_args.lr=1e12"]
+    with (
+        pytest.warns(UserWarning, match="forward pass produced non-finite values"),
+        pytest.raises(NonFiniteTrainingError, match=r"training stopped at step \d+: .*diverged") as stop,
+    ):
+        main(["fit", *args])
+    assert "\n" not in str(stop.value)

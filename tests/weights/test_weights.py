@@ -205,7 +205,18 @@ def test_wrong_format_or_keys_are_format_errors(tmp_path: Path) -> None:
         "meta": "'metadata' must be a dict",
         "tensors": "'state_dict' must be a dict of str keys and tensors",
         "name": "'name' must be a string",
+        "nan": r"tensor `encoder\.\S+` holds 1 NaN/Inf value\(s\)",
     }
+    state = torch.load(good, weights_only=True)["state_dict"]
+    first = next(k for k in state if k.startswith("encoder.") and state[k].is_floating_point())
+    rewrite(
+        good,
+        tmp_path / "nan.pt",
+        state_dict={
+            **state,
+            first: state[first].flatten().index_fill(0, torch.tensor([0]), float("nan")).view_as(state[first]),
+        },
+    )
     rewrite(good, tmp_path / "format2.pt", format=2)
     rewrite(good, tmp_path / "extra.pt", optimizer_states=[])
     rewrite(good, tmp_path / "objects.pt", init_args={"encoder_channels": torch.ones(2)})

@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 
-from lcreg.checks import TooFewPointsError
+from lcreg.checks import NonFiniteError, TooFewPointsError
 from lcreg.metrics.registration import (
     STANDARD_RECALL_THRESHOLDS,
     PerPairErrors,
@@ -25,7 +26,7 @@ from lcreg.metrics.registration import (
     recall_key,
     registration_metrics,
 )
-from lcreg.models.training import Stage, TrainingLogic
+from lcreg.models.training import NonFiniteTrainingError, Stage, TrainingLogic
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["EvaluationLogic"]
@@ -48,10 +49,19 @@ class EvaluationLogic(TrainingLogic):
 
     def _evaluation_step(self, batch: RegistrationBatch, stage: Literal["val", "test"]) -> None:
         batch = self._model_batch(batch)
-        result = self.estimate(batch.points_src, batch.points_ref)
         bs = len(batch)
-        if stage == "val" and self.has_loss:
-            self._log_losses(self.training_losses(result, batch), stage, bs)
+        try:
+            result = self.estimate(batch.points_src, batch.points_ref)
+            if stage == "val" and self.has_loss:
+                self._log_losses(self.training_losses(result, batch), stage, bs)
+        except (NonFiniteError, torch.linalg.LinAlgError) as err:
+            if self._trainer is None or self._trainer.state.fn != TrainerFn.FITTING:
+                raise
+            self._check_parameters(f"at the {stage} pass")  # raises naming the parameter, if one is non-finite
+            raise NonFiniteTrainingError(
+                f"training stopped at step {self.global_step}: the {stage} forward pass produced non-finite values "
+                f"from finite parameters ({err}): the model diverged; {self._last_good_state()}"
+            ) from err
         if batch.transform_ref_src is None:
             return
         metrics = self.val_metrics if stage == "val" else self.test_metrics

@@ -6,9 +6,12 @@ injected :class:`~lcreg.models.loss_terms.LossTerm` (each weighted and logged as
 to get a model's training losses. Optimisers are injected (``optimizer``/``lr_scheduler`` callables, LightningCLI
 style).
 
-A training step whose loss or gradient is not finite (NaN normals or poses in the data, a diverging model) is skipped
-before the optimiser sees it, with a warning naming the batch's dataset indices; ``max_bad_steps`` consecutive skipped
-steps stop training (:class:`NonFiniteTrainingError`).
+A training step whose loss or gradient is not finite (NaN normals or poses in the data, a diverging model), or whose
+forward pass produced non-finite values that a check inside it refused, is skipped before the optimiser sees it, with
+a warning naming the batch's dataset indices; ``max_bad_steps`` consecutive skipped steps stop training
+(:class:`NonFiniteTrainingError`). The parameters are checked before training and after every optimiser step: a
+non-finite one stops training at once, naming the step and the parameter, before any checkpoint can record it, so
+``last.ckpt`` keeps the last good state (``lcreg fit --ckpt_path last`` resumes from it).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from typing import Any, Literal
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
 
+from lcreg.checks import NonFiniteError
 from lcreg.models.interface import RegistrationInterface
 from lcreg.models.loss_terms import LossTerm
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -120,17 +124,81 @@ class TrainingLogic(RegistrationInterface):
         return self(points_src, points_ref)
 
     def training_step(self, batch: RegistrationBatch, batch_idx: int) -> torch.Tensor | None:
-        """One optimisation step on a batch; ``None`` (Lightning skips the step) when the loss is not finite."""
+        """One optimisation step on a batch; ``None`` (Lightning skips the step) when the loss is not finite.
+
+        A forward pass that raises on non-finite values it made itself (a check inside the model refusing NaN points,
+        a linear-algebra routine refusing a NaN matrix: a diverged model) counts as a non-finite loss.
+        """
         batch = self._model_batch(batch)
-        losses = self.training_losses(self.training_forward(batch), batch)
-        loss = losses["loss"]
         self._step_index = None if batch.index is None else batch.index.detach().cpu().tolist()
+        try:
+            losses = self.training_losses(self.training_forward(batch), batch)
+        except (NonFiniteError, torch.linalg.LinAlgError) as err:
+            self._step_skipped = True
+            self._skip_step(f"the forward pass produced non-finite values ({err})")
+            return None
+        loss = losses["loss"]
         self._step_skipped = not bool(torch.isfinite(loss.detach()).all())  # one host sync per step
         if self._step_skipped:  # not logged: the epoch means stay finite
-            self._skip_step(f"non-finite loss ({float(loss.detach().float().sum())})")
+            bad = sorted(name for name, value in losses.items() if not bool(torch.isfinite(value.detach()).all()))
+            self._skip_step(f"non-finite loss (terms {', '.join(bad)})")
             return None
         self._log_losses(losses, "train", len(batch))
         return loss
+
+    def on_train_start(self) -> None:
+        """Refuse to train from non-finite parameters (loaded weights or checkpoint holding NaN/Inf).
+
+        Raises:
+            NonFiniteTrainingError: Naming the first non-finite parameter.
+        """
+        self._check_parameters("before training (the model's weights hold them)", advice="load finite weights")
+
+    def optimizer_step(self, *args: Any, **kwargs: Any) -> None:
+        """The optimiser's step, then a check of the parameters (before any callback can save them).
+
+        Raises:
+            NonFiniteTrainingError: The step made a parameter non-finite (step, parameter, last good checkpoint).
+        """
+        super().optimizer_step(*args, **kwargs)
+        self._check_parameters("after this optimiser step (the model diverged: lower the learning rate)")
+
+    def _check_parameters(self, when: str, advice: str | None = None) -> None:
+        """Raise when a parameter holds NaN/Inf (one fused reduction and one host sync).
+
+        Args:
+            when: Where the check runs, for the message.
+            advice: What to do; default: where the last good state is (:meth:`_last_good_state`).
+        """
+        params = [(name, p) for name, p in self.named_parameters() if p.requires_grad]
+        if not params:
+            return
+        finite = torch.stack([torch.isfinite(p).all() for _, p in params])
+        if bool(finite.all()):
+            return
+        name, value = next((n, p) for (n, p), ok in zip(params, finite.tolist(), strict=True) if not ok)
+        bad = int((~torch.isfinite(value)).sum())
+        raise NonFiniteTrainingError(
+            f"training stopped at step {self.global_step}: parameter `{name}` holds {bad} NaN/Inf value(s) {when}; "
+            f"{advice or self._last_good_state()}"
+        )
+
+    def _last_good_state(self) -> str:
+        """Where the last good state is, as the stop message says it.
+
+        The state file of the first callback that reports one (``saved_state``:
+        :class:`lcreg.callbacks.LatestCheckpoint` and its ``last.ckpt``), with its step.
+        """
+        trainer = self._trainer
+        reporters = [c.saved_state for c in getattr(trainer, "callbacks", None) or [] if hasattr(c, "saved_state")]
+        saved = reporters[0](trainer) if reporters else None
+        if saved is None:
+            return "no checkpoint was written before it: start again with a lower learning rate"
+        path, step = saved
+        return (
+            f"the last good state is {path} (step {step}): resume it with `--ckpt_path last`, or start from its "
+            f"weights with a lower learning rate (`--weights {path}`)"
+        )
 
     def _log_losses(self, losses: dict[str, torch.Tensor], stage: Stage, batch_size: int) -> None:
         """Log every loss term as ``{stage}/{name}`` (per step in training; epoch means over every process)."""
@@ -173,7 +241,7 @@ class TrainingLogic(RegistrationInterface):
             raise NonFiniteTrainingError(
                 f"training stopped at step {self.global_step}: {self._bad_steps} consecutive steps with a non-finite "
                 f"loss or gradient (last: {reason} on {where}); check the data for NaN/Inf (points, normals, poses) "
-                "or lower the learning rate"
+                f"or lower the learning rate; {self._last_good_state()}"
             )
         rank_zero_warn(
             f"step {self.global_step} skipped: {reason} on {where} "

@@ -39,6 +39,7 @@ from lcreg.checkpoints import (
     CheckpointNotFoundError,
     CheckpointReadError,
     check_class,
+    first_non_finite,
     read_checkpoint,
     read_torch_file,
 )
@@ -273,7 +274,8 @@ def validated(content: Any, source: str, path: Path) -> PretrainedWeights:
     """``content`` (a loaded file) as :class:`PretrainedWeights` after checking keys, format and types.
 
     Raises:
-        PretrainedFormatError: Not a dict with exactly :data:`KEYS`, another format, or values of other types.
+        PretrainedFormatError: Not a dict with exactly :data:`KEYS`, another format, values of other types, or a
+            tensor holding NaN/Inf.
     """
 
     def fail(message: str) -> PretrainedFormatError:
@@ -301,6 +303,9 @@ def validated(content: Any, source: str, path: Path) -> PretrainedWeights:
     state = content["state_dict"]
     if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
         raise fail("'state_dict' must be a dict of str keys and tensors")
+    bad = first_non_finite(state)
+    if bad is not None:
+        raise fail(f"tensor `{bad[0]}` holds {bad[1]} NaN/Inf value(s)")
     return PretrainedWeights(
         source, path, content["name"], content["class_path"], dict(content["init_args"]), state,
         content["lcreg_version"], dict(metadata),
