@@ -49,3 +49,24 @@ def test_too_small_cloud_names_the_argument(model: lcreg.RegistrationModule) -> 
     src, ref, _ = _clouds()
     with pytest.raises(TooFewPointsError, match=r"^`points_ref` has 2 points"), torch.no_grad():
         model(src, ref[:, :2])
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("normals_src", torch.zeros(2, 10, 3)),
+        ("normals_ref", torch.zeros(2, 64, 2)),
+        ("transform_ref_src", torch.eye(4).expand(3, 4, 4)),
+        ("index", torch.zeros(2, 1, dtype=torch.int64)),
+    ],
+)
+def test_a_batch_field_of_the_wrong_shape_is_named(
+    model: lcreg.RegistrationModule, field: str, value: torch.Tensor
+) -> None:
+    """Before: DVDs trained on normals of another length failed with a broadcast RuntimeError deep in its loss."""
+    from lcreg.types import RegistrationBatch
+
+    src, ref, _ = _clouds()
+    batch = RegistrationBatch(src, ref, **{field: value})
+    with pytest.raises(ShapeError, match=rf"`batch\.{field}`"):
+        model.validation_step(batch, 0)

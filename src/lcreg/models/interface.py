@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import torch
 from lightning.pytorch import LightningModule
 
-from lcreg.checks import check_extent, check_points, check_same_batch
+from lcreg.checks import check_extent, check_points, check_same_batch, check_shape
 from lcreg.nn.dtypes import module_dtype, to_module_dtype
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -178,8 +178,24 @@ class RegistrationInterface(LightningModule):
         raise TypeError(f"{type(self).__name__} cannot refine an initial estimate; use a local method such as ICP")
 
     def _model_batch(self, batch: RegistrationBatch) -> RegistrationBatch:
-        """``batch`` validated and cast to the model's dtype (float64 data, float32 model, or the reverse)."""
+        """``batch`` validated and cast to the model's dtype (float64 data, float32 model, or the reverse).
+
+        Raises:
+            lcreg.checks.ShapeError: Normals not shaped as their cloud, a pose not ``(B, 4, 4)``, indices not ``(B,)``
+                (named ``batch.<field>``).
+        """
         self.validate_inputs(batch.points_src, batch.points_ref)
+        b, n, m = batch.points_src.shape[0], batch.points_src.shape[1], batch.points_ref.shape[1]
+        expected: dict[str, tuple[int, ...]] = {
+            "normals_src": (b, n, 3),
+            "normals_ref": (b, m, 3),
+            "transform_ref_src": (b, 4, 4),
+            "index": (b,),
+        }
+        for name, shape in expected.items():
+            value = getattr(batch, name)
+            if value is not None:
+                check_shape(value, shape, f"batch.{name}")
         return replace(batch, **to_module_dtype(self, vars(batch)))
 
 
