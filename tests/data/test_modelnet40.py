@@ -102,6 +102,34 @@ def test_corrupt_and_malformed_files_name_the_path(tmp_path: Path) -> None:
         load_modelnet40_h5(tmp_path, "train")
 
 
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("nan", r"bad\.h5': objects at rows \[1, 3\] of 'data' hold NaN/Inf"),
+        ("nan_normal", r"bad\.h5': objects at rows \[2\] of 'normal' hold NaN/Inf"),
+        ("identical", r"bad\.h5': objects at rows \[0\] of 'data' have all their points identical"),
+        ("too_few", r"bad\.h5': objects hold 2 point\(s\), registration needs at least 3"),
+    ],
+)
+def test_unusable_objects_name_the_file_and_rows(tmp_path: Path, kind: str, message: str) -> None:
+    """Before: a later `points` contains ... NaN/Inf (or a degenerate-cloud error) without the file or the row."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(4, 2 if kind == "too_few" else 16, 3)).astype(np.float32)
+    normals = rng.normal(size=points.shape).astype(np.float32)
+    if kind == "nan":
+        points[1, 3, 0] = np.nan
+        points[3, 0, 2] = np.inf
+    elif kind == "nan_normal":
+        normals[2, 5, 1] = np.nan
+    elif kind == "identical":
+        points[0] = 0.25
+    with h5py.File(tmp_path / "bad.h5", "w") as f:
+        f["data"], f["normal"], f["label"] = points, normals, np.zeros((4, 1), np.uint8)
+    (tmp_path / "train_files.txt").write_text("bad.h5\n")
+    with pytest.raises(DatasetLayoutError, match=message):
+        load_modelnet40_h5(tmp_path, "train")
+
+
 def test_datamodule_checks_root_in_setup_not_init(tmp_path: Path) -> None:
     dm = ModelNet40DataModule(root=str(tmp_path / "absent"), num_points=32)  # building a config needs no data
     with pytest.raises(FileNotFoundError, match="absent"):

@@ -99,7 +99,40 @@ def _read_h5(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         raise DatasetLayoutError(
             f"{str(path)!r}: {bad} label(s) outside 0-{NUM_CLASSES - 1} (found {labels.min()}..{labels.max()})"
         )
+    _check_objects(path, points, normals)
     return points, normals, labels.astype(np.int64)
+
+
+MIN_OBJECT_POINTS = 3
+"""Fewest points per object a file may hold (a rigid pose needs three non-collinear points)."""
+
+
+def _check_objects(path: Path, points: np.ndarray, normals: np.ndarray | None) -> None:
+    """Refuse objects no registration can use, naming the file and the rows (object indices in the file).
+
+    Raises:
+        DatasetLayoutError: Too few points per object, NaN/Inf in ``data`` or ``normal``, or an object whose points
+            are all identical.
+    """
+    if points.shape[1] < MIN_OBJECT_POINTS:
+        raise DatasetLayoutError(
+            f"{str(path)!r}: objects hold {points.shape[1]} point(s), registration needs at least {MIN_OBJECT_POINTS}"
+        )
+    for key, values in (("data", points), ("normal", normals)):
+        if values is None:
+            continue
+        rows = np.flatnonzero(~np.isfinite(values).all(axis=(1, 2)))
+        if len(rows):
+            raise DatasetLayoutError(f"{str(path)!r}: objects at rows {_rows(rows)} of {key!r} hold NaN/Inf")
+    flat = np.flatnonzero((np.ptp(points, axis=1) == 0).all(axis=1))
+    if len(flat):
+        raise DatasetLayoutError(f"{str(path)!r}: objects at rows {_rows(flat)} of 'data' have all their points identical")
+
+
+def _rows(rows: np.ndarray, shown: int = 5) -> str:
+    """``[3, 7, 9]`` or ``[3, 7, 9, 11, 12, ... (14 rows)]``."""
+    listed = ", ".join(str(int(r)) for r in rows[:shown])
+    return f"[{listed}]" if len(rows) <= shown else f"[{listed}, ... ({len(rows)} rows)]"
 
 
 def load_shape_names(root: str | Path) -> list[str] | None:
