@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from lcreg.checks import ShapeError, check_float
+from lcreg.geometry._eps import nan_where_non_finite
 
 __all__ = ["euler_zyx_to_matrix", "matrix_to_euler_zyx"]
 
@@ -67,4 +68,4 @@ def matrix_to_euler_zyx(rot: torch.Tensor) -> torch.Tensor:
     locked = cos_y < 1e-6
     x = torch.where(locked, torch.zeros_like(y), torch.atan2(-rot[..., 1, 2], rot[..., 2, 2]))
     z = torch.where(locked, torch.atan2(rot[..., 1, 0], rot[..., 1, 1]), torch.atan2(-rot[..., 0, 1], rot[..., 0, 0]))
-    return torch.stack([z, y, x], dim=-1)
+    return nan_where_non_finite(torch.stack([z, y, x], dim=-1), rot, 2)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from lcreg.checks import ShapeError, check_float
-from lcreg.geometry._eps import near_pi, small_angle
+from lcreg.geometry._eps import nan_where_non_finite, near_pi, small_angle
 
 __all__ = ["exp", "hat", "log", "quaternion_to_matrix", "vee"]
 
@@ -98,7 +98,7 @@ def log(rot: torch.Tensor) -> torch.Tensor:
     omega = factor[..., None] * skew
     if bool(near.any()):
         omega = torch.where(near[..., None], _log_near_pi(rot, theta, skew), omega)
-    return omega
+    return nan_where_non_finite(omega, rot, 2)
 
 
 def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
