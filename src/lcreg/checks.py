@@ -15,6 +15,7 @@ All checks raise typed errors that name the offending argument, never ``assert``
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -104,9 +105,13 @@ def dataset_root(root: str | Path, what: str, layout: str, argument: str = "--da
         argument: The option that sets the folder, named in the message.
 
     Raises:
+        TypeError: If ``root`` is not a path (``None``, a number).
         DatasetNotFoundError: If it is not a directory; a relative ``root`` is shown resolved against the working
             directory (configs name ``../shared/data/...``, which holds only from a source checkout).
     """
+    if not isinstance(root, (str, os.PathLike)):
+        message = f"{what}: `root` must be a folder path, got {root!r}; give the dataset's folder with {argument}"
+        raise TypeError(message)
     path = Path(root).expanduser()
     if path.is_dir():
         return path
