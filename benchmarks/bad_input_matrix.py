@@ -38,7 +38,14 @@ import lcreg
 
 LEARNED = ["DVDs", "DCP", "PRNet", "IDAM", "DeepGMR", "PointNetLK", "FMRNet", "PCRNet"]
 CLASSICAL = ["ICP", "RANSAC", "FGR"]
-TYPED = (ValueError, TypeError, FileNotFoundError)
+TYPED: tuple[type[Exception], ...] = (ValueError, TypeError, FileNotFoundError)
+
+
+def _typed() -> tuple[type[Exception], ...]:
+    """:data:`TYPED` and lcreg's typed ``RuntimeError``: a training stopped on non-finite values."""
+    from lcreg.models.base import NonFiniteTrainingError
+
+    return (*TYPED, NonFiniteTrainingError)
 
 
 @dataclass
@@ -60,7 +67,7 @@ def classify(case: Case) -> tuple[str, str]:
         if case.names is None:
             return "cryptic", "valid input raised " + text
         named = any(name in str(err) for name in case.names)
-        return ("typed" if isinstance(err, TYPED) and named else "cryptic"), text
+        return ("typed" if isinstance(err, _typed()) and named else "cryptic"), text
     finite = _finite(out)
     if case.names is None:
         return ("ok", "finite result") if finite else ("silent", "valid input gave NaN/Inf")
@@ -272,6 +279,200 @@ def checkpoint_cases(folder: Path) -> Iterator[Case]:
         yield Case("load_into", name, lambda p=folder / name: load_into(model, str(p)), (name,))
 
 
+# --- issue 27: geometry contract, internals, DataModules, HDF5 rows, training, CLI values -------------------------
+def _propagates(fn: Callable[..., torch.Tensor], *args: torch.Tensor) -> torch.Tensor:
+    """1.0 when ``fn`` keeps a NaN/Inf item non-finite and the other items exact (the geometry policy), else NaN."""
+    clean = fn(*args)
+    for value in (float("nan"), float("inf")):
+        bad = args[0].clone()
+        bad[1].view(-1)[0] = value
+        out = fn(bad, *args[1:])
+        if bool(torch.isfinite(out[1]).all()) or not torch.equal(out[[0, 2]], clean[[0, 2]]):
+            return torch.tensor(float("nan"))
+    return torch.tensor(1.0)
+
+
+def geometry_cases() -> Iterator[Case]:
+    """The element-wise maps propagate NaN/Inf item by item (``ok``); a finite result for a bad item is ``silent``."""
+    from lcreg.geometry import euler, neighbors, se3, so3
+
+    gen = torch.Generator().manual_seed(0)
+    w = torch.randn(3, 3, generator=gen, dtype=torch.float64) * 0.5
+    t = se3.exp(torch.randn(3, 6, generator=gen, dtype=torch.float64) * 0.3)
+    p = torch.randn(3, 20, 3, generator=gen, dtype=torch.float64)
+    maps: dict[str, tuple[Callable[..., torch.Tensor], tuple[torch.Tensor, ...]]] = {
+        "so3.exp": (so3.exp, (w,)),
+        "so3.log": (so3.log, (so3.exp(w),)),
+        "so3.quaternion_to_matrix": (so3.quaternion_to_matrix, (torch.randn(3, 4, generator=gen, dtype=w.dtype),)),
+        "euler.round_trip": (lambda r: euler.euler_zyx_to_matrix(euler.matrix_to_euler_zyx(r)), (so3.exp(w),)),
+        "se3.exp": (se3.exp, (torch.randn(3, 6, generator=gen, dtype=w.dtype),)),
+        "se3.log": (se3.log, (t,)),
+        "se3.inverse": (se3.inverse, (t,)),
+        "se3.compose": (se3.compose, (t, t)),
+        "se3.transform_points": (se3.transform_points, (t, p)),
+        "pairwise_sq_distances": (neighbors.pairwise_sq_distances, (p, p)),
+    }
+    for label, (fn, args) in maps.items():
+        yield Case("geometry", f"{label}/nan_item", lambda f=fn, a=args: _propagates(f, *a), None)
+
+
+def internal_cases(folder: Path) -> Iterator[Case]:
+    """Internals and constructors a user reaches: LK with float64 clouds, gather_points, DataModules, HDF5 rows."""
+    import dataclasses
+
+    import h5py
+
+    from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
+    from lcreg.data.modelnet40 import load_modelnet40_h5
+    from lcreg.geometry.neighbors import gather_points
+    from lcreg.nn.lk import InverseCompositionalLK
+    from lcreg.nn.pointnet import PointNetEncoder
+    from lcreg.types import RegistrationBatch
+
+    src, ref = _clouds()
+    lk, encoder = InverseCompositionalLK(), PointNetEncoder([16, 32]).eval()
+    yield Case("nn.lk", "float64_clouds_float32_encoder", lambda: lk(encoder, src.double(), ref.double()), None)
+    empty = torch.zeros(2, 0, 3)
+    yield Case(
+        "geometry",
+        "gather_points/empty",
+        lambda: gather_points(empty, torch.zeros(2, 4, dtype=torch.long)),
+        ("points",),
+    )
+    yield Case("SyntheticDataModule", "batch_size='2'", lambda: SyntheticDataModule(batch_size="2"), ("batch_size",))  # type: ignore[arg-type]
+    yield Case("SyntheticDataModule", "batch_size=2.5", lambda: SyntheticDataModule(batch_size=2.5), ("batch_size",))  # type: ignore[arg-type]
+    yield Case("ModelNet40DataModule", "root=None", lambda: ModelNet40DataModule(None).setup("fit"), ("root",))  # type: ignore[arg-type]
+    rng = np.random.default_rng(0)
+    kinds = {"h5_nan_row": "nan", "h5_identical_row": "identical", "h5_two_points": "few"}
+    for name, kind in kinds.items():
+        points = rng.normal(size=(4, 2 if kind == "few" else 16, 3)).astype(np.float32)
+        if kind == "nan":
+            points[2, 1, 0] = np.nan
+        elif kind == "identical":
+            points[1] = 0.5
+        sub = folder / name
+        sub.mkdir()
+        with h5py.File(sub / f"{name}.h5", "w") as f:
+            f["data"], f["label"] = points, np.zeros((4, 1), np.uint8)
+        (sub / "train_files.txt").write_text(f"{name}.h5\n")
+        yield Case("modelnet40_h5", name, lambda r=sub: load_modelnet40_h5(r, "train")[0], (f"{name}.h5",))
+    model = lcreg.DVDs().eval()
+    batch = RegistrationBatch(
+        src, ref, normals_src=torch.zeros(2, 10, 3), transform_ref_src=torch.eye(4).repeat(2, 1, 1)
+    )
+    yield Case("DVDs", "validation_step/normals_shape", lambda: model.validation_step(batch, 0), ("normals_src",))
+    bad_pose = dataclasses.replace(batch, normals_src=None, transform_ref_src=torch.eye(4).repeat(3, 1, 1))
+    yield Case("DVDs", "validation_step/pose_batch", lambda: model.validation_step(bad_pose, 0), ("transform_ref_src",))
+
+
+def _assigned_refiner() -> torch.Tensor:
+    """1.0 when ``model.refiner = ICP()`` after construction takes effect (or refuses), NaN when silently ignored."""
+    model = lcreg.DVDs().eval()
+    icp = lcreg.ICP()
+    try:
+        model.refiner = icp
+    except (TypeError, ValueError, AttributeError) as err:
+        return torch.tensor(1.0 if "refiner" in str(err) else float("nan"))
+    return torch.tensor(1.0 if model.refiner is icp else float("nan"))
+
+
+def _all_pretrained_load() -> torch.Tensor:
+    """1.0 when every name of ``pretrained_names()`` loads, NaN when one is listed but cannot be loaded."""
+    try:
+        for name in lcreg.pretrained_names():
+            lcreg.pretrained(name)
+    except Exception:
+        return torch.tensor(float("nan"))
+    return torch.tensor(1.0)
+
+
+class _ExitError(ValueError):
+    """The command line ended with a short report (at most two lines on stderr): a typed error."""
+
+
+def _cli(args: list[str]) -> Any:
+    """``python -m lcreg ARGS`` as a user runs it (from the repository root), classified by what it printed.
+
+    Raises:
+        _ExitError: A non-zero exit with at most two lines on stderr (its first line).
+        RuntimeError: A non-zero exit with a longer report (a traceback: cryptic whatever it names).
+    """
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "lcreg", *args], cwd=repo, capture_output=True, text=True, timeout=600, check=False
+    )
+    if proc.returncode == 0:
+        return None
+    lines = [
+        line for line in proc.stderr.splitlines() if line.strip() and "Warning" not in line and "warn(" not in line
+    ]
+    lines = [line for line in lines if line.startswith(("lcreg: error", "hint:", "usage:"))] or lines
+    if len(lines) <= 2:
+        raise _ExitError(lines[0] if lines else f"exit code {proc.returncode}")
+    raise RuntimeError(f"exit code {proc.returncode} after a {len(lines)}-line report ending {lines[-1][:120]!r}")
+
+
+TINY = [
+    "--config=configs/dvds.yaml",
+    "--model.init_args.encoder_channels=[16,32]",
+    "--model.init_args.decoder_grid_size=8",
+    "--model.init_args.decoder_hidden=[32]",
+    "--model.init_args.normal_hidden=[16]",
+    "--data.init_args.num_points=64",
+    "--data.init_args.points_per_shape=128",
+    "--data.init_args.num_train=4",
+    "--data.init_args.num_val=2",
+    "--data.init_args.num_test=2",
+    "--data.init_args.batch_size=2",
+    "--trainer.max_steps=4",
+    "--trainer.enable_progress_bar=false",
+    "--trainer.enable_model_summary=false",
+]
+
+
+def training_cases(folder: Path) -> Iterator[Case]:
+    """Training on the embedded shapes: a diverging run, NaN weights; CLI values; assignment and listing."""
+    root = [f"--trainer.default_root_dir={folder / 'runs'}", f"--trainer.logger.init_args.save_dir={folder / 'runs'}"]
+    yield Case(
+        "fit",
+        "adam_lr_1e12",
+        lambda: _cli(["fit", *TINY, *root, "--model.init_args.optimizer.init_args.lr=1e12"]),
+        ("diverged", "non-finite"),
+    )
+    good = folder / "good.ckpt"
+    _cli(["fit", *TINY, *root, "--trainer.max_steps=1"])
+    last = next((folder / "runs").rglob("last.ckpt"))
+    content = torch.load(last, map_location="cpu", weights_only=False)
+    key = next(k for k, v in content["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
+    content["state_dict"][key].view(-1)[0] = float("nan")
+    torch.save(content, good.with_name("nan_weight.ckpt"))
+    nan_ckpt = str(good.with_name("nan_weight.ckpt"))
+    yield Case(
+        "fit",
+        "ckpt_path_nan_weight",
+        lambda: _cli(["fit", *TINY, *root, f"--ckpt_path={nan_ckpt}"]),
+        ("nan_weight.ckpt",),
+    )
+    yield Case(
+        "fit", "weights_nan_weight", lambda: _cli(["fit", *TINY, *root, f"--weights={nan_ckpt}"]), ("nan_weight.ckpt",)
+    )
+    notes = folder / "notes.txt"
+    notes.write_text("my notes\n")
+    values = {
+        "batch_size_-4": (["--data.init_args.batch_size=-4"], ("batch_size",)),
+        "max_iterations_-1": (["--model.init_args.max_iterations=-1"], ("max_iterations",)),
+        "max_epochs_abc": (["--trainer.max_epochs=abc"], ("max_epochs",)),
+        "ckpt_path_text_file": ([f"--ckpt_path={notes}"], ("notes.txt",)),
+    }
+    for label, (extra, names) in values.items():
+        yield Case("cli", label, lambda e=extra: _cli(["fit", *TINY, *root, *e]), names)
+    yield Case("RegistrationModule", "assign_refiner", _assigned_refiner, None)
+    yield Case("pretrained", "every_listed_name_loads", _all_pretrained_load, None)
+
+
 # --- driver --------------------------------------------------------------------------------------------------------
 def all_cases(folder: Path, smoke: bool) -> Iterator[Case]:
     n = 64
@@ -281,6 +482,10 @@ def all_cases(folder: Path, smoke: bool) -> Iterator[Case]:
         yield from module_cases(n)
     yield from file_cases(folder)
     yield from checkpoint_cases(folder)
+    yield from geometry_cases()
+    yield from internal_cases(folder)
+    if not smoke:
+        yield from training_cases(folder)
 
 
 def main(argv: list[str] | None = None) -> None:
