@@ -44,7 +44,7 @@ from lcreg.types import RegistrationBatch
 HOSTS = ("dcp", "prnet", "idam", "deepgmr")
 SIZES = (500, 1000, 2000)
 SMOKE = {"sizes": (64,), "pairs": 2, "batch_sizes": [1, 2], "repeats": 1, "train_batch": 2, "train_points": 64}
-SEED = ["--seed_everything=0"]  # X and LC + X start from the same host weights
+SEED = {"seed_everything": 0}  # X and LC + X start from the same host weights
 
 
 def train_step(model: RegistrationModule, batch: RegistrationBatch, opt: torch.optim.Optimizer) -> None:
@@ -57,7 +57,7 @@ def train_step(model: RegistrationModule, batch: RegistrationBatch, opt: torch.o
 def lc_overhead(host: str, batch: RegistrationBatch, device: str, repeats: int) -> list[object]:
     """Median step time without/with LC (alternating rounds after a warm-up round) and the overhead."""
     names = {"X": host, "LC + X": METHODS[host].lc_variant or host}
-    models = {v: build(name, overrides=SEED).to(device).train() for v, name in names.items()}
+    models = {v: build(name, values=SEED).to(device).train() for v, name in names.items()}
     opts = {v: torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=1e-4) for v, m in models.items()}
     steps = {v: partial(train_step, models[v], batch, opts[v]) for v in models}
     t_x, t_lc = (t.median_s for t in time_calls(steps, repeats, warmup=1, device=device).values())
@@ -67,8 +67,8 @@ def lc_overhead(host: str, batch: RegistrationBatch, device: str, repeats: int) 
 
 def inference_table(args: argparse.Namespace) -> str:
     """ms/pair of every host at every size and batch size, and of ICP."""
-    models = {host: build(host, overrides=SEED).to(args.device) for host in HOSTS}
-    icp = build("icp", overrides=cli_args("model", {"distance_factor": 4.0}))  # voxel 0.05: gate 0.2
+    models = {host: build(host, values=SEED).to(args.device) for host in HOSTS}
+    icp = build("icp", values=cli_args("model", {"distance_factor": 4.0}))  # voxel 0.05: gate 0.2
     header = ["points", *(f"{METHODS[h].label} b={b}" for h in models for b in args.batch_sizes), "ICP"]
     rows, source = [], ""
     for n in args.sizes:

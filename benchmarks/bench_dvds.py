@@ -49,7 +49,7 @@ ICP_GATE_0P2 = {"distance_factor": 4.0}  # voxel_size 0.05 in configs/icp.yaml: 
 
 def train_step_memory(device: str, batch_size: int, num_points: int) -> dict[str, float]:
     """Peak memory and time of one forward + backward DVDs training step (run in this process)."""
-    model = build("dvds", overrides=cli_args("model", {"diagnostics_every_n_steps": 0})).to(device).train()
+    model = build("dvds", values=cli_args("model", {"diagnostics_every_n_steps": 0})).to(device).train()
     batches, _ = pair_batches(None, pairs=batch_size, num_points=num_points, batch_size=batch_size)
     batch = move_data_to_device(batches[0], device)
     batch.transform_ref_src = None  # self-supervised: the training step never sees the pose
@@ -66,7 +66,7 @@ def train_step_memory(device: str, batch_size: int, num_points: int) -> dict[str
 def speed_table(args: argparse.Namespace) -> str:
     """ms/pair of DVDs (each batch size) and ICP at every size, and the DVDs/ICP ratio at batch 1."""
     dvds = build("dvds", args.ckpt).to(args.device)
-    icp = build("icp", overrides=cli_args("model", ICP_GATE_0P2))
+    icp = build("icp", values=cli_args("model", ICP_GATE_0P2))
     header = ["points", *(f"DVDs b={b} ms/pair" for b in args.batch_sizes), "ICP ms/pair", "DVDs/ICP (b=1)"]
     rows, source = [], ""
     for n in args.sizes:

@@ -215,7 +215,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
 def setup(args: argparse.Namespace) -> tuple[DVDs, RegistrationBatch, str]:
     """The configured DVDs model (train mode, seeded weights) and the benchmark batch (no pose: self-supervised)."""
     torch.manual_seed(args.seed)
-    model = build("dvds", overrides=cli_args("model", {"diagnostics_every_n_steps": 0}))
+    model = build("dvds", values=cli_args("model", {"diagnostics_every_n_steps": 0}))
     if not isinstance(model, DVDs):  # pragma: no cover - the registry builds DVDs
         raise TypeError(f"expected DVDs, got {type(model).__name__}")
     batches, source = pair_batches(args.root, "val", pairs=args.batch, num_points=args.points, batch_size=args.batch)

@@ -37,6 +37,7 @@ from lcreg.experiments.benchmarking import (
     METHODS,
     Budget,
     ResultLog,
+    Values,
     add_smoke_argument,
     build,
     cli_args,
@@ -75,7 +76,7 @@ NUM_POINTS = 1024
 SMOKE = {"only": ["dvds", "dvds_icp", "icp"], "train": ["dvds=2,64,2"], "num_points": 64, "batch_size": 2}
 
 
-def data_overrides(args: argparse.Namespace, budget: Budget) -> list[str]:
+def data_overrides(args: argparse.Namespace, budget: Budget) -> Values:
     """The training data of a ``--train`` run: ModelNet40 under ``--root`` (synthetic pairs in a smoke run)."""
     if args.smoke:
         return synthetic_overrides(num_points=budget.points, batch_size=budget.batch)
@@ -86,7 +87,7 @@ def data_overrides(args: argparse.Namespace, budget: Budget) -> list[str]:
 def train(key: str, budget: Budget, args: argparse.Namespace) -> str:
     """``lcreg fit`` on the method's config with the budget; returns the best checkpoint (validation)."""
     run = fit_overrides(budget.steps, max(1, budget.steps // 4), args.run_dir, name=key, seed=0)
-    return str(fit(key, [*run, *data_overrides(args, budget)]).best_checkpoint)
+    return str(fit(key, {**run, **data_overrides(args, budget)}).best_checkpoint)
 
 
 def test_sets(args: argparse.Namespace) -> tuple[dict[str, list[Any]], str]:

@@ -48,7 +48,7 @@ SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "i
 def icp(distance: float) -> RegistrationModule:
     """ICP from the identity, max correspondence distance ``distance`` (voxel = gate, factor 1), 50 iterations."""
     return build(
-        "icp", overrides=cli_args("model", {"voxel_size": distance, "distance_factor": 1.0, "max_iterations": 50})
+        "icp", values=cli_args("model", {"voxel_size": distance, "distance_factor": 1.0, "max_iterations": 50})
     )
 
 
@@ -102,7 +102,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         args.root = None  # the embedded synthetic shapes
     args.out = output_path(args.out, "modelnet40_dvds.md", args.smoke)
     if args.smoke and not args.ckpt:
-        args.ckpt = [str(save(build("dvds", overrides=["--seed_everything=99"]), args.out.with_suffix(".pt")))]
+        args.ckpt = [str(save(build("dvds", values={"seed_everything": 99}), args.out.with_suffix(".pt")))]
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
     args.model_args = key_values(args.model_args, "--model-args")
@@ -114,12 +114,12 @@ def learned(
 ) -> RegistrationModule:
     """``method`` with a checkpoint's weights (or seeded untrained), optionally with ICP refinement.
 
-    ``model_args`` (``{name: YAML text}``) override constructor arguments that are not weights, e.g.
-    ``eval_iterations``.
+    ``model_args`` (``{name: YAML text}``, typed as ``lcreg`` types its command line) override constructor
+    arguments that are not weights, e.g. ``eval_iterations``.
     """
     configs = [REFINE_CONFIG] if refine else []
-    overrides = [] if seed is None else [f"--seed_everything={seed}"]
-    return build(method, checkpoint, configs=configs, overrides=[*overrides, *cli_args("model", model_args or {})])
+    seeded = {} if seed is None else {"seed_everything": seed}
+    return build(method, checkpoint, configs=configs, values={**seeded, **cli_args("model", model_args or {})})
 
 
 def table(args: argparse.Namespace, sigma: float) -> str:

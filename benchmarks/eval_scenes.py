@@ -39,8 +39,10 @@ from lcreg.experiments.benchmarking import (
     METHODS,
     VOXELIZE_CONFIG,
     ResultLog,
+    Values,
     add_smoke_argument,
     build,
+    config_values,
     data_config,
     machine_line,
     markdown_table,
@@ -78,12 +80,13 @@ def registry_name(key: str, dataset: str) -> str:
     return f"{key}_{dataset}" if key == "ransac_icp" else key
 
 
-def scene_data(name: str, dataset: str, args: argparse.Namespace) -> tuple[list[str], list[str]]:
-    """Configs and overrides of method ``name``'s pairs: the dataset's data add-on, or tiny synthetic pairs (smoke)."""
+def scene_data(name: str, dataset: str, args: argparse.Namespace) -> tuple[list[str], Values]:
+    """Configs and values of method ``name``'s pairs: the dataset's data add-on, or tiny synthetic pairs (smoke)."""
+    extra = config_values(args.data_args)
     if not args.smoke:
-        return [data_config(dataset)], list(args.data_args)
-    voxels = SMOKE_VOXELS if VOXELIZE_CONFIG in METHODS[name].configs else []
-    return [], [*SMOKE_DATA, *voxels, *args.data_args]
+        return [data_config(dataset)], extra
+    voxels = SMOKE_VOXELS if VOXELIZE_CONFIG in METHODS[name].configs else {}
+    return [], {**SMOKE_DATA, **voxels, **extra}
 
 
 def row(report: EvaluationReport, dataset: str, key: str, extra: dict[str, Any]) -> dict[str, Any]:
@@ -108,9 +111,9 @@ def evaluate_methods(args: argparse.Namespace) -> list[dict[str, Any]]:
     rows, batches = [], None
     for key in args.methods:
         name = registry_name(key, args.dataset)
-        configs, overrides = scene_data(name, args.dataset, args)
+        configs, values = scene_data(name, args.dataset, args)
         ckpt = args.ckpt if METHODS[name].learned else None
-        model, datamodule = build(name, ckpt, configs, overrides, with_data=True)
+        model, datamodule = build(name, ckpt, configs, values, with_data=True)
         batches = batches if batches is not None else split_batches(datamodule, "test")
         torch.manual_seed(0)
         report = evaluate(model, batches, METHODS[name].label)
@@ -128,13 +131,13 @@ def candidates() -> list[dict[str, Any] | None]:
 
 def tune(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Voxel settings for DVDs on the validation scenes (mean RRE, lower is better)."""
-    scenes = [] if args.smoke else ["--data.init_args.test_scenes", json.dumps(VALIDATION_SCENES)]
+    scenes = {} if args.smoke else {"data.init_args.test_scenes": VALIDATION_SCENES}
     section = f"validation: {', '.join(VALIDATION_SCENES)} (3DMatch, overlap > 0.7)"
     rows, batches = [], None
     for params in candidates():
-        name, voxel = ("dvds", []) if params is None else ("dvds_voxel", voxelize_overrides(**params))
-        configs, overrides = scene_data(name, "sevenscenes", args)
-        model, datamodule = build(name, args.ckpt, configs, [*overrides, *scenes, *voxel], with_data=True)
+        name, voxel = ("dvds", {}) if params is None else ("dvds_voxel", voxelize_overrides(**params))
+        configs, values = scene_data(name, "sevenscenes", args)
+        model, datamodule = build(name, args.ckpt, configs, {**values, **scenes, **voxel}, with_data=True)
         batches = batches if batches is not None else split_batches(datamodule, "test")
         label = (
             "no voxelisation" if params is None else f"lk27 voxels, {', '.join(f'{k}={v}' for k, v in params.items())}"
@@ -184,8 +187,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--section", default=None, help="title of this run's table (default: the dataset)")
     parser.add_argument("--out", default=None, help="Markdown file (default docs/results/scenes.md)")
     add_smoke_argument(parser)
-    # Every other argument is a LightningCLI override, e.g. --data.init_args.test_split=train
+    # Every other argument is a config value, e.g. --data.init_args.test_split=train (typed as `lcreg` types it)
     args, args.data_args = parser.parse_known_args(argv)
+    config_values(args.data_args)  # a malformed one fails here, before anything runs
     args.command = " ".join(sys.argv[1:] if argv is None else argv)
     if not args.ckpt and not args.smoke:
         parser.error("--ckpt is required (outside --smoke, where untrained weights are used)")

@@ -23,8 +23,10 @@ from typing import Any
 from lcreg.experiments.benchmarking import (
     METHODS,
     VOXELIZE_CONFIG,
+    Values,
     add_smoke_argument,
     build,
+    config_values,
     data_config,
     device_of,
     machine_line,
@@ -40,25 +42,28 @@ from lcreg.experiments.benchmarking import (
 from lcreg.metrics.functional import rotation_error_deg, translation_error
 
 METHOD_KEYS = {"dvds": "dvds", "dvds_voxel": "dvds_voxel", "ransac_icp": "ransac_icp_kitti"}
-FULL = ["--data.init_args.voxel_size=null", "--data.init_args.num_points=null", "--data.init_args.batch_size=1"]
+FULL = {"data.init_args.voxel_size": None, "data.init_args.num_points": None, "data.init_args.batch_size": 1}
 SMOKE_DATA = synthetic_overrides(pairs=1, num_points=64, batch_size=1)
 SMOKE_METHODS = ["dvds_voxel"]  # one fresh process (~5 s of imports); the others differ only by their config
 SMOKE_VOXELS = voxelize_overrides(points_per_voxel=16, min_points=4)  # 64-point clouds: small voxels
 
 
-def data(name: str, smoke: bool) -> tuple[list[str], list[str]]:
-    """Configs and overrides of the pair: full KITTI scans, or one tiny synthetic pair in a smoke run."""
+def data(name: str, smoke: bool) -> tuple[list[str], Values]:
+    """Configs and values of the pair: full KITTI scans, or one tiny synthetic pair in a smoke run."""
     if not smoke:
         return [data_config("kitti")], FULL
-    return [], [*SMOKE_DATA, *(SMOKE_VOXELS if VOXELIZE_CONFIG in METHODS[name].configs else [])]
+    return [], {**SMOKE_DATA, **(SMOKE_VOXELS if VOXELIZE_CONFIG in METHODS[name].configs else {})}
 
 
 def child(key: str, ckpt: str | None, pair: int, smoke: bool, extra: list[str]) -> dict[str, Any]:
-    """Register one full pair with one method (in this process) and return its measurements."""
+    """Register one full pair with one method (in this process) and return its measurements.
+
+    ``extra``: the command line's config options (``--data.init_args.test_split=train``), applied last.
+    """
     name = METHOD_KEYS[key]
-    configs, overrides = data(name, smoke)
+    configs, values = data(name, smoke)
     weights = ckpt if METHODS[name].learned else None
-    model, datamodule = build(name, weights, configs, [*overrides, *extra], with_data=True)
+    model, datamodule = build(name, weights, configs, {**values, **config_values(extra)}, with_data=True)
     datamodule.setup("test")
     dataset = datamodule.test_dataloader().dataset
     item = dataset[pair]
@@ -109,8 +114,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", default=None, help="write a Markdown table here")
     add_smoke_argument(parser)
-    # Every other argument is a LightningCLI override, e.g. --data.init_args.test_split=train
+    # Every other argument is a config value, e.g. --data.init_args.test_split=train (typed as `lcreg` types it)
     args, args.data_args = parser.parse_known_args(argv)
+    config_values(args.data_args)  # a malformed one fails here, before any process starts
     args.command = " ".join(sys.argv[1:] if argv is None else argv)
     if not args.ckpt and not args.smoke:
         parser.error("--ckpt is required (outside --smoke, where untrained weights are used)")

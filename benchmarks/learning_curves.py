@@ -39,14 +39,16 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, NamedTuple
 
 from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     SELECTION_METRIC,
     ResultLog,
+    Values,
     add_smoke_argument,
     apply_smoke,
     cli_args,
@@ -65,13 +67,18 @@ from lcreg.experiments.benchmarking import (
 
 
 class Variant(NamedTuple):
-    """A training variant: registry method, extra config files (relative to ``configs/``) and overrides."""
+    """A training variant: registry method, extra config files (relative to ``configs/``) and values by dotted key."""
 
     method: str
     configs: tuple[str, ...] = ()
-    overrides: tuple[str, ...] = ()
+    overrides: Mapping[str, Any] = MappingProxyType({})
 
 
+SUPERVISED_LK = {  # PointNetLK as in issue 12's table: analytic Jacobian, lr 1e-4, gradient clipping 1
+    "model.init_args.jacobian": "analytic",
+    "model.init_args.optimizer.init_args.lr": 0.0001,
+    "trainer.gradient_clip_val": 1.0,
+}
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -79,40 +86,31 @@ VARIANTS: dict[str, Variant] = {
     "self_motion_only": Variant(
         "dvds",
         (),
-        (
-            '--model.init_args.loss_terms=[{"class_path": "lcreg.models.loss_terms.SelfMotionLoss"}]',
-            "--model.init_args.lambda_global=0",
-            "--model.init_args.lambda_recon=0",
-            "--model.init_args.lambda_normal=0",
-        ),
+        {
+            # The name spelled out: a list value is merged item by item over the config's list (its
+            # LocalConsistencyLoss is named "lc"), so the term would otherwise log as train/lc.
+            "model.init_args.loss_terms": [
+                {"class_path": "lcreg.models.loss_terms.SelfMotionLoss", "init_args": {"name": "self_motion"}}
+            ],
+            "model.init_args.lambda_global": 0,
+            "model.init_args.lambda_recon": 0,
+            "model.init_args.lambda_normal": 0,
+        },
     ),
-    "pointnetlk": Variant(
-        "pointnetlk",
-        overrides=(
-            "--model.init_args.jacobian=analytic",
-            "--model.init_args.optimizer.init_args.lr=0.0001",
-            "--trainer.gradient_clip_val=1.0",
-        ),
-    ),
-    "selfsup_lr3e-5": Variant("dvds_selfsup", overrides=("--model.init_args.optimizer.init_args.lr=3e-05",)),
+    "pointnetlk": Variant("pointnetlk", overrides=SUPERVISED_LK),
+    "selfsup_lr3e-5": Variant("dvds_selfsup", overrides={"model.init_args.optimizer.init_args.lr": 3e-05}),
     "selfsup_steplr": Variant(
         "dvds_selfsup",
-        overrides=(
-            '--model.init_args.lr_scheduler={"class_path": "torch.optim.lr_scheduler.StepLR", '
-            '"init_args": {"step_size": 5, "gamma": 0.5}}',
-        ),
+        overrides={
+            "model.init_args.lr_scheduler": {
+                "class_path": "torch.optim.lr_scheduler.StepLR",
+                "init_args": {"step_size": 5, "gamma": 0.5},
+            }
+        },
     ),
     "pcrnet": Variant("pcrnet"),
     "fmr": Variant("fmr"),
-    "pointnetlk_nobn": Variant(
-        "pointnetlk",
-        overrides=(
-            "--model.init_args.batch_norm=false",
-            "--model.init_args.jacobian=analytic",
-            "--model.init_args.optimizer.init_args.lr=0.0001",
-            "--trainer.gradient_clip_val=1.0",
-        ),
-    ),
+    "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
 }
 SMOKE = {"steps": 2, "val_every": 1, "seeds": [0], "variants": ["model_D", "selfsup"]}
 KEY = ("variant", "seed", "points", "steps", "budget")
@@ -120,7 +118,7 @@ KEY = ("variant", "seed", "points", "steps", "budget")
 ``"converge p<P> v<K>"`` for a converge run."""
 
 
-def data_overrides(args: argparse.Namespace) -> list[str]:
+def data_overrides(args: argparse.Namespace) -> Values:
     """The data of every run: ModelNet40 at ``--points`` and batch 16, or tiny embedded shapes (``--smoke``)."""
     if args.root is None:
         return synthetic_overrides(pairs=4, num_points=64, batch_size=2)
@@ -135,7 +133,7 @@ def budget_key(args: argparse.Namespace) -> str | None:
     return None if args.patience is None else f"converge p{args.patience} v{args.val_pairs}"
 
 
-def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> list[str]:
+def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> Values:
     """The step budget of every run: fixed, or until ``--patience`` validations bring no improvement."""
     if args.patience is None:
         return fit_overrides(args.steps, args.val_every, run_dir, name="", seed=seed)
@@ -153,15 +151,15 @@ def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
         return
     variant = VARIANTS[name]
     run_dir = Path(args.run_dir) / name
-    overrides = [
-        *data_overrides(args),
-        *training_overrides(args, run_dir, seed),
-        f"--trainer.logger.init_args.version=seed{seed}",
-        *variant.overrides,
-    ]
+    values = {
+        **data_overrides(args),
+        **training_overrides(args, run_dir, seed),
+        "trainer.logger.init_args.version": f"seed{seed}",
+        **variant.overrides,
+    }
     converge = args.patience is not None
     monitor = CONVERGE_METRIC if converge else SELECTION_METRIC
-    result = fit(variant.method, overrides, variant.configs, validate_first=True, monitor=monitor, resume=converge)
+    result = fit(variant.method, values, variant.configs, validate_first=True, monitor=monitor, resume=converge)
     metrics = Path(result.trainer.log_dir or run_dir) / "metrics.csv"
     stopped = result.trainer.global_step
     row = {**key, "metrics_csv": str(metrics), "best_checkpoint": str(result.best_checkpoint)}

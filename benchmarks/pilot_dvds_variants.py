@@ -98,7 +98,7 @@ def run(
 ) -> EvaluationReport:
     """One variant from initialisation ``seed``: its validation report, with the training loss terms and time."""
     model_args = cli_args("model", {"diagnostics_every_n_steps": 0, **kwargs})
-    model = build("dvds", overrides=[f"--seed_everything={seed}", *model_args])
+    model = build("dvds", values={"seed_everything": seed, **model_args})
     report, seconds = timed(partial(train_and_evaluate, model, data, steps, lr))
     report.extra["seconds"] = seconds
     return report
@@ -138,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         data_args = synthetic_overrides(pairs=2, num_points=64, batch_size=2)
     else:
         data_args = cli_args("data", {"root": args.root, "batch_size": 16, "num_points": 512, "num_workers": 0})
-    dm = build("dvds", overrides=data_args, with_data=True)[1]
+    dm = build("dvds", values=data_args, with_data=True)[1]
     data = (dm, split_batches(dm, "val"))
     head = f"validation pairs: {sum(len(b) for b in data[1])}; seeds {args.seeds}; {machine_line()}"
     lines = [head, "", markdown_table(HEADER)]

@@ -11,10 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
 
 import lcreg
 import lcreg.experiments.evaluation
 from lcreg.cli import expand_configs
+from lcreg.config import ConfigValueError
 from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     DATA_CONFIGS,
@@ -26,9 +28,9 @@ from lcreg.experiments.benchmarking import (
     ResultLog,
     build,
     cli_args,
-    cli_arguments,
     config_dir,
     config_path,
+    config_values,
     converge_overrides,
     fit,
     fit_overrides,
@@ -37,6 +39,7 @@ from lcreg.experiments.benchmarking import (
     last_checkpoint,
     markdown_table,
     method,
+    method_layers,
     output_path,
     pair_batches,
     peak_rss_increase_mib,
@@ -60,7 +63,7 @@ pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
 def _lc_terms(num_local_points: int) -> list[dict]:
-    """configs/lc.yaml's term with a smaller |X1|, as a --model.init_args.loss_terms value."""
+    """configs/lc.yaml's term with a smaller |X1|, as a ``model.init_args.loss_terms`` value."""
     lc = {
         "class_path": "lcreg.nn.local_consistency.LocalConsistency",
         "init_args": {"num_local_points": num_local_points},
@@ -134,37 +137,82 @@ def test_build_without_checkpoint_gives_the_configured_class(name: str) -> None:
     assert f"{module}.{cls}" == library.class_path and library.learned == METHODS[name].learned
 
 
-def test_build_passes_configs_and_overrides_like_lcreg_test() -> None:
-    args = cli_arguments("dvds_icp", ["data/kitti.yaml"], ["--seed_everything=3"])
-    files = [Path(a).relative_to(config_dir()).as_posix() for a in args[1::2][:3]]
-    assert args[0::2][:3] == ["--config"] * 3 and files == ["dvds_modelnet40.yaml", REFINE_CONFIG, "data/kitti.yaml"]
-    dcp = cli_arguments("dcp", ["data/kitti.yaml"])  # the original batch size comes before a further data config
-    assert dcp.index("--data.init_args.batch_size=32") < dcp.index(str(config_path("data/kitti.yaml")))
-    assert args[-1] == "--seed_everything=3"
-    _, dm = build("icp", overrides=["--data.init_args.num_points=512"], with_data=True)
+def test_build_passes_configs_and_values_like_lcreg_test() -> None:
+    files, values = method_layers("dvds_icp", ["data/kitti.yaml"], {"seed_everything": 3})
+    names = [path.relative_to(config_dir()).as_posix() for path in files]
+    assert names == ["dvds_modelnet40.yaml", REFINE_CONFIG, "data/kitti.yaml"] and values == {"seed_everything": 3}
+    _, dm = build("icp", values={"data.init_args.num_points": 512}, with_data=True)
     assert type(dm).__name__ == "ModelNet40DataModule" and dm.hparams.num_points == 512
-    _, dm = build("icp", overrides=synthetic_overrides(pairs=3), with_data=True)
+    _, dm = build("icp", values=synthetic_overrides(pairs=3), with_data=True)
     assert type(dm).__name__ == "SyntheticDataModule" and dm.num_test == 3 and dm.hparams.num_workers == 0
 
 
-def test_cli_args_write_json_and_skip_none() -> None:
-    values = {"a": 1, "b": None, "c": [1, 2], "d": True, "e": "x", "f": "null"}
-    assert cli_args("model", values) == [
-        "--model.init_args.a=1",
-        "--model.init_args.c=[1, 2]",
-        "--model.init_args.d=true",
-        "--model.init_args.e=x",
-        "--model.init_args.f=null",
-    ]
-    assert voxelize_overrides(normalize=False) == ["--model.init_args.voxel_grid.init_args.normalize=false"]
+def test_build_takes_typed_values_over_the_method_configs() -> None:
+    model, dm = build("dvds", values={"data.init_args.num_points": 96}, with_data=True)
+    assert f"{type(model).__module__}.{type(model).__name__}" == LIBRARY_METHODS["dvds"].class_path
+    assert type(dm).__name__ == "ModelNet40DataModule" and dm.hparams.num_points == 96
+    model = build("dvds", values={"model.init_args.encoder_channels": [8, 16], "model.init_args.batch_norm": False})
+    assert model.hparams.encoder_channels == [8, 16] and model.hparams.batch_norm is False
+
+
+def test_a_further_config_wins_over_the_method_values_it_sets(tmp_path: Path) -> None:
+    # DCP's own value is its original batch size (32); a data add-on after it brings its own (KITTI: 1), as it did
+    # when the method's value came before the add-on on the command line. An add-on that does not set it keeps 32.
+    assert dict(METHODS["dcp"].overrides) == {"data.init_args.batch_size": 32}
+    _, dm = build("dcp", with_data=True)
+    assert dm.batch_size == 32
+    _, dm = build("dcp", configs=["data/kitti.yaml"], with_data=True)
+    assert type(dm).__name__ == "KITTIOdometryDataModule" and dm.batch_size == 1
+    _, values = method_layers("dcp", ["data/kitti.yaml"])
+    assert "data.init_args.batch_size" not in values
+    points_only = tmp_path / "points.yaml"
+    points_only.write_text("data:\n  init_args:\n    num_points: 96\n")
+    _, dm = build("dcp", configs=[points_only], with_data=True)
+    assert dm.batch_size == 32 and dm.hparams.num_points == 96
+    composing = tmp_path / "composing.yaml"  # a composed file's keys count too
+    (tmp_path / "batch.yaml").write_text("data:\n  init_args:\n    batch_size: 5\n")
+    composing.write_text("compose: [batch.yaml]\n")
+    _, dm = build("dcp", configs=[composing], with_data=True)
+    assert dm.batch_size == 5
+    caller = {"data.init_args.num_points": 512, "data.init_args.batch_size": 7}
+    _, dm = build("dcp", configs=["data/kitti.yaml"], values=caller, with_data=True)
+    assert dm.batch_size == 7  # the caller's values come last
+
+
+def test_a_malformed_value_key_is_a_config_error() -> None:
+    with pytest.raises(ConfigValueError, match=r"data\.\.batch_size"):
+        build("icp", values={"data..batch_size": 2})
+    for key in (".seed_everything", "trainer."):
+        with pytest.raises(ConfigValueError, match="expected dotted names"):
+            build("icp", values={key: 1})
+
+
+def test_cli_args_are_values_by_dotted_key_without_none() -> None:
+    values = {"a": 1, "b": None, "c": [1, 2], "d": True, "e": "x"}
+    assert cli_args("model", values) == {
+        "model.init_args.a": 1,
+        "model.init_args.c": [1, 2],
+        "model.init_args.d": True,
+        "model.init_args.e": "x",
+    }
+    assert voxelize_overrides(normalize=False) == {"model.init_args.voxel_grid.init_args.normalize": False}
+    assert synthetic_overrides(pairs=3)["data"]["class_path"] == "lcreg.data.datamodule.SyntheticDataModule"
+    assert config_values(["--data.init_args.test_split=train", "--trainer.max_steps", "5", "--x.y="]) == {
+        "data.init_args.test_split": "train",
+        "trainer.max_steps": "5",
+        "x.y": "",
+    }
+    for bad in (["data.x=1"], ["--x"], ["--x", "--y=1"]):
+        with pytest.raises(SystemExit, match="--key=value"):
+            config_values(bad)
 
 
 # --- checkpoints ---------------------------------------------------------------------------------------------------
 def test_build_loads_weights_of_the_one_format(tmp_path: Path) -> None:
     """A model saved by the harness is an exported weights file: build() and lcreg.pretrained read it alike."""
-    source = build("dvds", overrides=["--seed_everything=1", *TINY_DVDS])
+    source = build("dvds", values={"seed_everything": 1, **TINY_DVDS})
     path = save(source, tmp_path / "w" / "tiny.pt")
-    target = build("dvds", path, overrides=["--seed_everything=2", *TINY_DVDS])
+    target = build("dvds", path, values={"seed_everything": 2, **TINY_DVDS})
     inference = [k for k in source.state_dict() if not training_only(source, k)]
     assert inference and all(torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in inference)
     assert any(not torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in source.state_dict())
@@ -174,12 +222,12 @@ def test_build_loads_weights_of_the_one_format(tmp_path: Path) -> None:
 
 def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Path) -> None:
     run = fit_overrides(max_steps=2, val_every=1, run_dir=tmp_path, name="tiny", seed=0)
-    result = fit("dvds", [*run, *TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32)])
+    result = fit("dvds", {**run, **TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32)})
     assert result.best_checkpoint.is_file() and "rre" in result.best_checkpoint.name
     assert result.best_checkpoint.is_relative_to(tmp_path / "tiny") and result.trainer.global_step == 2
     content = torch.load(result.best_checkpoint, map_location="cpu", weights_only=True)  # hparams are plain values
     assert "hyper_parameters" in content
-    fresh = build("dvds", result.best_checkpoint, overrides=TINY_DVDS)  # a .ckpt: every tensor, training-only too
+    fresh = build("dvds", result.best_checkpoint, values=TINY_DVDS)  # a .ckpt: every tensor, training-only too
     assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), result.model.state_dict().values()))
 
 
@@ -191,21 +239,30 @@ def test_fit_refuses_a_config_that_does_not_select_on_validation_rre(tmp_path: P
 def test_converge_stops_after_patience_validations_without_improvement(tmp_path: Path) -> None:
     # min_delta 1000: no later validation counts as an improvement, so the run stops after 1 + patience checks.
     run = converge_overrides(max_steps=20, val_every=1, patience=2, run_dir=tmp_path, name="c", min_delta=1000.0)
-    result = fit("dvds", [*run, *TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32)], monitor=CONVERGE_METRIC)
+    result = fit("dvds", {**run, **TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32)}, monitor=CONVERGE_METRIC)
     assert result.trainer.global_step == 3
+    stop = [c for c in result.trainer.callbacks if isinstance(c, EarlyStopping)]
+    best = [c for c in result.trainer.callbacks if isinstance(c, ModelCheckpoint)]
+    assert len(stop) == 1 and stop[0].patience == 2 and stop[0].monitor == CONVERGE_METRIC
+    assert stop[0].min_delta == -1000.0  # Lightning stores it signed by the mode ("min")
+    assert len(best) == 1 and best[0].monitor == CONVERGE_METRIC and result.trainer.checkpoint_callback is best[0]
     assert "val_rre_clip5_deg" in result.best_checkpoint.name and result.best_checkpoint.is_file()
     with pytest.raises(ValueError, match="patience"):
         converge_overrides(10, 1, 0, tmp_path)
     with pytest.raises(ValueError, match=CONVERGE_METRIC):  # a plain run's checkpoint selects on the mean RRE
-        fit("dvds", [*fit_overrides(1, 1, tmp_path), *TINY_DVDS, *synthetic_overrides(2, 32)], monitor=CONVERGE_METRIC)
+        fit(
+            "dvds",
+            {**fit_overrides(1, 1, tmp_path), **TINY_DVDS, **synthetic_overrides(2, 32)},
+            monitor=CONVERGE_METRIC,
+        )
 
 
 def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path: Path) -> None:
-    data = [*TINY_DVDS, *synthetic_overrides(pairs=2, num_points=32), "--trainer.logger.init_args.version=seed0"]
+    data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
 
     def converge(steps: int) -> FitResult:
         run = converge_overrides(max_steps=steps, val_every=2, patience=50, run_dir=tmp_path, name="r")
-        return fit("dvds", [*run, *data], validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+        return fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
 
     first = converge(2)
     log_dir = Path(first.trainer.log_dir or "")
@@ -291,10 +348,7 @@ def test_pair_batches_keep_the_first_pairs() -> None:
 
 def test_training_loss_includes_injected_local_consistency() -> None:
     model = build(
-        "dcp_lc",
-        overrides=[
-            *cli_args("model", {"emb_dims": 16, "ff_dims": 16, "k": 4, "loss_terms": _lc_terms(8)}),
-        ],
+        "dcp_lc", values=cli_args("model", {"emb_dims": 16, "ff_dims": 16, "k": 4, "loss_terms": _lc_terms(8)})
     )
     batch = pair_batches(None, pairs=2, num_points=32, batch_size=2)[0][0]
     torch.manual_seed(0)
@@ -307,9 +361,10 @@ def test_training_loss_includes_injected_local_consistency() -> None:
 
 
 def test_fit_overrides_set_a_step_budget() -> None:
-    args = fit_overrides(max_steps=8, val_every=2, run_dir="runs/x", name="n", seed=5)
-    assert "--trainer.max_steps=8" in args and "--trainer.val_check_interval=2" in args
-    assert "--seed_everything=5" in args and "--trainer.logger.init_args.name=n" in args
+    values = fit_overrides(max_steps=8, val_every=2, run_dir="runs/x", name="n", seed=5)
+    assert values["trainer.max_steps"] == 8 and values["trainer.val_check_interval"] == 2
+    assert values["trainer.check_val_every_n_epoch"] is None and values["trainer.enable_progress_bar"] is False
+    assert values["seed_everything"] == 5 and values["trainer.logger.init_args.name"] == "n"
 
 
 # --- writers and options -------------------------------------------------------------------------------------------

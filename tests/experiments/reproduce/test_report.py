@@ -79,11 +79,13 @@ def test_budgets_validate_and_describe_themselves(tmp_path: Path) -> None:
         RunBudget(steps=0)
     epochs = RunBudget(epochs=200, points=1024)
     assert epochs.describe() == "200 epochs × the config's batch × 1024 points, validated after every epoch"
-    args = epochs.fit_overrides(tmp_path, seed=3)
-    assert "--trainer.max_epochs=200" in args and "--trainer.check_val_every_n_epoch=1" in args
-    assert "--seed_everything=3" in args and "--trainer.max_steps=-1" in args
+    values = epochs.fit_overrides(tmp_path, seed=3)
+    assert values["trainer.max_epochs"] == 200 and values["trainer.check_val_every_n_epoch"] == 1
+    assert values["seed_everything"] == 3 and values["trainer.max_steps"] == -1
     assert RunBudget(steps=68, checks=4).val_every == 17
-    assert "--data.init_args.seed=1234" in DataChoice("/m").overrides(RunBudget(steps=1, points=512))
+    data = DataChoice("/m").overrides(RunBudget(steps=1, points=512))
+    assert data["data.init_args.seed"] == 1234 and data["data.init_args.num_points"] == 512
+    assert "data.init_args.batch_size" not in data  # None: the config's (the original method's) batch
 
 
 def test_an_experiment_refuses_cells_of_unknown_variants_and_missing_budgets() -> None:
@@ -137,12 +139,17 @@ def test_converge_budgets_stop_early_select_on_the_clipped_error_and_draw_more_v
     budget = RunBudget(steps=3000, points=512, batch=16, checks=60, patience=6, val_pairs=4)
     assert budget.converge and budget.monitor == CONVERGE_METRIC and budget.val_every == 50
     assert budget.describe().endswith("until 6 validations bring no gain (4 pairs per validation object)")
-    args = budget.fit_overrides(tmp_path, seed=1)
-    assert "--trainer.max_steps=3000" in args and any("EarlyStopping" in a and '"patience": 6' in a for a in args)
-    assert "--data.init_args.val_pairs_per_object=4" in DataChoice("/m").overrides(budget)
+    values = budget.fit_overrides(tmp_path, seed=1)
+    stop = [c for c in values["trainer.callbacks"] if c["class_path"].endswith("EarlyStopping")]
+    assert values["trainer.max_steps"] == 3000 and [c["init_args"]["patience"] for c in stop] == [6]
+    assert DataChoice("/m").overrides(budget)["data.init_args.val_pairs_per_object"] == 4
     plain = RunBudget(steps=68)
     assert not plain.converge and plain.monitor == SELECTION_METRIC
-    assert not any("val_pairs_per_object" in a for a in DataChoice("/m").overrides(plain))
+    assert "data.init_args.val_pairs_per_object" not in DataChoice("/m").overrides(plain)
+    smoke = DataChoice(None).overrides(budget)
+    assert (
+        smoke["data"]["class_path"].endswith("SyntheticDataModule") and smoke["data"]["init_args"]["batch_size"] == 16
+    )
 
 
 def test_every_experiment_has_a_converge_budget() -> None:

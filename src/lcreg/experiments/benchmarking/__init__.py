@@ -2,8 +2,9 @@
 
 * :mod:`~lcreg.experiments.benchmarking.registry`: the methods by name (label, config files, learned or not,
   refinement);
-* :mod:`~lcreg.experiments.benchmarking.building`: :func:`build` a method as ``lcreg test`` does (weights: the
-  library's :func:`lcreg.weights.load_into`, written by :func:`lcreg.weights.export.save`);
+* :mod:`~lcreg.experiments.benchmarking.building`: :func:`build` a method as ``lcreg test`` does, from its config
+  files and typed :data:`Values` by dotted key (:func:`lcreg.cli.instantiate`; weights: the library's
+  :func:`lcreg.weights.load_into`, written by :func:`lcreg.weights.export.save`);
 * :mod:`~lcreg.experiments.benchmarking.measure`: :func:`timed` (the one timing primitive, synchronised on CUDA),
   medians of repeats, registration speed, peak memory, fresh-process measurements;
 * :mod:`~lcreg.experiments.benchmarking.training`: :func:`training_loss` and short :func:`fit` runs with a step budget;
@@ -11,13 +12,13 @@
 * :mod:`~lcreg.experiments.benchmarking.writers`: Markdown tables, ``mean ± std``, resumable JSONL results;
 * :mod:`~lcreg.experiments.benchmarking.curves`: learning curves of ``lcreg fit`` runs (``metrics.csv`` -> PNGs,
   summary table);
-* :mod:`~lcreg.experiments.benchmarking.options`: command-line pieces of the scripts (``key=value``, budgets,
-  ``--smoke``).
+* :mod:`~lcreg.experiments.benchmarking.options`: command-line pieces of the scripts (``key=value``, config values
+  given as options, budgets, ``--smoke``).
 """
 
 from __future__ import annotations
 
-from lcreg.experiments.benchmarking.building import build, build_cli_for, cli_arguments
+from lcreg.experiments.benchmarking.building import Values, build, build_cli_for, method_layers
 from lcreg.experiments.benchmarking.curves import (
     Band,
     Series,
@@ -44,7 +45,7 @@ from lcreg.experiments.benchmarking.measure import (
     time_calls,
     timed,
 )
-from lcreg.experiments.benchmarking.options import Budget, add_smoke_argument, apply_smoke, key_values
+from lcreg.experiments.benchmarking.options import Budget, add_smoke_argument, apply_smoke, config_values, key_values
 from lcreg.experiments.benchmarking.registry import (
     ABLATION_CONFIGS,
     DATA_CONFIGS,
@@ -100,15 +101,16 @@ __all__ = [
     "ResultLog",
     "Series",
     "Timing",
+    "Values",
     "add_smoke_argument",
     "aggregate",
     "apply_smoke",
     "build",
     "build_cli_for",
     "cli_args",
-    "cli_arguments",
     "config_dir",
     "config_path",
+    "config_values",
     "converge_overrides",
     "data_config",
     "device_of",
@@ -124,6 +126,7 @@ __all__ = [
     "markdown_table",
     "mean_std_row",
     "method",
+    "method_layers",
     "output_path",
     "pair_batches",
     "peak_rss_increase_mib",

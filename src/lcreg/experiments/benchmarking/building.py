@@ -1,13 +1,18 @@
-"""Build a registered method from its configs (as ``lcreg test`` does), with weights by the library's one loader."""
+"""Build a registered method from its configs (as ``lcreg test`` does), with weights by the library's one loader.
+
+Settings travel as :data:`Values`: Python objects by dotted config key, applied after the config files by
+:func:`lcreg.cli.instantiate` (no command-line strings are written and parsed again).
+"""
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, overload
+from typing import TYPE_CHECKING, Any, Literal, overload
 
-from lcreg.experiments.benchmarking.registry import config_path, method
+import yaml
+
+from lcreg.experiments.benchmarking.registry import Values, config_path, method
 
 if TYPE_CHECKING:
     from lightning.pytorch import LightningDataModule
@@ -15,39 +20,47 @@ if TYPE_CHECKING:
     from lcreg.cli import LcregCLI
     from lcreg.models.base import RegistrationModule
 
-__all__ = ["build", "build_cli_for", "cli_arguments"]
+__all__ = ["Values", "build", "build_cli_for", "method_layers"]
 
 
-def cli_arguments(name: str, configs: Sequence[str | Path] = (), overrides: Sequence[str] = ()) -> list[str]:
-    """The ``lcreg`` arguments (after the subcommand) that build method ``name``.
+def method_layers(
+    name: str, configs: Sequence[str | Path] = (), values: Mapping[str, Any] | None = None
+) -> tuple[list[Path], Values]:
+    """The config files and the values that build method ``name``, in the order :func:`lcreg.cli.instantiate` takes.
+
+    The method's own configs, then ``configs``; then the method's values (:attr:`MethodSpec.overrides
+    <lcreg.experiments.benchmarking.registry.MethodSpec>`, e.g. the original batch size) except those a file of
+    ``configs`` sets (a data add-on brings its own batch size: it wins, as a later config does), then ``values``.
 
     Args:
         name: Registry name (:data:`lcreg.experiments.benchmarking.registry.METHODS`).
         configs: Further configs after the method's own (data add-ons, voxelisation), relative to the configs folder
             or absolute.
-        overrides: Further command-line arguments, e.g. ``--data.init_args.num_points=512``.
+        values: Further values by dotted key (:data:`Values`), applied last.
 
     Returns:
-        ``["--config", <path>, ..., *overrides]``.
+        ``(files, values)``.
+
+    Raises:
+        KeyError: Unknown method. FileNotFoundError: A config is missing.
     """
     spec = method(name)
-    args = [arg for file in spec.config_files() for arg in ("--config", str(config_path(file)))]
-    args += spec.overrides  # before further configs: a data add-on brings its own batch size
-    args += [arg for file in configs for arg in ("--config", str(config_path(file)))]
-    return args + list(overrides)
+    further = [config_path(file) for file in configs]
+    files = [*(config_path(file) for file in spec.config_files()), *further]
+    later = _keys_set_by(further)
+    own = {key: value for key, value in spec.overrides.items() if key not in later}
+    return files, {**own, **(values or {})}
 
 
-def build_cli_for(name: str, configs: Sequence[str | Path] = (), overrides: Sequence[str] = ()) -> LcregCLI:
-    """``lcreg.cli.build_cli(<method's arguments>, run=False)``: model, data and trainer, nothing run.
+def build_cli_for(name: str, configs: Sequence[str | Path] = (), values: Mapping[str, Any] | None = None) -> LcregCLI:
+    """:func:`lcreg.cli.instantiate` of method ``name`` (:func:`method_layers`): model, data and trainer, nothing run.
 
-    LightningCLI's warning about a script's own ``sys.argv`` next to ``args`` is silenced: the arguments are exactly
-    ``args``, the script's options are not read.
+    Raises:
+        lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses.
     """
-    from lcreg.cli import build_cli
+    from lcreg.cli import instantiate
 
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
-        return build_cli(cli_arguments(name, configs, overrides), run=False)
+    return instantiate(*method_layers(name, configs, values))
 
 
 @overload
@@ -55,7 +68,7 @@ def build(
     name: str,
     checkpoint: str | Path | None = ...,
     configs: Sequence[str | Path] = ...,
-    overrides: Sequence[str] = ...,
+    values: Mapping[str, Any] | None = ...,
     *,
     with_data: Literal[False] = ...,
 ) -> RegistrationModule: ...
@@ -66,7 +79,7 @@ def build(
     name: str,
     checkpoint: str | Path | None = ...,
     configs: Sequence[str | Path] = ...,
-    overrides: Sequence[str] = ...,
+    values: Mapping[str, Any] | None = ...,
     *,
     with_data: Literal[True],
 ) -> tuple[RegistrationModule, LightningDataModule]: ...
@@ -76,7 +89,7 @@ def build(
     name: str,
     checkpoint: str | Path | None = None,
     configs: Sequence[str | Path] = (),
-    overrides: Sequence[str] = (),
+    values: Mapping[str, Any] | None = None,
     *,
     with_data: bool = False,
 ) -> RegistrationModule | tuple[RegistrationModule, LightningDataModule]:
@@ -86,8 +99,8 @@ def build(
         name: Registry name; its configs (and refinement config) come first.
         checkpoint: Weights loaded by :func:`lcreg.weights.load_into` (a ``.ckpt`` of ``lcreg fit``, an exported
             ``.pt``, a shipped name; ``None``: the config's initialisation, seeded by its ``seed_everything``).
-        configs: Further configs (see :func:`cli_arguments`).
-        overrides: Further command-line arguments.
+        configs: Further configs (see :func:`method_layers`).
+        values: Further values by dotted key, e.g. ``{"data.init_args.num_points": 512, "seed_everything": 3}``.
         with_data: Also return the config's DataModule (not set up).
 
     Returns:
@@ -95,15 +108,37 @@ def build(
 
     Raises:
         KeyError: Unknown method. FileNotFoundError: A config is missing.
+        lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses.
         lcreg.checkpoints.CheckpointError: Unusable weights (a subclass naming the file).
     """
     from lcreg.models.base import RegistrationModule
     from lcreg.weights import load_into
 
-    cli = build_cli_for(name, configs, overrides)
+    cli = build_cli_for(name, configs, values)
     model = cli.model
     if not isinstance(model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
         raise TypeError(f"{name} built a {type(model).__name__}, not a RegistrationModule")
     if checkpoint is not None:
         load_into(model, checkpoint)
     return (model, cli.datamodule) if with_data else model
+
+
+def _keys_set_by(files: Sequence[Path]) -> set[str]:
+    """Every dotted key the files set (their ``compose:`` files included), e.g. ``data.init_args.batch_size``."""
+    from lcreg.config import composed
+
+    keys: set[str] = set()
+    for file in files:
+        for part in composed(file):
+            content = yaml.safe_load(part.read_text(encoding="utf-8"))
+            keys.update(_dotted(content) if isinstance(content, dict) else ())
+    return keys
+
+
+def _dotted(tree: Mapping[str, Any], prefix: str = "") -> Iterator[str]:
+    """The dotted keys of a nested mapping, inner keys included (``a``, ``a.b``, ``a.b.c`` of ``{a: {b: {c: 1}}}``)."""
+    for key, value in tree.items():
+        dotted = f"{prefix}{key}"
+        yield dotted
+        if isinstance(value, dict):
+            yield from _dotted(value, f"{dotted}.")

@@ -8,7 +8,7 @@ from typing import Any, Literal
 
 from lightning.pytorch import LightningDataModule
 
-from lcreg.experiments.benchmarking.registry import cli_args
+from lcreg.experiments.benchmarking.registry import Values
 from lcreg.types import RegistrationBatch
 
 __all__ = ["SYNTHETIC_DATA", "pair_batches", "split_batches", "synthetic_options", "synthetic_overrides"]
@@ -37,9 +37,9 @@ def synthetic_options(pairs: int = 2, num_points: int = 64, batch_size: int = 2)
     }
 
 
-def synthetic_overrides(pairs: int = 2, num_points: int = 64, batch_size: int = 2) -> list[str]:
-    """Overrides that replace a config's data block by tiny embedded synthetic pairs (no files needed)."""
-    return [f"--data={SYNTHETIC_DATA}", *cli_args("data", synthetic_options(pairs, num_points, batch_size))]
+def synthetic_overrides(pairs: int = 2, num_points: int = 64, batch_size: int = 2) -> Values:
+    """Values that replace a config's data block by tiny embedded synthetic pairs (no files needed)."""
+    return {"data": {"class_path": SYNTHETIC_DATA, "init_args": synthetic_options(pairs, num_points, batch_size)}}
 
 
 def split_batches(datamodule: LightningDataModule, split: Split = "test") -> list[RegistrationBatch]:

@@ -1,4 +1,4 @@
-"""Command-line pieces shared by the benchmark scripts: ``key=value`` lists, training budgets, ``--smoke``."""
+"""Command-line pieces shared by the benchmark scripts: ``key=value`` lists, config options, budgets, ``--smoke``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Budget", "add_smoke_argument", "apply_smoke", "key_values"]
+__all__ = ["Budget", "add_smoke_argument", "apply_smoke", "config_values", "key_values"]
 
 
 def key_values(items: Sequence[str], option: str) -> dict[str, str]:
@@ -23,6 +23,26 @@ def key_values(items: Sequence[str], option: str) -> dict[str, str]:
         if not key or not value:
             raise SystemExit(f"{option} expects key=value, got {item!r}")
         out[key] = value
+    return out
+
+
+def config_values(args: Sequence[str]) -> dict[str, Any]:
+    """A script's extra options ``--data.init_args.test_split=train`` (or ``--key value``) as values by dotted key.
+
+    The values stay text: :func:`lcreg.cli.instantiate` types them as ``lcreg`` types its command line (``"5"`` for
+    an int, ``"null"``, ``"[1, 2]"``).
+
+    Raises:
+        SystemExit: If an item is not ``--key=value`` or ``--key value`` (the message names it).
+    """
+    out: dict[str, Any] = {}
+    items = iter(args)
+    for item in items:
+        key, sep, text = item.partition("=")
+        value = text if sep else next(items, None)
+        if not key.startswith("--") or len(key) < 3 or value is None or (not sep and value.startswith("--")):
+            raise SystemExit(f"expected config options --key=value (e.g. --data.init_args.root=DIR), got {item!r}")
+        out[key[2:]] = value
     return out
 
 

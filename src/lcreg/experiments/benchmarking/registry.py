@@ -8,11 +8,10 @@ Config paths are relative to lcreg's ``configs/`` folder (:func:`config_dir`) an
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 from lcreg.config import configs_root
 from lcreg.methods import METHODS as LIBRARY
@@ -24,6 +23,7 @@ __all__ = [
     "REFINE_CONFIG",
     "VOXELIZE_CONFIG",
     "MethodSpec",
+    "Values",
     "cli_args",
     "config_dir",
     "config_path",
@@ -32,11 +32,17 @@ __all__ = [
     "voxelize_overrides",
 ]
 
+Values: TypeAlias = dict[str, Any]
+"""Config values by dotted key, Python objects (``{"data.init_args.batch_size": 8, "trainer.max_steps": 100,
+"trainer.check_val_every_n_epoch": None}``): what :func:`lcreg.cli.instantiate` applies after the config files, in
+order, each merged like one more ``--config``. Producers return them and callers merge them as dicts
+(``{**a, **b}``: a later key wins; a key set twice keeps its first position)."""
+
 REFINE_CONFIG = "refine/icp.yaml"
 """ICP refinement after any method's estimate (test time)."""
 VOXELIZE_CONFIG = "voxelize/lk27.yaml"
 """Voxelised IC-LK with 27 voxels for the LK models (test time)."""
-_VOXELIZE_KEY = "model.init_args.voxel_grid"  # where VOXELIZE_CONFIG puts the grid, for overrides of its settings
+_VOXELIZE_KEY = "model.init_args.voxel_grid"  # where VOXELIZE_CONFIG puts the grid, for values of its settings
 LC_CONFIG = "lc.yaml"
 """Local consistency appended to any model's loss terms."""
 SELF_MOTION_CONFIG = "self_motion.yaml"
@@ -64,8 +70,9 @@ class MethodSpec:
         refine: Optional refinement config appended after ``configs`` (``+ ICP`` rows).
         weights_from: Name of the method whose checkpoint this one reuses (``None``: its own).
         lc_variant: Name of the same host with local consistency (``LC + X``), if any.
-        overrides: Command-line overrides applied right after ``configs`` (the original batch size), before any
-            further config a caller adds.
+        overrides: Values by dotted key (:data:`Values`) of the method itself (the original batch size), applied
+            after ``configs``; a further config a caller adds wins over them where it sets the same key (see
+            :func:`lcreg.experiments.benchmarking.building.method_layers`).
     """
 
     label: str
@@ -75,21 +82,21 @@ class MethodSpec:
     refine: str | None = None
     weights_from: str | None = None
     lc_variant: str | None = None
-    overrides: tuple[str, ...] = ()
+    overrides: Mapping[str, Any] = field(default_factory=dict, hash=False)
 
     def config_files(self) -> tuple[str, ...]:
         """``configs`` followed by the refinement config (relative paths)."""
         return (*self.configs, self.refine) if self.refine else self.configs
 
 
-def _batch(size: int) -> tuple[str, ...]:
-    return (f"--data.init_args.batch_size={size}",)
+def _batch(size: int) -> Values:
+    return {"data.init_args.batch_size": size}
 
 
 def _learned(model: str, batch: int | None = None) -> MethodSpec:
     """A learned method with its config on ModelNet40 (``batch``: the original batch size, else the data config's)."""
     info = LIBRARY[model]
-    return MethodSpec(info.label, model, (info.config, MODELNET40), True, overrides=_batch(batch) if batch else ())
+    return MethodSpec(info.label, model, (info.config, MODELNET40), True, overrides=_batch(batch) if batch else {})
 
 
 def _host(model: str, batch: int, lc: bool) -> MethodSpec:
@@ -213,24 +220,21 @@ def data_config(dataset: str) -> str:
     return DATA_CONFIGS[dataset]
 
 
-def cli_args(section: str, values: Mapping[str, Any]) -> list[str]:
-    """Command-line overrides ``--<section>.init_args.<name>=<value>`` (``None`` values are skipped).
+def cli_args(section: str, values: Mapping[str, Any]) -> Values:
+    """Constructor arguments of a config section as :data:`Values`: ``{"<section>.init_args.<name>": value}``.
 
     Args:
-        section: ``"model"``, ``"data"`` or another class-valued top-level key.
-        values: Constructor arguments; non-strings are written as JSON (``true``, ``[1, 2]``); ``None`` means "keep
-            the config's value" (pass the string ``"null"`` to set ``None``).
+        section: ``"model"``, ``"data"`` or another class-valued key (``"model.init_args.voxel_grid"``).
+        values: Constructor arguments (Python objects); ``None`` means "keep the config's value" and is skipped (set a
+            ``None`` with the dotted key itself: ``{"data.init_args.num_points": None}``). A string is typed by the
+            parser as command-line text is (``"5"`` for an int).
 
     Returns:
-        Arguments for :func:`lcreg.experiments.benchmarking.build`.
+        Values for :func:`lcreg.experiments.benchmarking.build` and :func:`~lcreg.experiments.benchmarking.fit`.
     """
-    return [
-        f"--{section}.init_args.{key}={value if isinstance(value, str) else json.dumps(value)}"
-        for key, value in values.items()
-        if value is not None
-    ]
+    return {f"{section}.init_args.{key}": value for key, value in values.items() if value is not None}
 
 
-def voxelize_overrides(**values: Any) -> list[str]:
-    """Overrides of :data:`VOXELIZE_CONFIG`'s settings (``normalize``, ``coarse_iterations``, ...)."""
+def voxelize_overrides(**values: Any) -> Values:
+    """Values of :data:`VOXELIZE_CONFIG`'s settings (``normalize``, ``coarse_iterations``, ...)."""
     return cli_args(_VOXELIZE_KEY, values)

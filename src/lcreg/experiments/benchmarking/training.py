@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
-from lcreg.experiments.benchmarking.building import build_cli_for
+from lcreg.experiments.benchmarking.building import Values, build_cli_for
 from lcreg.experiments.benchmarking.measure import timed
 
 if TYPE_CHECKING:
@@ -51,8 +50,8 @@ def training_loss(model: RegistrationModule, batch: RegistrationBatch) -> dict[s
     return model.training_losses(model.training_forward(batch), batch)
 
 
-def fit_overrides(max_steps: int, val_every: int, run_dir: str | Path, name: str = "", seed: int = 0) -> list[str]:
-    """``lcreg fit`` arguments of a short benchmark run: a step budget, periodic validation, quiet, own folder.
+def fit_overrides(max_steps: int, val_every: int, run_dir: str | Path, name: str = "", seed: int = 0) -> Values:
+    """``lcreg fit`` values of a short benchmark run: a step budget, periodic validation, quiet, own folder.
 
     Args:
         max_steps: Optimiser steps (epochs unbounded).
@@ -61,17 +60,17 @@ def fit_overrides(max_steps: int, val_every: int, run_dir: str | Path, name: str
         name: Logger name (``""``: directly under ``run_dir``).
         seed: ``seed_everything`` (initialisation and training order).
     """
-    budget = [
-        f"--trainer.max_steps={max_steps}",
-        "--trainer.max_epochs=-1",
-        f"--trainer.val_check_interval={val_every}",
-        "--trainer.check_val_every_n_epoch=null",
-    ]
-    return [f"--seed_everything={seed}", *budget, *_quiet_run(run_dir, name)]
+    budget = {
+        "trainer.max_steps": max_steps,
+        "trainer.max_epochs": -1,
+        "trainer.val_check_interval": val_every,
+        "trainer.check_val_every_n_epoch": None,
+    }
+    return {"seed_everything": seed, **budget, **_quiet_run(run_dir, name)}
 
 
-def epoch_overrides(max_epochs: int, run_dir: str | Path, name: str = "", seed: int = 0) -> list[str]:
-    """``lcreg fit`` arguments of a run with an epoch budget (the papers' unit), validated after every epoch.
+def epoch_overrides(max_epochs: int, run_dir: str | Path, name: str = "", seed: int = 0) -> Values:
+    """``lcreg fit`` values of a run with an epoch budget (the papers' unit), validated after every epoch.
 
     Args:
         max_epochs: Training epochs (steps unbounded).
@@ -79,13 +78,13 @@ def epoch_overrides(max_epochs: int, run_dir: str | Path, name: str = "", seed: 
         name: Logger name (``""``: directly under ``run_dir``).
         seed: ``seed_everything`` (initialisation and training order).
     """
-    budget = [
-        "--trainer.max_steps=-1",
-        f"--trainer.max_epochs={max_epochs}",
-        "--trainer.val_check_interval=1.0",
-        "--trainer.check_val_every_n_epoch=1",
-    ]
-    return [f"--seed_everything={seed}", *budget, *_quiet_run(run_dir, name)]
+    budget = {
+        "trainer.max_steps": -1,
+        "trainer.max_epochs": max_epochs,
+        "trainer.val_check_interval": 1.0,
+        "trainer.check_val_every_n_epoch": 1,
+    }
+    return {"seed_everything": seed, **budget, **_quiet_run(run_dir, name)}
 
 
 def converge_overrides(
@@ -97,8 +96,8 @@ def converge_overrides(
     seed: int = 0,
     monitor: str = CONVERGE_METRIC,
     min_delta: float = 0.0,
-) -> list[str]:
-    """``lcreg fit`` arguments of a run trained until its validation error stops improving, capped by a step limit.
+) -> Values:
+    """``lcreg fit`` values of a run trained until its validation error stops improving, capped by a step limit.
 
     :func:`fit_overrides` plus Lightning's ``EarlyStopping`` (stop after ``patience`` validations without an
     improvement of more than ``min_delta``) and a ``ModelCheckpoint`` that keeps the best checkpoint on the same
@@ -122,15 +121,19 @@ def converge_overrides(
         raise ValueError(f"`patience` must be >= 1 and `min_delta` >= 0, got {patience} and {min_delta}")
     stem = monitor.replace("/", "_")
     stop = {"monitor": monitor, "mode": "min", "patience": patience, "min_delta": min_delta}
-    best = {"monitor": monitor, "mode": "min", "filename": f"step{{step:06d}}-{stem}{{{monitor}:.4f}}"}
-    best["auto_insert_metric_name"] = False  # type: ignore[assignment]
-    callbacks = [
+    best = {
+        "monitor": monitor,
+        "mode": "min",
+        "filename": f"step{{step:06d}}-{stem}{{{monitor}:.4f}}",
+        "auto_insert_metric_name": False,
+    }
+    callbacks: list[dict[str, Any]] = [
         {"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stop},
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": best},
     ]
-    # A fixed logger version: a resumed run finds its last.ckpt in the same folder (a later override may rename it).
-    fixed = ["--trainer.logger.init_args.version=run", f"--trainer.callbacks={json.dumps(callbacks)}"]
-    return [*fit_overrides(max_steps, val_every, run_dir, name, seed), *fixed]
+    # A fixed logger version: a resumed run finds its last.ckpt in the same folder (a later value may rename it).
+    fixed = {"trainer.logger.init_args.version": "run", "trainer.callbacks": callbacks}
+    return {**fit_overrides(max_steps, val_every, run_dir, name, seed), **fixed}
 
 
 def last_checkpoint(log_dir: str | Path) -> Path | None:
@@ -141,15 +144,15 @@ def last_checkpoint(log_dir: str | Path) -> Path | None:
     return path if path.is_file() else None
 
 
-def _quiet_run(run_dir: str | Path, name: str) -> list[str]:
+def _quiet_run(run_dir: str | Path, name: str) -> Values:
     """No progress bar or model summary; logs and checkpoints under ``<run_dir>/<name>``."""
-    return [
-        "--trainer.enable_progress_bar=false",
-        "--trainer.enable_model_summary=false",
-        f"--trainer.logger.init_args.save_dir={run_dir}",
-        f"--trainer.logger.init_args.name={name}",
-        f"--trainer.default_root_dir={run_dir}",
-    ]
+    return {
+        "trainer.enable_progress_bar": False,
+        "trainer.enable_model_summary": False,
+        "trainer.logger.init_args.save_dir": str(run_dir),
+        "trainer.logger.init_args.name": name,
+        "trainer.default_root_dir": str(run_dir),
+    }
 
 
 @dataclass
@@ -165,18 +168,19 @@ class FitResult:
 
 def fit(
     name: str,
-    overrides: Sequence[str] = (),
+    values: Mapping[str, Any] | None = None,
     configs: Sequence[str | Path] = (),
     validate_first: bool = False,
     monitor: str = SELECTION_METRIC,
     resume: bool = False,
 ) -> FitResult:
-    """Train method ``name`` as ``lcreg fit`` would (its configs, then ``overrides``, e.g. :func:`fit_overrides`).
+    """Train method ``name`` as ``lcreg fit`` would (its configs, then ``values``, e.g. :func:`fit_overrides`).
 
     Args:
         name: Method of the registry.
-        overrides: CLI arguments after the configs.
-        configs: Extra config files after the method's own.
+        values: Values by dotted key applied after the configs (:data:`~lcreg.experiments.benchmarking.Values`).
+        configs: Extra config files after the method's own (see
+            :func:`~lcreg.experiments.benchmarking.building.method_layers`).
         validate_first: Validate the initial weights before training, so the run's ``metrics.csv`` starts with a
             step-0 validation row (learning curves start at the untrained model). Not repeated when resuming.
         monitor: The metric the checkpoint callback must select on (:data:`CONVERGE_METRIC` with
@@ -187,12 +191,13 @@ def fit(
 
     Raises:
         ValueError: If the config's checkpoint callback does not select on ``monitor``.
+        lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses (a ValueError too).
         RuntimeError: If training wrote no best checkpoint.
     """
     from lcreg.models.base import RegistrationModule
     from lcreg.resume import keep_previous_metrics
 
-    cli = build_cli_for(name, configs, overrides)
+    cli = build_cli_for(name, configs, values)
     callback = cli.trainer.checkpoint_callback
     selected = getattr(callback, "monitor", None)
     if selected != monitor:

@@ -19,6 +19,7 @@ from typing import Literal
 from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     SELECTION_METRIC,
+    Values,
     cli_args,
     converge_overrides,
     epoch_overrides,
@@ -97,8 +98,8 @@ class RunBudget:
         """Steps between validations (``None`` for an epoch budget: after every epoch)."""
         return None if self.steps is None else max(1, self.steps // self.checks)
 
-    def fit_overrides(self, run_dir: str | Path, seed: int) -> list[str]:
-        """The ``lcreg fit`` arguments of this budget: steps or epochs, validation, logs under ``run_dir``."""
+    def fit_overrides(self, run_dir: str | Path, seed: int) -> Values:
+        """The ``lcreg fit`` values of this budget: steps or epochs, validation, logs under ``run_dir``."""
         if self.steps is not None and self.patience is not None:
             return converge_overrides(self.steps, self.val_every or 1, self.patience, run_dir, seed=seed)
         if self.steps is not None:
@@ -145,13 +146,13 @@ class DataChoice:
     protocol: str = "unseen_objects"
     workers: int | None = 0
 
-    def overrides(self, budget: RunBudget) -> list[str]:
-        """Data arguments of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
+    def overrides(self, budget: RunBudget) -> Values:
+        """Data values of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
         pairs = cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None})
         if self.root is None:
-            return [*synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), *pairs]
+            return {**synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), **pairs}
         values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
-        return [*cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}), *pairs]
+        return {**cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}), **pairs}
 
     def describe(self) -> str:
         """One line for tables and the JSONL key."""

@@ -79,7 +79,7 @@ class Condition:
         dataset: ``"modelnet40"``, or a scene data add-on of :data:`lcreg.experiments.benchmarking.DATA_CONFIGS`
             (``"sevenscenes"``, ``"kitti"``), whose DataModule makes the pairs.
         options: ModelNet40: :class:`~lcreg.data.datamodule.PairDataModule` options (``noise_sigma``, ``partial``,
-            ``protocol``...). Scenes: LightningCLI overrides of the data add-on (``--data.init_args.x=y``).
+            ``protocol``...). Scenes: values by dotted key over the data add-on (``{"data.init_args.x": y}``).
         methods: The methods evaluated here (``None``: every method of the experiment; scenes name the learned
             methods and their own classical pipeline, because the object-scale classical configs do not fit metres).
     """
@@ -232,10 +232,10 @@ def _modelnet_batches(run: EvalRun, condition: Condition) -> list[RegistrationBa
 def _scene_batches(run: EvalRun, condition: Condition) -> list[RegistrationBatch]:
     """The test pairs of a scene condition: its data add-on's DataModule (synthetic shapes under ``smoke``)."""
     if run.data.root is None:
-        configs, overrides = [], synthetic_overrides(2, 64, 1)
+        configs, values = [], synthetic_overrides(2, 64, 1)
     else:
-        configs, overrides = [data_config(condition.dataset)], [f"{k}={v}" for k, v in condition.options.items()]
-    _, datamodule = build("icp", None, configs, overrides, with_data=True)
+        configs, values = [data_config(condition.dataset)], dict(condition.options)
+    _, datamodule = build("icp", None, configs, values, with_data=True)
     batches = split_batches(datamodule, "test")
     return batches if run.budget.scene_pairs is None else batches[: run.budget.scene_pairs]
 

@@ -83,7 +83,7 @@ RECALL_CURVES = EvalExperiment(
             30.0,
             "KITTI 00, pairs ≥ 10 m",
             dataset="kitti",
-            options={"--data.init_args.test_split": "train", "--data.init_args.selection": "all"},
+            options={"data.init_args.test_split": "train", "data.init_args.selection": "all"},
             methods=(*LK_FAMILY, "ransac_icp_kitti"),
         ),
     ),

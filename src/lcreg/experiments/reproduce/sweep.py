@@ -139,8 +139,8 @@ def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path
         as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
         the pair counts, the sizes and the times.
     """
-    overrides = [*budget.fit_overrides(run_dir, seed), *data.overrides(budget)]
-    result = fit(name, overrides, monitor=budget.monitor, resume=budget.converge)
+    values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget)}
+    result = fit(name, values, monitor=budget.monitor, resume=budget.converge)
     best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
     load_into(result.model, result.best_checkpoint)
     test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
