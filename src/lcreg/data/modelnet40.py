@@ -126,7 +126,8 @@ def _check_objects(path: Path, points: np.ndarray, normals: np.ndarray | None) -
             raise DatasetLayoutError(f"{str(path)!r}: objects at rows {_rows(rows)} of {key!r} hold NaN/Inf")
     flat = np.flatnonzero((np.ptp(points, axis=1) == 0).all(axis=1))
     if len(flat):
-        raise DatasetLayoutError(f"{str(path)!r}: objects at rows {_rows(flat)} of 'data' have all their points identical")
+        message = f"objects at rows {_rows(flat)} of 'data' have all their points identical"
+        raise DatasetLayoutError(f"{str(path)!r}: {message}")
 
 
 def _rows(rows: np.ndarray, shown: int = 5) -> str:
