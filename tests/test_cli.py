@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from lcreg.cli import build_cli, expand_configs, main
+from lcreg.cli import ConfigFileError, ConfigValueError, build_cli, expand_configs, main
 
 from _cli_runs import TINY_DVDS  # type: ignore[import-not-found]
 
@@ -276,3 +276,37 @@ def test_shipped_recipes_expand_in_the_documented_order() -> None:
     expanded = expand_configs(["--config", str(CONFIGS / "dcp_lc.yaml")])
     names = [Path(a).relative_to(CONFIGS).as_posix() for a in expanded if a.endswith(".yaml")]
     assert names == ["models/dcp.yaml", "lc.yaml", "data/modelnet40.yaml", "data/dcp_protocol.yaml", "dcp_lc.yaml"]
+
+
+# --- instantiate: config files plus typed values (what the experiments build with) -------------------------------
+def test_instantiate_applies_typed_values_after_the_files_and_a_list_replaces_the_configs() -> None:
+    """A list value replaces the config's list, as ``--key=[...]`` does: before, jsonargparse merged it item by item,
+    and a SelfMotionLoss put over the recipe's LocalConsistencyLoss kept its name ``lc``."""
+    from lcreg.cli import instantiate
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    values = {
+        "data": {"class_path": "lcreg.data.datamodule.SyntheticDataModule", "init_args": {"num_points": 96}},
+        "model.init_args.encoder_channels": [16, 32],
+        "model.init_args.loss_terms": [{"class_path": "lcreg.models.loss_terms.SelfMotionLoss"}],
+        "trainer.max_steps": 7,
+        "seed_everything": 5,
+    }
+    cli = instantiate(["configs/dvds_modelnet40.yaml"], values)
+    (term,) = cli.model.loss_terms
+    assert isinstance(term, SelfMotionLoss) and term.name == "self_motion"
+    assert (
+        cli.datamodule.pair_protocol.num_points == 96
+        and cli.trainer.max_steps == 7
+        and cli.config["seed_everything"] == 5
+    )
+    assert cli.model.encoder.linears[-1].out_features == 32
+
+
+def test_instantiate_refuses_a_malformed_key_or_a_missing_file() -> None:
+    from lcreg.cli import instantiate
+
+    with pytest.raises(ConfigValueError, match=r"data\.\.x"):
+        instantiate(["configs/dvds.yaml"], {"data..x": 1})
+    with pytest.raises(ConfigFileError, match=r"nowhere\.yaml"):
+        instantiate(["configs/nowhere.yaml"])

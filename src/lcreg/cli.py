@@ -176,7 +176,8 @@ class ConfigLayers:
         files: Config files in order (later ones override earlier ones; ``compose:`` lists already expanded).
         values: Python values by dotted key (``{"data.init_args.num_points": 512, "trainer.max_steps": 10}``),
             applied after the files, in order, as jsonargparse merges configs (a ``class_path`` value replaces the
-            class, keeping the arguments it shares with the previous one).
+            class, keeping the arguments it shares with the previous one); a list replaces the config's list, as on
+            the command line.
     """
 
     files: tuple[str, ...] = ()
@@ -230,6 +231,8 @@ class LcregCLI(LightningCLI):
         if isinstance(args, ConfigLayers):
             self.config = parser.parse_args([arg for file in args.files for arg in ("--config", file)])
             for key, value in args.values.items():  # one at a time, in order: each merges like another --config
+                if isinstance(value, list) and key in self.config:
+                    del self.config[key]  # a list replaces the config's (jsonargparse would merge it item by item)
                 self.config = parser.parse_object(nested({key: value}), self.config)
         elif isinstance(args, dict):
             self.config = parser.parse_object(args)
