@@ -87,11 +87,7 @@ VARIANTS: dict[str, Variant] = {
         "dvds",
         (),
         {
-            # The name spelled out: a list value is merged item by item over the config's list (its
-            # LocalConsistencyLoss is named "lc"), so the term would otherwise log as train/lc.
-            "model.init_args.loss_terms": [
-                {"class_path": "lcreg.models.loss_terms.SelfMotionLoss", "init_args": {"name": "self_motion"}}
-            ],
+            "model.init_args.loss_terms": [{"class_path": "lcreg.models.loss_terms.SelfMotionLoss"}],  # replaces LC
             "model.init_args.lambda_global": 0,
             "model.init_args.lambda_recon": 0,
             "model.init_args.lambda_normal": 0,
