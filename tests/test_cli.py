@@ -308,5 +308,10 @@ def test_instantiate_refuses_a_malformed_key_or_a_missing_file() -> None:
 
     with pytest.raises(ConfigValueError, match=r"data\.\.x"):
         instantiate(["configs/dvds.yaml"], {"data..x": 1})
+    with pytest.raises(ConfigValueError, match="batch_size") as wrong_type:  # before: SystemExit(2)
+        instantiate(["configs/dvds.yaml"], {"data.init_args.batch_size": "abc"})
+    assert "\n" not in str(wrong_type.value)
+    with pytest.raises(ConfigValueError, match="nonsense"):
+        instantiate(["configs/dvds.yaml"], {"model.init_args.nonsense": 1})
     with pytest.raises(ConfigFileError, match=r"nowhere\.yaml"):
         instantiate(["configs/nowhere.yaml"])

@@ -154,11 +154,16 @@ def _class_path_problem(lines: list[str]) -> str | None:
 class LcregArgumentParser(LightningArgumentParser):
     """The parser of ``lcreg``: an invalid argument or config is reported in two lines (exit code 2).
 
-    ``LCREG_DEBUG=1`` (or jsonargparse's own debug mode) keeps jsonargparse's full report.
+    ``LCREG_DEBUG=1`` (or jsonargparse's own debug mode) keeps jsonargparse's full report. With ``raise_errors``
+    (:func:`instantiate`, a Python call) the same line is raised as :class:`ConfigValueError` instead.
     """
 
+    raise_errors: bool = False
+
     def error(self, message: str, ex: Exception | None = None) -> NoReturn:
-        """Print ``lcreg: error: <key>: <why>`` and a hint, then exit with code 2."""
+        """Print ``lcreg: error: <key>: <why>`` and a hint, then exit with code 2 (or raise, see the class)."""
+        if self.raise_errors:
+            raise ConfigValueError(condense_parser_error(message)) from ex
         if not self.exit_on_error or _debug():
             super().error(message, ex)
         parser = getattr(ex, "subcommand_parser", None) or self
@@ -229,6 +234,7 @@ class LcregCLI(LightningCLI):
         apply.
         """
         if isinstance(args, ConfigLayers):
+            parser.raise_errors = True  # an LcregArgumentParser (parser_class)
             self.config = parser.parse_args([arg for file in args.files for arg in ("--config", file)])
             for key, value in args.values.items():  # one at a time, in order: each merges like another --config
                 if isinstance(value, list) and key in self.config:
@@ -504,7 +510,8 @@ def instantiate(configs: Sequence[str | Path] = (), values: Mapping[str, Any] | 
         The :class:`LcregCLI` with ``model``, ``datamodule`` and ``trainer`` built (seeded by ``seed_everything``).
 
     Raises:
-        ConfigFileError: A config file is missing. ConfigValueError: A malformed key or a value a constructor refuses.
+        ConfigFileError: A config file is missing. ConfigValueError: A malformed or unknown key, a value of the wrong
+            type, or a value a constructor refuses (one line naming the key or the class).
     """
     from lcreg.config import find_config
 
