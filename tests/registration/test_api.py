@@ -175,3 +175,40 @@ def test_the_default_is_kiss_with_a_ransac_fallback_and_plain_ransac_without_kis
     assert default_pipeline() == DEFAULT_WITHOUT_KISS
     result = register(src, ref, target_points=1000)
     assert result.method == "ransac+icp" and errors(result.transform, gt)[0] < 1.0
+
+
+def test_ransac_iterations_reach_every_ransac_step_and_the_default_fallback_has_its_own(pair, monkeypatch):
+    """The default's fallback runs RANSAC with 25,000 iterations (chosen on validation), others 100,000; the option
+    sets all of them; RANSAC is called with the limit asked for."""
+    from lcreg.baselines.classical import RANSAC
+    from lcreg.registration import methods
+    from lcreg.registration.api import resolve_methods
+
+    pytest.importorskip("kiss_matcher")
+    first, fallback, _, small = resolve_methods("default", None, None, None)
+    assert (first.ransac_iterations, fallback and fallback.ransac_iterations) == (None, 25_000)
+    assert small is not None and small.ransac_iterations is None and methods.RANSAC_ITERATIONS == 100_000
+    first, fallback, _, small = resolve_methods("default", None, None, None, ransac_iterations=500)
+    assert {first.ransac_iterations, fallback and fallback.ransac_iterations, small and small.ransac_iterations} == {
+        500
+    }
+    _, mine, _, _ = resolve_methods("default", None, "ransac+icp", 0.2)
+    assert mine is not None and mine.ransac_iterations is None  # a fallback the user names runs as named
+    limits: list[int] = []
+
+    class Stop(Exception):
+        pass
+
+    def record(self: RANSAC, *args: object) -> None:
+        limits.append(self.max_iterations)
+        raise Stop
+
+    monkeypatch.setattr(RANSAC, "match", record)
+    src, ref, _ = pair
+    for given, expected in ((None, 100_000), (321, 321)):
+        with pytest.raises(Stop):
+            register(src, ref, "ransac", ransac_iterations=given)
+        assert limits[-1] == expected
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="ransac_iterations"):
+            register(src, ref, ransac_iterations=bad)  # type: ignore[arg-type]

@@ -98,6 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="fitness below which a result counts as failed (default: 0.5 for learned methods, which then warn "
         "unless --fallback is given; no check for classical methods)",
     )
+    parser.add_argument(
+        "--ransac-iterations",
+        type=int,
+        help="RANSAC's iteration limit in every step that runs it (default: 100,000; 25,000 in the default's fallback)",
+    )
     parser.add_argument("--out", help="write the 4x4 transform: .txt, .json (with diagnostics) or .npy")
     parser.add_argument("--save-aligned", help="write the moved source as a .ply")
     parser.add_argument("--plot", help="write a before/after picture (.png, three orthogonal views)")
@@ -194,6 +199,7 @@ def _one_pair(args: argparse.Namespace) -> None:
         fallback=args.fallback,
         min_fitness=args.min_fitness,
         threads=args.threads,
+        ransac_iterations=args.ransac_iterations,
     )
     _print_result(result)
     if args.out:

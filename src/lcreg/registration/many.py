@@ -352,7 +352,9 @@ def _thresholds(args: argparse.Namespace, pairs: Sequence[ListedPair]) -> Thresh
 
 def run_pairs(args: argparse.Namespace) -> dict[str, Any]:
     """The ``--pairs`` mode of ``lcreg register``: register, write the CSV and summary, print the scores."""
-    method, fallback, min_fitness, small = resolve_methods(args.method, args.refine, args.fallback, args.min_fitness)
+    method, fallback, min_fitness, small = resolve_methods(
+        args.method, args.refine, args.fallback, args.min_fitness, args.ransac_iterations
+    )
     label = "default" if args.method == "default" else method.name  # the CSV's and summary's method: as asked
     pairs = read_pair_list(args.pairs)
     if args.limit is not None:

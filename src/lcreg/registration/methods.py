@@ -44,6 +44,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CLASSICAL",
     "LEARNED",
+    "RANSAC_ITERATIONS",
     "Method",
     "MethodError",
     "Prepared",
@@ -69,6 +70,10 @@ class MethodError(ValueError):
     """An unknown method name, or a learned method without usable weights."""
 
 
+RANSAC_ITERATIONS = 100_000
+"""RANSAC's iteration limit unless a method says otherwise (``Method.ransac_iterations``, ``--ransac-iterations``)."""
+
+
 @dataclass(frozen=True)
 class Method:
     """A parsed method: ``coarse`` step and optional ``refine`` step (``"icp"``).
@@ -76,10 +81,12 @@ class Method:
     Attributes:
         coarse: A key of :data:`CLASSICAL` or :data:`LEARNED`.
         refine: ``"icp"`` or ``None``.
+        ransac_iterations: RANSAC's iteration limit (``None``: :data:`RANSAC_ITERATIONS`); other steps ignore it.
     """
 
     coarse: str
     refine: str | None = None
+    ransac_iterations: int | None = None
 
     @property
     def name(self) -> str:
@@ -216,10 +223,10 @@ def threads(count: int | None) -> Iterator[None]:
 
 
 @functools.lru_cache(maxsize=16)
-def _ransac(voxel_size: float) -> RANSAC:
+def _ransac(voxel_size: float, iterations: int = RANSAC_ITERATIONS) -> RANSAC:
     from lcreg.baselines.classical import RANSAC
 
-    return RANSAC(voxel_size=voxel_size, distance_factor=RANSAC_DISTANCE)
+    return RANSAC(voxel_size=voxel_size, distance_factor=RANSAC_DISTANCE, max_iterations=iterations)
 
 
 @functools.lru_cache(maxsize=16)
@@ -243,15 +250,22 @@ def _kiss(voxel_size: float) -> KISSMatcher:
     return KISSMatcher(voxel_size=voxel_size, distance_factor=FITNESS_DISTANCE)
 
 
-def global_step(name: str, src: Prepared, ref: Prepared) -> PairResult:
+def global_step(name: str, src: Prepared, ref: Prepared, ransac_iterations: int | None = None) -> PairResult:
     """RANSAC or FGR on two prepared clouds (their FPFH features are computed once and cached), or KISS-Matcher.
+
+    Args:
+        name: ``"ransac"``, ``"fgr"`` or ``"kiss"``.
+        src: Prepared source.
+        ref: Prepared reference.
+        ransac_iterations: RANSAC's iteration limit (``None``: :data:`RANSAC_ITERATIONS`).
 
     Raises:
         lcreg.checks.MissingDependencyError: ``kiss`` without the optional package kiss-matcher.
     """
     if name == "kiss":
         return _kiss(src.voxel_size).register_pair(src.pcd, ref.pcd, None)
-    solver = _ransac(src.voxel_size) if name == "ransac" else _fgr(src.voxel_size)
+    iterations = RANSAC_ITERATIONS if ransac_iterations is None else ransac_iterations
+    solver = _ransac(src.voxel_size, iterations) if name == "ransac" else _fgr(src.voxel_size)
     return solver.register_featured(src.pcd, ref.pcd, src.features(), ref.features())
 
 
