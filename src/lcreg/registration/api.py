@@ -269,6 +269,7 @@ def register_clouds(
     """
     if small is not None and max(len(src.points), len(ref.points)) <= target_points:
         method, fallback, min_fitness = small, None, None
+    _import_steps(method, fallback)  # module loading is not registration time
     start = time.perf_counter()
     v = auto_voxel_size(src.points, ref.points, target_points) if voxel_size is None else float(voxel_size)
     points_src = src.points
@@ -297,6 +298,22 @@ def register_clouds(
     }  # fmt: skip
     kept.time_s = first.time_s + second.time_s
     return kept
+
+
+def _import_steps(*methods: Method | None) -> None:
+    """Import what the steps of ``methods`` run on (Open3D, the classical baselines, KISS-Matcher), untimed.
+
+    Raises:
+        lcreg.checks.MissingDependencyError: A ``kiss`` step without the optional package kiss-matcher.
+    """
+    import open3d  # noqa: F401
+
+    import lcreg.baselines.classical  # noqa: F401
+
+    if any(m is not None and m.coarse == "kiss" for m in methods):
+        from lcreg.baselines.kiss import require_kiss_matcher
+
+        require_kiss_matcher()
 
 
 def _failure_message(result: Registration, threshold: float | None, no_solution: bool) -> str:
