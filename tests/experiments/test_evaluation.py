@@ -4,6 +4,7 @@ import torch
 from lcreg.experiments.benchmarking import report_table
 from lcreg.experiments.evaluation import evaluate
 from lcreg.geometry.random_transforms import random_euler_transform
+from lcreg.metrics.functional import registration_recall
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
 
@@ -39,6 +40,15 @@ def test_evaluate_perfect_and_failed_estimates() -> None:
     assert torch.isnan(report.rotation_error_deg[5]) and report.rotation_error_deg[:5].abs().max() < 1e-3
     table = report_table([report])
     assert "| oracle |" in table and "83.3 %" in table and table.count("\n") == 2
+
+
+def test_evaluate_one_pair_keeps_per_pair_shapes() -> None:
+    """One pair gives (1,) per-pair errors, not 0-d tensors (torchmetrics squeezes one-element results), so the
+    recall of ``eval_scenes --data.init_args.num_test 1`` is computed, not a ShapeError."""
+    gt, _ = random_euler_transform(1, generator=torch.Generator().manual_seed(2))
+    report = evaluate(_Oracle(gt.clone()), _batches(gt, 1), "oracle")
+    assert report.rotation_error_deg.shape == (1,) and report.translation_error.shape == (1,)
+    assert float(registration_recall(report.rotation_error_deg, report.translation_error, 2.0, 0.01)) == 1.0
 
 
 def test_evaluate_needs_ground_truth() -> None:

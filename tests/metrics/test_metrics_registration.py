@@ -235,6 +235,10 @@ def test_a_pair_seen_twice_counts_once_by_index() -> None:
         per_pair.update(transform_pred=preds[idx], transform_gt=transforms[idx], index=idx)
     rot, _, index = per_pair.compute()
     assert index.tolist() == [0, 2, 4, 1, 3] and len(rot) == 5
+    one = PerPairErrors()
+    one.update(transform_pred=preds[:1], transform_gt=transforms[:1], index=torch.tensor([3]))
+    assert one.compute()[0].shape == ()  # torchmetrics squeezes a one-element result ...
+    assert [t.shape for t in one.per_pair()] == [(1,), (1,), (1,)]  # ... per_pair keeps (P,)
     unindexed = registration_metrics()
     for idx in (rank0, rank1):
         unindexed.update(transform_pred=preds[idx], transform_gt=transforms[idx])

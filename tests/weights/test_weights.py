@@ -361,7 +361,7 @@ def _summary(rre: torch.Tensor, rte: torch.Tensor) -> dict[str, float]:
 # Measured (2-core CPU, docs/results/converge/dvds_recipe_1024/test_table.md): the converged dvds-modelnet40 is beyond
 # the untrained spread on mean RRE (2.105° < 4.956° - 2.462°) and median RRE, not on recall (2°, 0.01): 67.07 % against
 # 58.9 + 8.3 %, one pair short. Strict: once weights that pass ship, the mark must go.
-NOT_YET_BEYOND_THE_SPREAD = {"dvds-modelnet40": "recall (2°, 0.01) is one pair short of the untrained spread (issue 23)"}
+NOT_YET_BEYOND_THE_SPREAD = {"dvds-modelnet40": "recall (2°, 0.01) is one pair short of the untrained spread"}
 
 
 @pytest.mark.data

@@ -62,7 +62,7 @@ def evaluate(model: RegistrationModule, batches: Iterable[RegistrationBatch], na
         metrics.update(**kwargs)
         pairs.update(**kwargs)
     values = {k: float(v) for k, v in metrics.compute().items()}
-    rot, trans, _ = pairs.compute()
+    rot, trans, _ = pairs.per_pair()
     return EvaluationReport(
         name, values, rot, trans, 1000 * seconds / max(count, 1), count, {"mean_iterations": iters / max(count, 1)}
     )

@@ -301,6 +301,14 @@ class PerPairErrors(_PairErrorMetric):
         """
         return self._state("rot_err_deg"), self._state("trans_err"), self._state("index")
 
+    def per_pair(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The per-pair errors of :meth:`compute`, each ``(P,)`` even for a single pair.
+
+        torchmetrics squeezes a one-element result of ``compute`` to a 0-d tensor; use this, not ``compute``.
+        """
+        rot, trans, index = self.compute()
+        return rot.reshape(-1), trans.reshape(-1), index.reshape(-1)
+
 
 def recall_key(rot_thr_deg: float, trans_thr: float) -> str:
     """The metric name of the recall at ``(rot_thr_deg, trans_thr)``: ``recall_r{rot}_t{trans}``, ``.`` as ``p``.

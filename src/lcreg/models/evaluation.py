@@ -107,7 +107,7 @@ class EvaluationLogic(TrainingLogic):
         if self.test_pairs.update_count == 0:
             return
         # Every process's pairs (gathered), each once; torchmetrics squeezes a single pair to 0-d.
-        rot, trans, index = (t.reshape(-1) for t in self.test_pairs.compute())
+        rot, trans, index = self.test_pairs.per_pair()
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
             if (index < 0).any():  # batches without indices: number the pairs in order
