@@ -28,6 +28,7 @@ RUNS = {
     "eval_scenes --tune": ["--tune"],
     "kill_resume": [],  # five lcreg processes, about 30 s: the real kill -9 and resume
     "kitti_full_pair": [],
+    "lc_gradient_share": [],
     "lc_plus_x": [],
     "learning_curves": [],
     "pilot_dvds_variants": [],

@@ -1,0 +1,124 @@
+"""How much of each LC + X host's encoder gradient comes from local consistency, at initialisation (issue 23, item 2).
+
+    python benchmarks/lc_gradient_share.py --hosts idam deepgmr dcp prnet --batches 20 \
+        --out docs/results/converge/lc_gradient_share.md
+    python benchmarks/lc_gradient_share.py --smoke      # seconds: embedded shapes, 2 batches of DCP-v2
+
+For every host X of ``lcreg reproduce lc`` this builds LC + X (``<host>_lc`` of the registry, seeded with
+``--seed``) with the data and sizes of the ``converge`` budget (``lcreg.experiments.reproduce.lc.BUDGETS``: the
+DCP-family pairs of ModelNet40 under ``--root``, the budget's points and batch) and, on each of the first
+``--batches`` training batches, without any optimiser step, splits the training loss of the shared step
+(``training_forward`` + ``training_losses``) into the host's own terms and the LC term. It reports the value of each
+and the L2 norm of its gradient on the encoder LC reads (``model.encoder``), as medians over the batches.
+
+The *matched weight* is median(‖∇ own‖ / ‖∇ LC‖): the LC weight at which LC's encoder gradient equals the host's own
+(the rule fixed in ``docs/results/converge/README.md`` before any test number, as a fairer second test than the
+paper's literal weight 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, build, machine_line, output_path
+from lcreg.experiments.benchmarking.writers import write_text
+from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, SMOKE_PAIRS, DataChoice
+from lcreg.experiments.reproduce.lc import BUDGETS, HOSTS
+
+SMOKE = {"hosts": ["dcp"], "batches": 2}
+LC_TERM = "lc"
+"""Name of the LC term in ``training_losses`` (``configs/lc.yaml``)."""
+
+
+@dataclass(frozen=True)
+class Share:
+    """One training batch: loss values and encoder-gradient norms of the host's own terms and of LC."""
+
+    own: float
+    lc: float
+    own_grad: float
+    lc_grad: float
+
+
+def _grad_norm(value: torch.Tensor, params: list[nn.Parameter]) -> float:
+    """L2 norm of d value / d params (parameters the value does not reach count 0)."""
+    grads = torch.autograd.grad(value, params, retain_graph=True, allow_unused=True)
+    return float(torch.sqrt(sum((g.pow(2).sum() for g in grads if g is not None), torch.tensor(0.0))))
+
+
+def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[Share]:
+    """The :class:`Share` of the first ``batches`` training batches of LC + ``host`` at initialisation."""
+    budget = BUDGETS["smoke" if root is None else "converge"][host]
+    values = {**DataChoice(root).overrides(budget), "seed_everything": seed}
+    model, datamodule = build(f"{host}_lc", None, values=values, with_data=True)
+    encoder = model.encoder
+    if not isinstance(encoder, nn.Module):
+        raise TypeError(f"{host}: LC reads `encoder`, which is not a module")
+    params = [p for p in encoder.parameters() if p.requires_grad]
+    weight = next(t.weight for t in model.injected_terms if t.name == LC_TERM)
+    datamodule.setup("fit")
+    model.train()
+    torch.manual_seed(seed)
+    shares = []
+    for i, batch in enumerate(datamodule.train_dataloader()):
+        if i == batches:
+            break
+        losses = model.training_losses(model.training_forward(batch), batch)
+        own = losses["loss"] - weight * losses[LC_TERM]
+        lc = losses[LC_TERM]
+        shares.append(Share(float(own.detach()), float(lc.detach()), _grad_norm(own, params), _grad_norm(lc, params)))
+    return shares
+
+
+def table_row(host: str, shares: list[Share]) -> str:
+    """One Markdown row: medians over the batches and the matched weight."""
+    med = {f: statistics.median(getattr(s, f) for s in shares) for f in ("own", "lc", "own_grad", "lc_grad")}
+    matched = statistics.median(s.own_grad / s.lc_grad for s in shares if s.lc_grad > 0)
+    share = 100 * med["lc"] / (med["own"] + med["lc"])
+    return (
+        f"| LC + {HOSTS[host]} | {len(shares)} | {med['own']:.4g} | {med['lc']:.4g} | {share:.2g} % | "
+        f"{med['own_grad']:.4g} | {med['lc_grad']:.4g} | {matched:.3g} |"
+    )
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--hosts", nargs="+", default=list(HOSTS), choices=list(HOSTS))
+    parser.add_argument("--batches", type=int, default=20, help="training batches per host (medians over them)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the initialisation and of the batches")
+    parser.add_argument("--root", default=DEFAULT_ROOT)
+    parser.add_argument("--out", default=None, help="Markdown table to write")
+    add_smoke_argument(parser)
+    args = apply_smoke(parser.parse_args(argv), SMOKE)
+    args.command = " ".join(sys.argv[1:] if argv is None else argv)
+    args.out = output_path(args.out, "lc_gradient_share.md", args.smoke)
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    data = DataChoice(args.root).describe() if args.root else f"embedded shapes ({SMOKE_PAIRS} pairs; smoke)"
+    lines = [
+        f"`python benchmarks/lc_gradient_share.py {args.command}`: {data}, DCP-family pairs, the `converge` budget's "
+        f"points and batch, seed {args.seed}, at initialisation; {machine_line()}",
+        "",
+        "| host | batches | own loss | LC | LC share of the loss | ‖∇ own‖ on the encoder | ‖∇ LC‖ on the encoder "
+        "| matched LC weight |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for host in args.hosts:
+        lines.append(table_row(host, batch_shares(host, args.root, args.batches, args.seed)))
+        print(lines[-1], flush=True)
+    if args.out:
+        print(f"wrote {write_text(args.out, chr(10).join(lines) + chr(10))}")
+
+
+if __name__ == "__main__":
+    main()
