@@ -75,8 +75,8 @@ METHODS: dict[str, MethodInfo] = {
             pretrained=(
                 (
                     "pointnetlk-modelnet40",
-                    "PointNetLK trained supervised on ModelNet40 "
-                    "(configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml)",
+                    "PointNetLK without BatchNorm, analytic Jacobian, trained supervised on ModelNet40 "
+                    "(configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml, batch_norm false)",
                 ),
             ),
         ),

@@ -358,10 +358,14 @@ def _summary(rre: torch.Tensor, rte: torch.Tensor) -> dict[str, float]:
     return {"mean RRE": float(rre.mean()), "median RRE": float(rre.median()), "recall (2°, 0.01)": float(recall)}
 
 
-# Measured (2-core CPU, docs/results/converge/dvds_recipe_1024/test_table.md): the converged dvds-modelnet40 is beyond
-# the untrained spread on mean RRE (2.105° < 4.956° - 2.462°) and median RRE, not on recall (2°, 0.01): 67.07 % against
-# 58.9 + 8.3 %, one pair short. Strict: once weights that pass ship, the mark must go.
-NOT_YET_BEYOND_THE_SPREAD = {"dvds-modelnet40": "recall (2°, 0.01) is one pair short of the untrained spread"}
+# Measured on this test (2-core CPU; docs/results/converge/*/test_table.md). Both converged files are beyond the
+# untrained spread on two of the three statistics: dvds-modelnet40 not on recall (2°, 0.01), 67.07 % against
+# 58.9 + 8.3 % (one pair short); pointnetlk-modelnet40 not on mean RRE, 1.721° against 4.595° - 2.961°. Strict: once
+# weights that pass ship, the mark must go.
+NOT_YET_BEYOND_THE_SPREAD = {
+    "dvds-modelnet40": "recall (2°, 0.01) is one pair short of the untrained spread",
+    "pointnetlk-modelnet40": "mean RRE is within the untrained spread",
+}
 
 
 @pytest.mark.data
