@@ -81,8 +81,8 @@ def test_learned_method_with_shipped_weights(pair):
 
 
 def test_learned_method_without_weights_is_refused(pair):
-    with pytest.raises(MethodError, match=r"pointnetlk.*no shipped weights.*weights"):
-        register(pair[0], pair[1], "pointnetlk")
+    with pytest.raises(MethodError, match=r"'dcp'.*no shipped weights.*pointnetlk-modelnet40.*weights"):
+        register(pair[0], pair[1], "dcp")
 
 
 def test_method_names():

@@ -67,8 +67,8 @@ def test_user_errors_exit_non_zero_and_write_nothing(files, tmp_path, capsys):
     assert code == 1 and "extension" in err
     code, err = _exit_code([str(src)], capsys)
     assert code == 2 and "SRC and REF" in err
-    code, err = _exit_code([str(src), str(ref), "--method", "pointnetlk"], capsys)
-    assert (code == 2 and "--weights" in err) or "weights" in err
+    code, err = _exit_code([str(src), str(ref), "--method", "dcp"], capsys)  # learned, no shipped weights
+    assert code == 2 and "'dcp' has no shipped weights" in err and "--weights" in err
     assert not out.exists()
 
 

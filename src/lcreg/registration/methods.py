@@ -302,8 +302,8 @@ def learned_model(method: str, weights: str | None) -> RegistrationModule:
         if not shipped:
             names = ", ".join(registry.shipped_names()) or "none"
             raise MethodError(
-                f"method {method!r} has no shipped weights (shipped: {names}); pass weights: the path of a "
-                "checkpoint of `lcreg fit` (.ckpt) or of an exported .pt file"
+                f"method {method!r} has no shipped weights (shipped: {names}); pass weights (`--weights`, "
+                "`weights=`): the path of a checkpoint of `lcreg fit` (.ckpt) or of an exported .pt file"
             )
         weights = shipped[0]
     model = registry.pretrained(weights, unit_scale=1.0)  # a name, an exported .pt or a .ckpt: one loader
