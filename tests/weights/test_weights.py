@@ -156,6 +156,16 @@ def test_another_architecture_is_a_mismatch_naming_the_class(tmp_path: Path) -> 
         load_into(other, path)
 
 
+def test_a_mismatch_names_the_constructor_arguments_that_differ(tmp_path: Path) -> None:
+    path = exported(tiny_model("pointnetlk", batch_norm=False, jacobian="analytic"), tmp_path)
+    configured = tiny_model("pointnetlk", batch_norm=True, jacobian="finite_difference")  # the config's defaults
+    hint = r"built with batch_norm=False \(model: True\), jacobian='analytic' \(model: 'finite_difference'\)"
+    with pytest.raises(PretrainedMismatchError, match=hint + r": configure these") as info:
+        load_into(configured, path)
+    assert "inference tensors missing from the file: encoder.norms" in str(info.value) and "\n" not in str(info.value)
+    load_into(tiny_model("pointnetlk", batch_norm=False, jacobian="finite_difference"), path)  # tensors fit: loads
+
+
 # --- errors --------------------------------------------------------------------------------------------------------
 def test_unknown_name_lists_the_known_names() -> None:
     with pytest.raises(UnknownPretrainedError) as info:

@@ -451,9 +451,27 @@ def _load_state(model: torch.nn.Module, weights: PretrainedWeights) -> None:
     if shapes:
         problems.append(f"shapes (file vs model): {_few(shapes)}")
     if problems:
+        problems += _differing_args(model, weights.init_args)
         message = f"does not fit {class_path_of(model)} (another architecture?): {'; '.join(problems)}"
         raise PretrainedMismatchError(weights.source, message, weights.path)
     model.load_state_dict(weights.state_dict, strict=not missing)
+
+
+def _differing_args(model: torch.nn.Module, init_args: Mapping[str, Any]) -> list[str]:
+    """A hint for a mismatch: the file's constructor arguments that ``model`` was built with other values of.
+
+    The model's ``inference_hparams`` are left out (the export sets those itself).
+    """
+    hparams = getattr(model, "hparams", {})
+    skip = set(getattr(type(model), "inference_hparams", {}))
+    differ = [
+        f"{k}={v!r} (model: {hparams[k]!r})"
+        for k, v in init_args.items()
+        if k in hparams and k not in skip and hparams[k] != v
+    ]
+    if not differ:
+        return []
+    return [f"the file was built with {_few(differ)}: configure these (e.g. --model.init_args.<name>)"]
 
 
 def _few(items: list[str], limit: int = 5) -> str:
