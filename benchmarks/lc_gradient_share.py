@@ -9,7 +9,7 @@ For every host X of ``lcreg reproduce lc`` this builds LC + X (``<host>_lc`` of 
 DCP-family pairs of ModelNet40 under ``--root``, the budget's points and batch) and, on each of the first
 ``--batches`` training batches, without any optimiser step, splits the training loss of the shared step
 (``training_forward`` + ``training_losses``) into the host's own terms and the LC term. It reports the value of each
-and the L2 norm of its gradient on the encoder LC reads (``model.encoder``), as medians over the batches.
+and the L2 norm of its gradient on the encoder LC reads (``model.descriptor_encoder()``), as medians over the batches.
 
 The *matched weight* is median(‖∇ own‖ / ‖∇ LC‖): the LC weight at which LC's encoder gradient equals the host's own
 (the rule fixed in ``docs/results/converge/README.md`` before any test number, as a fairer second test than the
@@ -58,9 +58,9 @@ def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[S
     budget = BUDGETS["smoke" if root is None else "converge"][host]
     values = {**DataChoice(root).overrides(budget), "seed_everything": seed}
     model, datamodule = build(f"{host}_lc", None, values=values, with_data=True)
-    encoder = model.encoder
+    encoder = model.descriptor_encoder()  # what LC reads
     if not isinstance(encoder, nn.Module):
-        raise TypeError(f"{host}: LC reads `encoder`, which is not a module")
+        raise TypeError(f"{host}: the encoder LC reads is not a module")
     params = [p for p in encoder.parameters() if p.requires_grad]
     weight = next(t.weight for t in model.injected_terms if t.name == LC_TERM)
     datamodule.setup("fit")
