@@ -170,7 +170,33 @@ def test_self_motion_trains_through_the_solve_without_the_dataset_pose(batch: Re
     assert not model.solver.differentiable
 
 
-@pytest.mark.parametrize("kwargs", [{"sample_fraction": 0.0}, {"sample_fraction": 1.5}, {"noise_std": -1.0}])
+def test_self_motion_translation_weight_scales_only_the_translation_error(batch: RegistrationBatch) -> None:
+    """The term is ``||R_e - I||^2 + w ||t_e||^2`` of the host's estimate against the generated motion."""
+    from lcreg.geometry import se3
+    from lcreg.models.dvds import DVDs
+    from lcreg.models.loss_terms import SelfMotionLoss
+
+    torch.manual_seed(0)
+    model = DVDs(encoder_channels=(16, 32), lambda_recon=0, lambda_normal=0, diagnostics_every_n_steps=0).eval()
+    values = {}
+    for weight in (1.0, 25.0):
+        torch.manual_seed(1)  # the same pairs and motions for both weights
+        term = SelfMotionLoss(translation_weight=weight)
+        values[weight] = float(term(model, model(batch.points_src, batch.points_ref), batch))
+    torch.manual_seed(1)
+    src, ref, motion = SelfMotionLoss().make_pairs(batch.points_src)
+    rot, trans = se3.split(se3.compose(model.differentiable_forward(src, ref).transform_ref_src, se3.inverse(motion)))
+    rot_part = float((rot - torch.eye(3)).pow(2).sum((1, 2)).mean())
+    trans_part = float(trans.pow(2).sum(-1).mean())
+    assert values[1.0] == pytest.approx(rot_part + trans_part, rel=1e-4)
+    assert values[25.0] == pytest.approx(rot_part + 25.0 * trans_part, rel=1e-4)
+    assert trans_part > 1e-4 * rot_part  # the weight is seen
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"sample_fraction": 0.0}, {"sample_fraction": 1.5}, {"noise_std": -1.0}, {"translation_weight": -1.0}],
+)
 def test_self_motion_rejects_bad_settings(kwargs: dict[str, float]) -> None:
     from lcreg.models.loss_terms import SelfMotionLoss
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lcreg.geometry import se3, so3
-from lcreg.nn.losses import rotation_translation_mse, transform_mse
+from lcreg.nn.losses import lk_pose_loss, rotation_translation_mse, transform_mse, weighted_pose_loss
 
 
 def _transforms(b: int, seed: int) -> torch.Tensor:
@@ -62,3 +62,28 @@ def test_losses_are_differentiable() -> None:
     gt = _transforms(2, seed=8)
     assert torch.autograd.gradcheck(lambda x: rotation_translation_mse(se3.exp(x), gt), (xi,))
     assert torch.autograd.gradcheck(lambda x: transform_mse(se3.exp(x), se3.inverse(gt)), (xi,))
+    assert torch.autograd.gradcheck(lambda x: weighted_pose_loss(se3.exp(x), gt, 25.0), (xi,))
+
+
+def test_weighted_pose_loss_against_numpy_and_lk_pose_loss() -> None:
+    pred, gt = _transforms(4, seed=9), _transforms(4, seed=10)
+    errors = [p @ np.linalg.inv(g) for p, g in zip(pred.numpy(), gt.numpy())]
+    rot = np.mean([((e[:3, :3] - np.eye(3)) ** 2).sum() for e in errors])
+    trans = np.mean([(e[:3, 3] ** 2).sum() for e in errors])
+    for weight in (0.0, 1.0, 25.0):
+        assert float(weighted_pose_loss(pred, gt, weight)) == pytest.approx(rot + weight * trans, rel=1e-12)
+    assert float(weighted_pose_loss(pred, gt)) == pytest.approx(float(lk_pose_loss(pred, gt)), rel=1e-12)
+    assert float(weighted_pose_loss(gt, gt.clone(), 25.0)) == pytest.approx(0.0, abs=1e-25)
+
+
+def test_weighted_pose_loss_weighs_the_recall_thresholds_alike_near_25() -> None:
+    """A 2 deg rotation error and a 0.01 translation error cost the same at ``w = 2 theta^2 / 0.01^2 = 24.4``."""
+    gt = _transforms(1, seed=11)
+    zero = torch.zeros(1, 3, dtype=torch.float64)
+    turned = se3.make_transform(so3.exp(torch.tensor([[0.0, 0.0, math.radians(2.0)]], dtype=torch.float64)), zero)
+    shifted = se3.make_transform(torch.eye(3, dtype=torch.float64)[None], zero + torch.tensor([0.01, 0.0, 0.0]))
+    weight = 4 * (1 - math.cos(math.radians(2.0))) / 0.01**2
+    assert 24.0 < weight < 25.0
+    rot_cost = float(weighted_pose_loss(se3.compose(turned, gt), gt, weight))
+    trans_cost = float(weighted_pose_loss(se3.compose(shifted, gt), gt, weight))
+    assert rot_cost == pytest.approx(trans_cost, rel=1e-6)  # 1 - cos: cancellation at 2 deg
