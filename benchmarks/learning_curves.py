@@ -32,7 +32,9 @@ model A and D are the paper's objective exactly as written (``configs/ablation/m
 gradient clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without BatchNorm (like the DVDs
 encoder: the solve then sees the same function as the training pass). ``selfsup_lr3e-5`` and ``selfsup_steplr``
 are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of issue 23); ``selfsup_tw25`` weighs the
-self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall thresholds); ``pcrnet`` and
+self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall thresholds);
+``selfsup_frac50`` draws its two samplings from half the cloud each (they share half their points, as two independent
+samplings of 1024 of ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and
 ``fmr`` are those baselines with their own configs (``configs/models/``), at the batch and points given here.
 """
 
@@ -80,13 +82,18 @@ SUPERVISED_LK = {  # PointNetLK as in issue 12's table: analytic Jacobian, lr 1e
     "model.init_args.optimizer.init_args.lr": 0.0001,
     "trainer.gradient_clip_val": 1.0,
 }
-SELF_MOTION_TW25 = [  # the recipe's terms (configs/lc.yaml, configs/self_motion.yaml), translation weighted 25
-    {"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss"},
-    {
-        "class_path": "lcreg.models.loss_terms.SelfMotionLoss",
-        "init_args": {"max_angle_deg": 45.0, "max_translation": 0.5, "sample_fraction": 0.75, "translation_weight": 25},
-    },
-]
+RECIPE_SELF_MOTION = {"max_angle_deg": 45.0, "max_translation": 0.5, "sample_fraction": 0.75}  # self_motion.yaml
+
+
+def recipe_with(**self_motion: float) -> Variant:
+    """The recipe (``configs/dvds_selfsup_modelnet40.yaml``) with some of its self-motion term's arguments changed."""
+    terms = [
+        {"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss"},  # configs/lc.yaml: the defaults
+        {"class_path": "lcreg.models.loss_terms.SelfMotionLoss", "init_args": {**RECIPE_SELF_MOTION, **self_motion}},
+    ]
+    return Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": terms})
+
+
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -112,7 +119,8 @@ VARIANTS: dict[str, Variant] = {
             }
         },
     ),
-    "selfsup_tw25": Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": SELF_MOTION_TW25}),
+    "selfsup_tw25": recipe_with(translation_weight=25.0),
+    "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "fmr": Variant("fmr"),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
