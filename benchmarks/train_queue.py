@@ -13,7 +13,8 @@ exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json
 written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
 of a long job can be committed as they land. Run folders need not outlive a session: before a job starts, the
 committed copies of its result logs are restored into an empty run folder, so its finished runs are skipped and only
-the run in progress when a session ended starts again.
+the run in progress when a session ended starts again. For a job with ``keep_best = true`` ``sync`` also writes the
+slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the runs whose weights may ship).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ class Job:
     cpu_hours: float = 0.0
     cap_hours: float | None = None
     gpu_hours: float = 0.0
+    keep_best: bool = False
 
     def argv(self, runs: Path, results: Path) -> list[str]:
         """The command's arguments with ``{runs}``/``{results}`` filled in (``python`` and ``lcreg`` as written)."""
@@ -93,7 +95,10 @@ def load_jobs(path: Path) -> list[Job]:
 
 
 def sync(job: Job, runs: Path, results: Path) -> int:
-    """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many."""
+    """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many.
+
+    A ``keep_best`` job also gets the slim weights of every finished run's selected checkpoint (:func:`keep_best`).
+    """
     source, target, count = runs / job.id, results / job.id / "runs", 0
     for pattern in RESULT_FILES:
         for path in source.rglob(pattern) if source.is_dir() else ():
@@ -101,7 +106,29 @@ def sync(job: Job, runs: Path, results: Path) -> int:
             destination.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(path, destination)
             count += 1
-    return count
+    return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
+
+
+def keep_best(source: Path, target: Path) -> list[Path]:
+    """Export the selected checkpoint of every finished run in ``source/runs.jsonl`` as ``target/<variant>-seed<k>.pt``.
+
+    Run folders need not outlive a session, so the weights a job may ship are kept beside its committed logs (slim
+    inference weights, :func:`lcreg.weights.export.export_weights`, about 0.6 MB for DVDs). A run whose file exists
+    or whose checkpoint is gone is skipped. Returns the files written.
+    """
+    from lcreg.weights.export import export_weights
+
+    log = source / "runs.jsonl"
+    rows = [json.loads(line) for line in log.read_text(encoding="utf-8").splitlines()] if log.is_file() else []
+    written = []
+    for row in rows:
+        checkpoint = Path(row.get("best_checkpoint") or "")
+        name = f"{row.get('variant')}-seed{row.get('seed')}".lower()
+        if "variant" not in row or (target / f"{name}.pt").exists() or not checkpoint.is_file():
+            continue
+        metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line()}
+        written.append(export_weights(checkpoint, name, target, metadata=metadata))
+    return written
 
 
 def restore(job: Job, runs: Path, results: Path) -> int:

@@ -113,3 +113,35 @@ def test_a_new_machine_restores_finished_runs_from_the_committed_results(tmp_pat
             queue.main(["run", "--runs", str(tmp_path / machine), *args])
     assert (tmp_path / "second" / "long" / "runs.jsonl").read_text() == "row\nrow\n"
     assert (tmp_path / "res" / "long" / "runs" / "runs.jsonl").read_text() == "row\nrow\n"
+
+
+def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_path: Path) -> None:
+    """Run folders need not outlive a session: ``keep_best`` exports each finished run's selected checkpoint beside
+    the committed logs, once, loadable by ``lcreg.pretrained`` with the checkpoint's weights."""
+    import torch
+
+    import lcreg
+    from lcreg.checkpoints import read_checkpoint
+    from lcreg.weights import read_weights
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text(queue.SMOKE_QUEUE.replace("cpu_hours = 0.01", "cpu_hours = 0.01\nkeep_best = true"))
+    (job,) = queue.load_jobs(file)
+    assert job.keep_best
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    queue.main(["run", "--queue", str(file), "--runs", str(runs), "--results", str(res)])
+    rows = [json.loads(line) for line in (runs / "smoke" / "runs.jsonl").read_text().splitlines()]
+    kept_files = sorted(p.name for p in (res / "smoke" / "best").iterdir())
+    assert kept_files == sorted(f"{r['variant']}-seed{r['seed']}.pt".lower() for r in rows) and len(rows) >= 1
+    (row,) = [r for r in rows if r["variant"] == "selfsup"]
+    kept = res / "smoke" / "best" / "selfsup-seed0.pt"
+    model = lcreg.pretrained(kept)
+    state = read_checkpoint(row["best_checkpoint"])["state_dict"]
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(value, state[key], rtol=0, atol=0, msg=key)
+    assert json.loads(read_weights(kept).metadata["job_row"]) == row
+    before = kept.stat().st_mtime_ns
+    Path(row["best_checkpoint"]).unlink()  # a lost run folder: nothing to export, no error, the kept file stays
+    assert queue.keep_best(runs / "smoke", res / "smoke" / "best") == []
+    assert kept.stat().st_mtime_ns == before
