@@ -23,7 +23,8 @@ one failed pair moves the criterion by at most 5° / 312. A run that was cut off
 (:func:`lcreg.experiments.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``,
 ``x_jacobian.png``, ... by :func:`lcreg.experiments.benchmarking.plot_curves`, as
 ``benchmarks/plot_learning_curves.py`` draws them); ``--report-only`` writes them without training anything (e.g. from
-the committed copy of a queue job's runs).
+the committed copy of a queue job's runs); ``--also-runs DIR ...`` adds the finished runs of other run folders to the
+report (e.g. a lever job against the recipe runs of an earlier job).
 
 Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order):
 model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
@@ -202,6 +203,13 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--report-only", action="store_true", help="only write --out from the finished runs (train nothing)"
     )
+    parser.add_argument(
+        "--also-runs",
+        nargs="*",
+        default=[],
+        metavar="DIR",
+        help="more run folders whose finished runs join the report (e.g. another queue job's committed runs)",
+    )
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
@@ -239,28 +247,29 @@ def stops_table(rows: Sequence[dict[str, Any]]) -> str:
     return markdown_table(header, body)
 
 
-def metrics_file(args: argparse.Namespace, row: dict[str, Any]) -> Path:
-    """A finished run's ``metrics.csv``: the recorded path, or the same run under ``--run-dir`` (a copied folder,
+def metrics_file(run_dir: Path, row: dict[str, Any]) -> Path:
+    """A finished run's ``metrics.csv``: the recorded path, or the same run under ``run_dir`` (a copied folder,
     e.g. the committed results of the training queue)."""
     recorded = Path(row["metrics_csv"])
-    return (
-        recorded if recorded.is_file() else Path(args.run_dir) / row["variant"] / f"seed{row['seed']}" / "metrics.csv"
-    )
+    return recorded if recorded.is_file() else run_dir / row["variant"] / f"seed{row['seed']}" / "metrics.csv"
 
 
 def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     """Summary table and learning-curve PNGs of the finished runs of ``args.variants`` at this budget."""
     files: dict[str, list[str]] = {}
     finished = []
-    for row in log.rows:
-        wanted = (args.points, args.steps, budget_key(args))
-        if row["variant"] in args.variants and (row["points"], row["steps"], row.get("budget")) == wanted:
-            files.setdefault(row["variant"], []).append(str(metrics_file(args, row)))
-            finished.append(row)
-    runs = load_runs(files)
+    wanted = (args.points, args.steps, budget_key(args))
+    sources = [(Path(args.run_dir), log.rows)]
+    sources += [(Path(d), ResultLog(Path(d) / "runs.jsonl", key=KEY).rows) for d in args.also_runs]
+    for run_dir, rows in sources:
+        for row in rows:
+            if row["variant"] in args.variants and (row["points"], row["steps"], row.get("budget")) == wanted:
+                files.setdefault(row["variant"], []).append(str(metrics_file(run_dir, row)))
+                finished.append(row)
+    runs = load_runs({variant: files[variant] for variant in args.variants if variant in files})
     budget = budget_key(args) or "fixed budget"
     head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line()}"
-    head += f"; runs: {args.run_dir}"
+    head += f"; runs: {', '.join(str(d) for d, _ in sources)}"
     write_text(out, "\n".join([head, "", summary_table(runs), "", stops_table(finished), ""]))
     for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):
         print(f"wrote {path}", flush=True)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import pytest
 from tests.benchmarks.test_smoke import load
 
@@ -53,3 +56,35 @@ def test_recipe_levers_change_only_their_self_motion_argument() -> None:
         lever = terms(module.VARIANTS[name])
         assert lever[0] == recipe[0]
         assert lever[1][0][2] == {**recipe[1][0][2], **changed} != recipe[1][0][2]
+
+
+def test_report_joins_the_finished_runs_of_other_run_folders(tmp_path: Path) -> None:
+    """``--also-runs``: a lever job's runs reported beside an earlier job's (committed copies: moved folders)."""
+    module = load("learning_curves")
+    first, other = tmp_path / "first", tmp_path / "other"
+    module.main(["--smoke", "--run-dir", str(first)])  # model_D and selfsup, seed 0, a fixed 2-step budget
+    rows = (first / "runs.jsonl").read_text().splitlines()
+    assert len(rows) == 2 and '"model_D"' in rows[0] and '"selfsup"' in rows[1]
+    (first / "runs.jsonl").write_text(rows[0] + "\n")
+    other.mkdir()
+    (other / "runs.jsonl").write_text(rows[1] + "\n")
+    shutil.move(first / "selfsup", other / "selfsup")  # the recorded metrics path is gone: found under `other`
+    out = tmp_path / "report.md"
+    report = [
+        "--report-only",
+        "--steps",
+        str(module.SMOKE["steps"]),
+        "--seeds",
+        "0",
+        "--variants",
+        "selfsup",
+        "model_D",
+    ]
+    module.main([*report, "--run-dir", str(first), "--out", str(out)])
+    assert "| selfsup |" not in out.read_text() and "| model_D |" in out.read_text()
+    module.main([*report, "--run-dir", str(first), "--also-runs", str(other), "--out", str(out)])
+    text = out.read_text()
+    assert str(other) in text.splitlines()[0]
+    assert text.index("| val/rre_mean_deg | selfsup |") < text.index(
+        "| val/rre_mean_deg | model_D |"
+    )  # --variants order
