@@ -46,6 +46,15 @@ def _model(weights: str, smoke: bool) -> Any:
     return lcreg.pretrained(weights)
 
 
+def _weights_line(weights: str) -> str:
+    """``<name> (sha256 <first 8 hex digits>…)``: which file the figures belong to (shipped files get replaced)."""
+    import hashlib
+
+    from lcreg.weights import resolve
+
+    return f"{weights} (sha256 {hashlib.sha256(resolve(weights).read_bytes()).hexdigest()[:8]}…)"
+
+
 def _runners(model: Any, folder: Path, points: int, iterations: int | None) -> dict[str, Callable[..., np.ndarray]]:
     """``name -> f(src, ref) -> (B, 4, 4)`` for the eager model and both exported files."""
     import onnxruntime as ort
@@ -149,7 +158,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         speed_rows = speed(runners, batches[0], (1, 4) if args.smoke else (1, 16), 2 if args.smoke else args.repeats)
     text = (
         f"Machine: {machine_line()}; one CPU thread. Pairs: {source}, {points} points. Weights: "
-        f"{'tiny untrained DVDs' if args.smoke else args.weights}.\n\n"
+        f"{'tiny untrained DVDs' if args.smoke else _weights_line(args.weights)}.\n\n"
         + markdown_table(PARITY_COLUMNS, table)
         + "\n\n"
         + markdown_table(["runner", "batch", "ms/pair", "pairs/s", "x eager"], speed_rows)
