@@ -12,9 +12,11 @@ Every job is one resumable command (``{runs}``: its run folder under ``--runs``,
 exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (the last call's wall time) is
 written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
 of a long job can be committed as they land. Run folders need not outlive a session: before a job starts, the
-committed copies of its result logs are restored into an empty run folder, so its finished runs are skipped and only
-the run in progress when a session ended starts again. For a job with ``keep_best = true`` ``sync`` also writes the
-slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the runs whose weights may ship).
+committed copies of its result logs are restored into an empty run folder, so its finished runs are skipped, and the
+run in progress when a session ended resumes from the checkpoints ``sync`` kept in ``<results>/<id>/resume/`` (when
+they are small enough, :data:`RESUME_MAX_BYTES`; otherwise it starts again). For a job with ``keep_best = true``
+``sync`` also writes the slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the
+runs whose weights may ship).
 """
 
 from __future__ import annotations
@@ -38,7 +40,9 @@ from lcreg.experiments.benchmarking import add_smoke_argument, machine_line
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
-"""Small files copied from a job's run folder (never checkpoints)."""
+"""Small files copied from a job's run folder (checkpoints only as :func:`keep_resume` and :func:`keep_best` do)."""
+RESUME_MAX_BYTES = 8 * 2**20
+"""Largest checkpoint folder :func:`keep_resume` keeps (IDAM's is 2.4 MB; DVDs' 40 MB runs finish within a session)."""
 LCREG_MAIN = "import sys; from lcreg.__main__ import main; sys.argv[0] = 'lcreg'; main()"
 """``lcreg`` as a ``python -c`` program (the console script of whichever lcreg the interpreter imports)."""
 SMOKE_QUEUE = """
@@ -94,10 +98,12 @@ def load_jobs(path: Path) -> list[Job]:
     return jobs
 
 
-def sync(job: Job, runs: Path, results: Path) -> int:
+def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many.
 
-    A ``keep_best`` job also gets the slim weights of every finished run's selected checkpoint (:func:`keep_best`).
+    Also keeps the resume state of the run in progress unless the job is ``done`` (default: its ``DONE.json``
+    exists; :func:`keep_resume`), and for a ``keep_best`` job the slim weights of every finished run's selected
+    checkpoint (:func:`keep_best`).
     """
     source, target, count = runs / job.id, results / job.id / "runs", 0
     for pattern in RESULT_FILES:
@@ -106,7 +112,31 @@ def sync(job: Job, runs: Path, results: Path) -> int:
             destination.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(path, destination)
             count += 1
+    done = (results / job.id / "DONE.json").is_file() if done is None else done
+    count += len(keep_resume(source, results / job.id / "resume", done=done))
     return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
+
+
+def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
+    """Keep the resume state of the run in progress: the checkpoint folder of the newest ``last.ckpt`` under ``source``.
+
+    A job runs one run at a time, so the newest ``last.ckpt`` is the run in progress (or the last one finished, which
+    costs a copy and nothing else). Its folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state
+    names) replaces ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
+    the next machine (:func:`restore`) instead of starting again. A done job keeps nothing. Returns the files copied.
+    """
+    lasts = sorted(source.rglob("last.ckpt"), key=lambda path: path.stat().st_mtime) if source.is_dir() else []
+    folder = lasts[-1].parent if lasts and not done else None
+    if folder is not None and sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
+        print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
+        return []
+    shutil.rmtree(target, ignore_errors=True)
+    copied = []
+    for path in folder.glob("*.ckpt") if folder is not None else ():
+        destination = target / path.relative_to(source)
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        copied.append(Path(shutil.copy2(path, destination)))
+    return copied
 
 
 def keep_best(source: Path, target: Path) -> list[Path]:
@@ -133,14 +163,16 @@ def keep_best(source: Path, target: Path) -> list[Path]:
 
 def restore(job: Job, runs: Path, results: Path) -> int:
     """Copy the committed result files of ``job`` back into its run folder where that folder lacks them (a new
-    machine); the scripts then skip the runs these logs list as finished. Returns how many files were copied."""
-    source, target, count = results / job.id / "runs", runs / job.id, 0
-    for path in source.rglob("*") if source.is_dir() else ():
-        destination = target / path.relative_to(source)
-        if path.is_file() and not destination.exists():
-            destination.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(path, destination)
-            count += 1
+    machine); the scripts then skip the runs these logs list as finished, and the run in progress resumes from its
+    kept checkpoints (:func:`keep_resume`). Returns how many files were copied."""
+    target, count = runs / job.id, 0
+    for source in (results / job.id / "runs", results / job.id / "resume"):
+        for path in source.rglob("*") if source.is_dir() else ():
+            destination = target / path.relative_to(source)
+            if path.is_file() and not destination.exists():
+                destination.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(path, destination)
+                count += 1
     return count
 
 
@@ -171,7 +203,7 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> b
         print(f"queue: {job.id}: stopped after {max_minutes} min; it resumes on the next call", flush=True)
         sync(job, runs, results)
         return False
-    copied = sync(job, runs, results)
+    copied = sync(job, runs, results, done=code == 0)
     if code != 0:
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
         return False

@@ -136,6 +136,7 @@ def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_pat
     assert kept_files == sorted(f"{r['variant']}-seed{r['seed']}.pt".lower() for r in rows) and len(rows) >= 1
     (row,) = [r for r in rows if r["variant"] == "selfsup"]
     kept = res / "smoke" / "best" / "selfsup-seed0.pt"
+    assert not (res / "smoke" / "resume").exists()  # a finished job keeps no resume state
     model = lcreg.pretrained(kept)
     state = read_checkpoint(row["best_checkpoint"])["state_dict"]
     for key, value in model.state_dict().items():
@@ -145,3 +146,39 @@ def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_pat
     Path(row["best_checkpoint"]).unlink()  # a lost run folder: nothing to export, no error, the kept file stays
     assert queue.keep_best(runs / "smoke", res / "smoke" / "best") == []
     assert kept.stat().st_mtime_ns == before
+
+
+def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only the newest ``last.ckpt``'s folder is kept (the run in progress), it replaces the previous copy, it comes
+    back into an empty run folder before the job starts, and a done job or an oversized folder keeps nothing."""
+    import os
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    finished, running = runs / "j" / "a" / "seed0" / "checkpoints", runs / "j" / "a" / "seed1" / "checkpoints"
+    for folder, stamp in ((finished, 1_000), (running, 2_000)):
+        folder.mkdir(parents=True)
+        for name in ("last.ckpt", "step000100-val.ckpt"):
+            (folder / name).write_bytes(name.encode() + str(stamp).encode())
+            os.utime(folder / name, (stamp, stamp))
+    queue.sync(job, runs, res)
+    kept = res / "j" / "resume"
+    assert sorted(p.relative_to(kept).as_posix() for p in kept.rglob("*.ckpt")) == [
+        "a/seed1/checkpoints/last.ckpt",
+        "a/seed1/checkpoints/step000100-val.ckpt",
+    ]
+    fresh = tmp_path / "fresh"  # a new machine: an empty run folder
+    assert queue.restore(job, fresh, res) == 2
+    assert (fresh / "j" / "a" / "seed1" / "checkpoints" / "last.ckpt").read_bytes() == b"last.ckpt2000"
+    monkeypatch.setattr(queue, "RESUME_MAX_BYTES", 10)
+    queue.sync(job, runs, res)  # too large: the previous copy stays as it was
+    assert (kept / "a" / "seed1" / "checkpoints" / "last.ckpt").is_file()
+    monkeypatch.undo()
+    (res / "j" / "DONE.json").write_text("{}\n")
+    queue.sync(job, runs, res)
+    assert not kept.exists()
