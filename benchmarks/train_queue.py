@@ -123,16 +123,22 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     A job runs one run at a time, so the newest ``last.ckpt`` is the run in progress (or the last one finished, which
     costs a copy and nothing else). Its folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state
     names) replaces ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
-    the next machine (:func:`restore`) instead of starting again. A done job keeps nothing. Returns the files copied.
+    the next machine (:func:`restore`) instead of starting again. A done job keeps nothing; a run folder without any
+    ``last.ckpt`` (a new machine, before :func:`restore`) leaves the kept copy alone. Returns the files copied.
     """
+    if done:
+        shutil.rmtree(target, ignore_errors=True)
+        return []
     lasts = sorted(source.rglob("last.ckpt"), key=lambda path: path.stat().st_mtime) if source.is_dir() else []
-    folder = lasts[-1].parent if lasts and not done else None
-    if folder is not None and sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
+    if not lasts:  # e.g. a new machine before `run` restored the kept copy: keep it
+        return []
+    folder = lasts[-1].parent
+    if sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
         print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
         return []
     shutil.rmtree(target, ignore_errors=True)
     copied = []
-    for path in folder.glob("*.ckpt") if folder is not None else ():
+    for path in folder.glob("*.ckpt"):
         destination = target / path.relative_to(source)
         destination.parent.mkdir(parents=True, exist_ok=True)
         copied.append(Path(shutil.copy2(path, destination)))

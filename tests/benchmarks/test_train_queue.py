@@ -173,6 +173,7 @@ def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
         "a/seed1/checkpoints/step000100-val.ckpt",
     ]
     fresh = tmp_path / "fresh"  # a new machine: an empty run folder
+    queue.sync(job, fresh, res)  # a sync there before `run` must not drop the kept copy
     assert queue.restore(job, fresh, res) == 2
     assert (fresh / "j" / "a" / "seed1" / "checkpoints" / "last.ckpt").read_bytes() == b"last.ckpt2000"
     monkeypatch.setattr(queue, "RESUME_MAX_BYTES", 10)
