@@ -36,7 +36,7 @@ from pathlib import Path
 
 import tomllib
 
-from lcreg.experiments.benchmarking import add_smoke_argument, machine_line
+from lcreg.experiments.benchmarking import ResultLog, add_smoke_argument, machine_line
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
@@ -154,10 +154,8 @@ def keep_best(source: Path, target: Path) -> list[Path]:
     """
     from lcreg.weights.export import export_weights
 
-    log = source / "runs.jsonl"
-    rows = [json.loads(line) for line in log.read_text(encoding="utf-8").splitlines()] if log.is_file() else []
     written = []
-    for row in rows:
+    for row in ResultLog(source / "runs.jsonl").rows:
         checkpoint = Path(row.get("best_checkpoint") or "")
         name = f"{row.get('variant')}-seed{row.get('seed')}".lower()
         if "variant" not in row or (target / f"{name}.pt").exists() or not checkpoint.is_file():
