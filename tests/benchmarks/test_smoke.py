@@ -13,6 +13,8 @@ from types import ModuleType
 
 import pytest
 
+from _shared_data import shared_data  # type: ignore[import-not-found]
+
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 RUNS = {
     "bad_input_matrix": [],
@@ -77,3 +79,16 @@ def test_eval_model_args_reach_the_constructor_and_malformed_ones_are_refused() 
     assert script.learned("dvds", None, 0, False).eval_iterations is None
     with pytest.raises(SystemExit, match="key=value"):
         script.parse(["--ckpt", "x.ckpt", "--model-args", "eval_iterations"])
+
+
+@pytest.mark.data
+def test_eval_val_pairs_draws_the_converge_budgets_validation_pairs() -> None:
+    # 4 pairs per validation object: the 312 pairs the converge budget ranks checkpoints on (78 objects)
+    root = shared_data("modelnet40_mini")
+    script = load("eval_modelnet40_dvds")
+    sizes = {}
+    for per_object in (1, 4):
+        args = script.parse(["--ckpt", "x.ckpt", "--root", str(root), "--split", "val", "--val-pairs", str(per_object)])
+        batches, _ = script.evaluation_pairs(args, 0.0)
+        sizes[per_object] = sum(b.points_src.shape[0] for b in batches)
+    assert sizes == {1: 78, 4: 312}
