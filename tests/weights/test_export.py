@@ -159,3 +159,39 @@ def test_module_runs_as_a_script() -> None:
         [sys.executable, "-m", "lcreg.weights.export", "--help"], capture_output=True, text=True, timeout=120
     )
     assert proc.returncode == 0 and "--metadata" in proc.stdout and "--card" in proc.stdout
+
+
+# --- re-export and inference settings ------------------------------------------------------------------------------
+def test_init_args_replace_inference_settings_of_a_checkpoint(tmp_path: Path) -> None:
+    checkpoint = lightning_checkpoint(tiny_model("pointnetlk"), tmp_path / "last.ckpt")
+    path = export_module.export_weights(checkpoint, "tiny", tmp_path, init_args={"eval_iterations": 9})
+    assert read_weights(path).init_args["eval_iterations"] == 9 and pretrained(path).eval_iterations == 9
+
+
+def test_a_weights_file_is_re_exported_with_its_tensors_metadata_and_new_settings(tmp_path: Path) -> None:
+    source = exported(tiny_model("dvds", seed=3), tmp_path / "first", metadata={"command": "lcreg fit x"})
+    path = main([str(source), "--name", "again", "--out", str(tmp_path / "out"), "--init-args", "eval_iterations=20"])
+    before, after = read_weights(source), read_weights(path)
+    assert after.name == "again" and after.class_path == before.class_path
+    assert after.init_args == {**before.init_args, "eval_iterations": 20}
+    assert after.state_dict.keys() == before.state_dict.keys()
+    assert all(torch.equal(after.state_dict[k], before.state_dict[k]) for k in before.state_dict)
+    meta = after.metadata
+    assert meta["command"] == "lcreg fit x" and meta["source_checkpoint"] == "tiny.ckpt"
+    assert meta["source_weights"] == "tiny.pt" and meta["exported_utc"] >= before.metadata["exported_utc"]
+    assert pretrained(path).eval_iterations == 20
+
+
+def test_bad_init_args_and_other_classes_are_refused_in_one_line(tmp_path: Path) -> None:
+    source = exported(tiny_model("pointnetlk"), tmp_path)
+    for argv, message in [
+        (["--init-args", "no_such_argument=1"], "refuses the hyper-parameters"),
+        (["--init-args", "encoder_channels=[8, 8]"], "does not fit lcreg.baselines.pointnetlk.PointNetLK"),
+        (["--init-args", "eval_iterations"], "key=value"),
+        (["--init-args", "eval_iterations=[1"], "not a YAML value"),
+        (["--class-path", "lcreg.models.dvds.DVDs"], "holds lcreg.baselines.pointnetlk.PointNetLK"),
+    ]:
+        with pytest.raises(SystemExit) as info:
+            main([str(source), "--name", "again", "--out", str(tmp_path / "out"), *argv])
+        assert message in str(info.value) and "\n" not in str(info.value), (argv, str(info.value))
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").glob("*.pt"))

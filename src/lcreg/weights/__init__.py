@@ -486,14 +486,20 @@ def slim_payload(
     name: str,
     metadata: Mapping[str, str | int | float | bool] | None = None,
     class_path: str | None = None,
+    init_args: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The content of the weights file for a Lightning checkpoint (nothing written).
+    """The content of the weights file for a Lightning checkpoint or an exported weights file (nothing written).
 
     Args:
-        checkpoint: A checkpoint of ``lcreg fit`` (any Lightning checkpoint with ``hyper_parameters``).
+        checkpoint: A checkpoint of ``lcreg fit`` (``.ckpt``: any Lightning checkpoint with ``hyper_parameters``), or
+            an exported weights file (any other suffix), re-exported: its class, tensors and metadata are kept.
         name: The name stored in the file (:data:`~lcreg.weights.NAME_PATTERN`).
-        metadata: Entries added to (or replacing) the default metadata.
-        class_path: The model class when the checkpoint does not name it (``hyper_parameters["_class_path"]``).
+        metadata: Entries added to (or replacing) the default metadata (a re-export: the source file's metadata,
+            ``source_weights``, the export time).
+        class_path: The model class when the checkpoint does not name it (``hyper_parameters["_class_path"]``); a
+            weights file's class must be this one when given.
+        init_args: Constructor arguments replacing the source's, e.g. ``{"eval_iterations": 20}``: inference
+            settings chosen after training (an architecture argument no longer fits the tensors and is refused).
 
     Returns:
         The dict :func:`torch.save` writes: ``format``, ``name``, ``class_path``, ``init_args``, ``state_dict``
@@ -506,6 +512,8 @@ def slim_payload(
         PretrainedError: The class is not an lcreg ``RegistrationModule`` or refuses the hyper-parameters.
     """
     _check_name(name)
+    if Path(checkpoint).suffix != CHECKPOINT_SUFFIX:
+        return _reexport_payload(Path(checkpoint), name, metadata, class_path, init_args)
     content = read_checkpoint(checkpoint)
     hparams = content.get("hyper_parameters")
     if not isinstance(hparams, dict):
@@ -514,7 +522,29 @@ def slim_payload(
     if not isinstance(class_path, str):
         raise CheckpointFormatError(checkpoint, "no model class in hyper_parameters['_class_path']; pass --class-path")
     meta = {**_default_metadata(checkpoint, content), **(metadata or {})}
+    hparams = {**hparams, **(init_args or {})}
     return _payload(class_path, hparams, content["state_dict"], name, meta, Path(checkpoint))
+
+
+def _reexport_payload(
+    path: Path,
+    name: str,
+    metadata: Mapping[str, str | int | float | bool] | None,
+    class_path: str | None,
+    init_args: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    """:func:`slim_payload` of an exported weights file: its tensors and class, ``init_args`` replaced.
+
+    Raises:
+        PretrainedError: The file cannot be read (see :func:`read_weights`), or holds another class than
+            ``class_path``.
+    """
+    weights = read_weights(path)
+    if class_path is not None and class_path != weights.class_path:
+        raise PretrainedClassError(str(path), f"holds {weights.class_path}, not {class_path}", path)
+    meta = {**weights.metadata, "source_weights": path.name, **_time_metadata(), **(metadata or {})}
+    hparams = {**weights.init_args, **(init_args or {})}
+    return _payload(weights.class_path, hparams, weights.state_dict, name, meta, path)
 
 
 def model_payload(

@@ -15,6 +15,11 @@ model before it is written, and refused over :data:`~lcreg.weights.MAX_FILE_BYTE
 checkpoint's file name, ``global_step``, ``epoch``, the data module's settings, the export time and versions;
 ``--metadata key=value`` adds or replaces entries (integers and floats are stored as numbers).
 
+``--init-args name=value`` (YAML values) replaces constructor arguments, for inference settings chosen after training
+(``eval_iterations=20``). The source may also be an exported weights file (any suffix but ``.ckpt``): it is
+re-exported with its class, tensors and metadata, plus ``source_weights`` and the new export time, e.g. to ship a
+run's kept weights under a registered name or to change an inference setting of a shipped file.
+
 ``--card`` writes the model-card skeleton ``<name>.md`` beside the file (the template of
 ``docs/model_card_template.md``, with what the export knows filled in); when the card exists only its block between
 ``<!-- lcreg-export-begin`` and ``<!-- lcreg-export-end -->`` (size, sha256, class, arguments, metadata) is refreshed,
@@ -56,6 +61,7 @@ __all__ = [
     "export_weights",
     "main",
     "model_payload",
+    "parse_init_args",
     "parse_metadata",
     "save",
     "serialize",
@@ -81,6 +87,26 @@ def parse_metadata(items: Sequence[str]) -> Metadata:
         if not sep or not key.strip():
             raise ValueError(f"--metadata expects key=value, got {item!r}")
         out[key.strip()] = _number_or_text(value)
+    return out
+
+
+def parse_init_args(items: Sequence[str]) -> dict[str, Any]:
+    """``["eval_iterations=20", "unit_scale=null"]`` as ``{"eval_iterations": 20, "unit_scale": None}`` (YAML values).
+
+    Raises:
+        ValueError: If an item has no ``=``, an empty key, or a value that is not YAML.
+    """
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--init-args entries are key=value, got {item!r}")
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise ValueError(f"--init-args {key}: {value!r} is not a YAML value") from err
     return out
 
 
@@ -130,17 +156,22 @@ def export_weights(
     class_path: str | None = None,
     overwrite: bool = False,
     card: bool = False,
+    init_args: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Write ``<out>/<name>.pt`` from a Lightning checkpoint (see :func:`slim_payload`); returns its path.
+    """Write ``<out>/<name>.pt`` from a Lightning checkpoint or a weights file (see :func:`slim_payload`).
 
     Args:
-        checkpoint: The Lightning checkpoint.
+        checkpoint: The Lightning checkpoint (``.ckpt``), or an exported weights file to re-export.
         name: The weights' name (registered names: :data:`~lcreg.weights.REGISTRY`).
         out: The folder to write to (created if needed); ``src/lcreg/weights/`` ships the file.
         metadata: Provenance entries (``command``, ``machine``, ``wall_time``, ...).
         class_path: The model class when the checkpoint does not name it.
         overwrite: Replace an existing ``<name>.pt``.
         card: Also write the model-card skeleton, or refresh its export block (:func:`write_card`).
+        init_args: Constructor arguments replacing the source's (inference settings such as ``eval_iterations``).
+
+    Returns:
+        The path written.
 
     Raises:
         FileExistsError: ``<name>.pt`` exists and ``overwrite`` is false.
@@ -150,7 +181,7 @@ def export_weights(
     path = Path(out) / f"{name}.pt"
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
-    payload = slim_payload(checkpoint, name, metadata, class_path)
+    payload = slim_payload(checkpoint, name, metadata, class_path, init_args)
     _write(path, serialize(payload, name))
     if card:
         write_card(path, payload)
@@ -283,11 +314,21 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m lcreg.weights.export",
         description="Export a Lightning checkpoint as a slim pretrained-weights file <out>/<name>.pt.",
     )
-    parser.add_argument("checkpoint", type=Path, help="Lightning checkpoint (e.g. of `lcreg fit`)")
+    parser.add_argument(
+        "checkpoint", type=Path, help="Lightning checkpoint (.ckpt, e.g. of `lcreg fit`) or a weights file to re-export"
+    )
     parser.add_argument("--name", required=True, help=f"weights name, e.g. {', '.join(REGISTRY)}")
     parser.add_argument("--out", required=True, type=Path, help="folder to write <name>.pt to (src/lcreg/weights/)")
     parser.add_argument(
         "--metadata", nargs="+", action="extend", default=[], metavar="KEY=VALUE", help="provenance entries"
+    )
+    parser.add_argument(
+        "--init-args",
+        nargs="+",
+        action="extend",
+        default=[],
+        metavar="NAME=VALUE",
+        help="constructor arguments replacing the source's (YAML values), e.g. eval_iterations=20",
     )
     parser.add_argument("--class-path", help="model class when the checkpoint does not name it")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing <name>.pt")
@@ -311,6 +352,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
             args.class_path,
             args.overwrite,
             args.card,
+            parse_init_args(args.init_args),
         )
     except (CheckpointError, PretrainedError, FileExistsError, ValueError) as err:
         raise SystemExit(f"lcreg.weights.export: error: {err}") from err
