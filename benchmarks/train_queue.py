@@ -218,12 +218,19 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> b
     return True
 
 
+def selected(job: Job, args: argparse.Namespace) -> bool:
+    """Whether ``run`` starts ``job``: the jobs of ``--section``, or the jobs named by ``--only`` whatever their section
+    (a GPU session may take over a CPU job, e.g. the PRNet runs that cost 11 s a step on one CPU thread; the job's run
+    folder and results are the same, so either machine continues where the other stopped)."""
+    return job.id in args.only if args.only is not None else job.section == args.section
+
+
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("action", nargs="?", choices=("status", "run", "sync"), default="status")
     parser.add_argument("--queue", type=Path, default=REPO / "benchmarks" / "train_queue.toml")
     parser.add_argument("--section", choices=("cpu", "gpu"), default="cpu")
-    parser.add_argument("--only", nargs="+", default=None, help="job ids")
+    parser.add_argument("--only", nargs="+", default=None, help="job ids (run: these, whatever their section)")
     parser.add_argument("--runs", type=Path, default=REPO / "runs" / "queue", help="run folders (checkpoints)")
     parser.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "converge")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop a command after this long (resumes)")
@@ -246,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     for job in jobs:
         if args.action == "sync":
             print(f"queue: {job.id}: {sync(job, args.runs, args.results)} result files copied")
-        elif job.section == args.section and not (args.results / job.id / "DONE.json").is_file():
+        elif selected(job, args) and not (args.results / job.id / "DONE.json").is_file():
             if not run_job(job, args.runs, args.results, args.max_minutes):
                 sys.exit(1)
     if args.smoke:

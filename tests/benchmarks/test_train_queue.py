@@ -62,6 +62,22 @@ def test_run_marks_only_a_successful_job_done(tmp_path: Path) -> None:
     queue.main(["run", "--only", "ok", *args])  # a done job is not run again (its folder exists: mkdir would fail)
 
 
+def test_a_section_runs_its_jobs_and_only_names_jobs_of_any_section(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    job = '[[job]]\nid = "{id}"\nsection = "{section}"\nwhat = "x"\ncommand = "python -c \\"pass\\""\n'
+    file.write_text(job.format(id="c", section="cpu") + job.format(id="g", section="gpu"))
+    args = ["--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+
+    def done() -> set[str]:
+        return {p.parent.name for p in (tmp_path / "res").glob("*/DONE.json")}
+
+    queue.main(["run", "--section", "gpu", *args])
+    assert done() == {"g"}
+    queue.main(["run", "--section", "gpu", "--only", "c", *args])  # a GPU session takes over a CPU job
+    assert done() == {"c", "g"}
+
+
 def test_smoke_runs_a_converge_learning_curve_through_the_queue(capsys: pytest.CaptureFixture[str]) -> None:
     load("train_queue").main(["--smoke"])
     out = capsys.readouterr().out
