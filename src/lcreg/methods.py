@@ -64,7 +64,7 @@ METHODS: dict[str, MethodInfo] = {
             "lcreg.models.dvds.DVDs",
             "DVDs (this paper): PointNet descriptors + IC-LK, self-supervised",
             pretrained=(
-                ("dvds-modelnet40", "DVDs trained self-supervised on ModelNet40 (configs/dvds_modelnet40.yaml)"),
+                ("dvds-modelnet40", "DVDs trained label-free on ModelNet40 (configs/dvds_selfsup_modelnet40.yaml)"),
             ),
         ),
         MethodInfo(
