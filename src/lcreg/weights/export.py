@@ -75,19 +75,28 @@ CARD_HEADINGS = ("Usage", "Training", "Validation figures", "Test figures", "Fil
 """The ``##`` sections of every model card, in order (``docs/model_card_template.md`` has the same)."""
 
 
+def _split(items: Sequence[str], option: str) -> list[tuple[str, str]]:
+    """``["a=1", "b=x=y"]`` as ``[("a", "1"), ("b", "x=y")]``.
+
+    Raises:
+        ValueError: If an item has no ``=`` or an empty key (the message names ``option``).
+    """
+    pairs = []
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{option} expects key=value, got {item!r}")
+        pairs.append((key.strip(), value))
+    return pairs
+
+
 def parse_metadata(items: Sequence[str]) -> Metadata:
     """``["steps=300", "machine=A100"]`` as ``{"steps": 300, "machine": "A100"}`` (ints and floats as numbers).
 
     Raises:
         ValueError: If an item has no ``=`` or an empty key.
     """
-    out: Metadata = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--metadata expects key=value, got {item!r}")
-        out[key.strip()] = _number_or_text(value)
-    return out
+    return {key: _number_or_text(value) for key, value in _split(items, "--metadata")}
 
 
 def parse_init_args(items: Sequence[str]) -> dict[str, Any]:
@@ -99,10 +108,7 @@ def parse_init_args(items: Sequence[str]) -> dict[str, Any]:
     import yaml
 
     out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--init-args entries are key=value, got {item!r}")
+    for key, value in _split(items, "--init-args"):
         try:
             out[key] = yaml.safe_load(value)
         except yaml.YAMLError as err:
