@@ -14,7 +14,7 @@ import torch
 import yaml
 
 import lcreg
-from lcreg.cli import build_cli, main
+from lcreg.cli import ConfigLayers, build_cli, explicit_model_args, main
 from lcreg.metrics.functional import rotation_error_deg
 from lcreg.weights import (
     PretrainedClassError,
@@ -26,9 +26,12 @@ from lcreg.weights import (
 from lcreg.weights.export import export_weights
 
 from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
+from _weights_files import exported, tiny_model  # type: ignore[import-not-found]
 
 DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
 TINY = [*TINY_DVDS, "--data.init_args.num_test=4"]  # later arguments win
+LK = config_args("models/pointnetlk.yaml", "data/embedded.yaml")  # batch_norm true, jacobian finite_difference
+TINY_DATA = [arg for arg in TINY if not arg.startswith("--model.")]
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -145,3 +148,62 @@ def test_weights_is_an_argument_of_every_subcommand(capsys: pytest.CaptureFixtur
             main([subcommand, *DVDS, "--weights", "dvds-modelnet40", "--print_config"])
         assert info.value.code in (0, None)
         assert yaml.safe_load(capsys.readouterr().out)["weights"] == "dvds-modelnet40"
+
+
+@pytest.fixture(scope="module")
+def lk_weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny PointNetLK exported without BatchNorm, analytic Jacobian and 4 IC-LK iterations at test."""
+    model = tiny_model("pointnetlk", lc=False, batch_norm=False, jacobian="analytic")
+    return exported(model, tmp_path_factory.mktemp("lk"))
+
+
+def _first_batch_errors(model: torch.nn.Module) -> torch.Tensor:
+    datamodule = build_cli([*LK, *TINY_DATA], run=False).datamodule
+    datamodule.setup("test")
+    batch = next(iter(datamodule.test_dataloader()))
+    estimate = model.register(batch.points_src, batch.points_ref).transform_ref_src
+    return rotation_error_deg(estimate, batch.transform_ref_src)
+
+
+def test_test_takes_the_model_arguments_from_the_weights(lk_weights: Path, tmp_path: Path) -> None:
+    """The config's PointNetLK has BatchNorm and finite differences, the file none and analytic: `lcreg test` evaluates
+    the file's model (the errors of ``lcreg.pretrained(file)``), not a refusal or another Jacobian."""
+    args = ["--weights", str(lk_weights), "--trainer.limit_test_batches=0.5"]
+    main(["test", *LK, *TINY_DATA, *args, *_outputs(tmp_path)])
+    run = tmp_path / "runs" / "lcreg" / "version_0"
+    expected = _first_batch_errors(lcreg.pretrained(lk_weights))
+    torch.testing.assert_close(_per_pair_rotation_errors(run), expected, atol=1e-4, rtol=0)
+    saved = yaml.safe_load((run / "config.yaml").read_text())["model"]["init_args"]
+    assert (saved["batch_norm"], saved["jacobian"], saved["eval_iterations"]) == (False, "analytic", 4)
+    assert saved["encoder_channels"] == [16, 32]
+
+
+def test_the_command_line_wins_over_the_weights(lk_weights: Path, tmp_path: Path) -> None:
+    args = ["--weights", str(lk_weights), "--model.init_args.eval_iterations=1", "--trainer.limit_test_batches=0.5"]
+    main(["test", *LK, *TINY_DATA, *args, *_outputs(tmp_path)])
+    run = tmp_path / "runs" / "lcreg" / "version_0"
+    assert yaml.safe_load((run / "config.yaml").read_text())["model"]["init_args"]["eval_iterations"] == 1
+    expected = _first_batch_errors(lcreg.pretrained(lk_weights, eval_iterations=1))
+    torch.testing.assert_close(_per_pair_rotation_errors(run), expected, atol=1e-4, rtol=0)
+    assert not torch.allclose(expected, _first_batch_errors(lcreg.pretrained(lk_weights)), atol=1e-3)
+
+
+def test_fit_keeps_the_config_arguments_and_names_the_differing_ones(lk_weights: Path, tmp_path: Path) -> None:
+    """Fine-tuning trains the configured model: a file of another architecture is refused, naming what differs."""
+    with pytest.raises(PretrainedMismatchError, match=r"batch_norm=False \(model: True\)") as info:
+        main(["fit", *LK, *TINY_DATA, "--weights", str(lk_weights), *_outputs(tmp_path)])
+    assert "jacobian='analytic' (model: 'finite_difference')" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["test", "--model.init_args.batch_norm=false", "--model.jacobian", "analytic"], {"batch_norm", "jacobian"}),
+        (["--model.init_args.optimizer.init_args.lr=0.1", "--model=x.yaml", "--data.init_args.root=r"], {"optimizer"}),
+        (["--model.class_path", "X", "--model.init_args", "{}", "--config", "model.yaml"], set()),
+        (ConfigLayers(("a.yaml",), {"model.init_args.eval_iterations": 3, "data.x": 1}), {"eval_iterations"}),
+        ({"model": {"init_args": {"batch_norm": False}}}, set()),  # a whole config: no command line
+    ],
+)
+def test_explicit_model_args(args: object, names: set[str]) -> None:
+    assert explicit_model_args(args) == names  # type: ignore[arg-type]

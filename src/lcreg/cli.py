@@ -24,6 +24,10 @@ data/modelnet40.yaml, data/dcp_protocol.yaml]``. Test-time components are model 
 exported ``.pt`` file) into the configured model once it is built: every tensor of the file must fit, and the
 model's tensors the file lacks may only be training-only modules (decoder, normal head, loss terms), which keep their
 initialisation. ``fit`` then fine-tunes from them; a ``--ckpt_path`` replaces them (they are not loaded).
+``validate``, ``test`` and ``predict`` also take the model's arguments from the file, as from a checkpoint: the file's
+``init_args`` (e.g. ``batch_norm``, ``jacobian``, ``eval_iterations``) replace the config's, so the model evaluated is
+the one the weights were exported with, except ``recall_thresholds`` and the arguments given on the command line
+(``--model.init_args.NAME``), which win. ``fit`` keeps the config's arguments (training settings are the run's).
 
 Resuming a run: ``lcreg fit --config X --ckpt_path last`` continues the latest run of that config where it stopped
 (killed, crashed or finished): ``last`` is the ``last.ckpt`` of the highest ``runs/<name>/version_<k>`` that has
@@ -81,6 +85,8 @@ __all__ = [
     "main",
 ]
 
+INFERENCE_SUBCOMMANDS = ("validate", "test", "predict")
+"""Subcommands where ``--weights`` also sets the model's arguments from the file (``fit`` keeps the config's)."""
 DEBUG_ENV = "LCREG_DEBUG"
 """Set to 1 for full error reports and tracebacks from the command line."""
 
@@ -222,6 +228,8 @@ class LcregCLI(LightningCLI):
     """
 
     _checkpoint_keys: list[str] | None = None
+    _explicit_model_args: frozenset[str] = frozenset()
+    _pretrained: Any = None  # the --weights file read by _configure_from_weights (a PretrainedWeights)
 
     def before_fit(self) -> None:
         """Say where the run logs and checkpoints (the folder changes with every run: ``version_<k>``)."""
@@ -233,6 +241,7 @@ class LcregCLI(LightningCLI):
         :func:`build_cli` reads ``sys.argv`` only when ``args`` is ``None``, so Lightning's warning about both does not
         apply.
         """
+        self._explicit_model_args = explicit_model_args(args)
         if isinstance(args, ConfigLayers):
             parser.raise_errors = True  # an LcregArgumentParser (parser_class)
             self.config = parser.parse_args([arg for file in args.files for arg in ("--config", file)])
@@ -248,7 +257,8 @@ class LcregCLI(LightningCLI):
     def _parse_ckpt_path(self) -> None:
         """Check the files named on the command line before anything is built (or seeded).
 
-        ``--weights`` must name known weights; ``--ckpt_path last`` is resolved, the checkpoint is read weights-only
+        ``--weights`` must name known weights (for validate/test/predict its ``init_args`` then configure the model,
+        :meth:`_configure_from_weights`); ``--ckpt_path last`` is resolved, the checkpoint is read weights-only
         and its model class checked against the config's, then its hyper-parameters override the config's model
         arguments (LightningCLI's behaviour).
 
@@ -273,6 +283,8 @@ class LcregCLI(LightningCLI):
             from lcreg.weights import resolve
 
             resolve(config["weights"])
+            if subcommand in INFERENCE_SUBCOMMANDS and isinstance(class_path, str):
+                self._configure_from_weights(subcommand, config["weights"], class_path)
         if not path or path in ("hpc", "registry") or str(path).startswith("registry:"):
             return
         if path == "last":
@@ -327,6 +339,35 @@ class LcregCLI(LightningCLI):
         if "_class_path" in hparams:
             hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
         self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+
+    def _configure_from_weights(self, subcommand: str, source: str, class_path: str) -> None:
+        """The ``--weights`` file's model arguments replace the config's, as a checkpoint's do (validate/test/predict).
+
+        Except :data:`~lcreg.models.base.EVALUATION_ARGS` and the arguments given on the command line. A file of
+        another class changes nothing here (:func:`lcreg.weights.load_into` refuses it once the model is built).
+
+        Raises:
+            lcreg.weights.PretrainedError: The file is damaged, or the class refuses its arguments
+                (:class:`~lcreg.weights.PretrainedBuildError`).
+        """
+        from lcreg.weights import PretrainedBuildError, read_weights
+
+        weights = self._pretrained = read_weights(source)
+        if weights.class_path != class_path:
+            return
+        configured = self.config[subcommand]["model"].get("init_args") or {}
+        keep = {*EVALUATION_ARGS, *self._explicit_model_args}
+        changed = {k: v for k, v in weights.init_args.items() if k not in keep and configured.get(k) != v}
+        if not changed:
+            return
+        model = {"class_path": class_path, "init_args": changed}
+        try:
+            self.config = self.parser.parse_object({subcommand: {"model": model}}, self.config)
+        except Exception as err:  # jsonargparse: an argument the class no longer has, or a refused value
+            message = f"{class_path} refuses the file's init_args {sorted(changed)}: {one_line(str(err))}"
+            raise PretrainedBuildError(weights.source, message, weights.path) from err
+        values = ", ".join(f"{k}={v!r}" for k, v in changed.items())
+        rank_zero_info(f"lcreg: --weights {source} sets the model's {values} (the file's; --model.init_args.NAME wins)")
 
     def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
         """Lightning loads ``--ckpt_path`` weights-only (its default is a full unpickle for local files)."""
@@ -385,7 +426,7 @@ class LcregCLI(LightningCLI):
             return
         from lcreg.weights import load_into
 
-        weights = load_into(self.model, source)
+        weights = load_into(self.model, self._pretrained or source)
         rank_zero_info(f"lcreg: loaded pretrained weights {source!r} ({weights.path}) into {type(self.model).__name__}")
 
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
@@ -419,6 +460,26 @@ class LcregCLI(LightningCLI):
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TimedProgressBar())
         return super()._instantiate_trainer(config, callbacks)
+
+
+def explicit_model_args(args: ArgsType | ConfigLayers) -> frozenset[str]:
+    """Names of the model arguments set on the command line or as :class:`ConfigLayers` values (not in files).
+
+    ``--model.init_args.NAME[=V]`` and ``--model.NAME[=V]`` give ``NAME`` (``--model.init_args.optimizer.init_args.lr``
+    gives ``optimizer``); ``ConfigLayers`` values ``model.init_args.NAME...`` the same.
+    """
+    if isinstance(args, ConfigLayers):
+        keys: Sequence[Any] = [f"--{key}" for key in args.values]
+    elif isinstance(args, (list, tuple)):
+        keys = args
+    else:
+        return frozenset()
+    names = set()
+    for arg in keys:
+        match = re.fullmatch(r"--model\.(?:init_args\.)?([A-Za-z_]\w*)(?:[.=].*)?", str(arg), flags=re.DOTALL)
+        if match and match.group(1) not in ("class_path", "init_args", "dict_kwargs"):
+            names.add(match.group(1))
+    return frozenset(names)
 
 
 def _logger_under_root_dir(config: Any) -> None:

@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 from tests.benchmarks.test_smoke import load
 
 from lcreg.cli import LcregCLI
@@ -29,6 +30,11 @@ def test_variant_values_build_their_models() -> None:
     nobn = cli("pointnetlk_nobn")
     assert nobn.model.hparams.batch_norm is False and nobn.model.hparams.jacobian == "analytic"
     assert nobn.trainer.gradient_clip_val == 1.0
+    lever = cli("pointnetlk_nobn_steplr")
+    assert lever.model.hparams.batch_norm is False and lever.trainer.gradient_clip_val == 1.0
+    scheduler = lever.model.configure_optimizers()["lr_scheduler"]
+    assert isinstance(scheduler, torch.optim.lr_scheduler.StepLR) and (scheduler.step_size, scheduler.gamma) == (5, 0.5)
+    assert scheduler.optimizer.param_groups[0]["lr"] == 0.0001
 
 
 def test_recipe_levers_change_only_their_self_motion_argument() -> None:
