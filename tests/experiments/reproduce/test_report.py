@@ -61,6 +61,12 @@ def test_report_states_budget_data_pairs_seeds_and_claims(tmp_path: Path) -> Non
     claims = [line for line in text.splitlines() if line.startswith("| LC + ")]
     assert len(claims) == 8 and all("within spread" in line for line in claims)  # LC - X = 0 ± 0.1
     assert "## Differences from the paper" in text and "`cpu`" in text
+    assert "- Checkpoint chosen on `val/rre_mean_deg` (validation pairs" in text
+
+
+def test_a_converge_report_names_the_metric_its_checkpoints_were_chosen_on(tmp_path: Path) -> None:
+    text = render(sweep(LC, tmp_path, "converge"), lc_rows(), "lcreg reproduce lc --budget converge")
+    assert "- Checkpoint chosen on `val/rre_clip5_deg` (validation pairs" in text and "`val/rre_mean_deg`" not in text
 
 
 def test_claims_in_the_report_hold_or_fail_beyond_the_spread(tmp_path: Path) -> None:

@@ -163,6 +163,13 @@ def _budget_lines(sweep: Sweep) -> list[str]:
     return [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}." for g, d in described.items()]
 
 
+def _monitors(sweep: Sweep) -> str:
+    """The validation metric(s) the budget's runs select their checkpoint on (``converge``: ``val/rre_clip5_deg``)."""
+    budgets = sweep.experiment.budgets[sweep.preset]
+    groups = dict.fromkeys(v.budget_group for v in sweep.experiment.variants)
+    return " / ".join(f"`{m}`" for m in dict.fromkeys(budgets[g].monitor for g in groups))
+
+
 def _pairs(rows: Rows, field: str) -> str:
     counts = sorted({r[field] for runs in rows.values() for r in runs})
     return "/".join(map(str, counts)) or "–"
@@ -180,7 +187,7 @@ def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -
         f'Paper: Table "{experiment.paper_table}". Command: `{command}`',
         "",
         *_budget_lines(sweep),
-        "- Checkpoint chosen on `val/rre_mean_deg` (validation pairs carved out of the training objects, never the "
+        f"- Checkpoint chosen on {_monitors(sweep)} (validation pairs carved out of the training objects, never the "
         "test set), then tested once on the deterministic test pairs.",
         f"- Data: {sweep.data.describe()}: **{_pairs(rows, 'num_test_pairs')} test pairs**, "
         f"{_pairs(rows, 'num_val_pairs')} validation pairs (the paper: the full ModelNet40).",

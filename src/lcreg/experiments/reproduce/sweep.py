@@ -3,7 +3,8 @@
 Every run goes through the benchmark harness (:func:`lcreg.experiments.benchmarking.fit`): the method is built from its
 configs exactly as ``lcreg fit`` builds it, trained with ``seed_everything = seed`` (initialisation and training
 order), and validated during training on the validation pairs carved out of the training objects; the checkpoint with
-the lowest ``val/rre_mean_deg`` is kept (never the test set) and tested once on the deterministic test pairs (the same
+the lowest ``RunBudget.monitor`` (``val/rre_mean_deg``; ``converge``: ``val/rre_clip5_deg``) is kept (never the test
+set) and tested once on the deterministic test pairs (the same
 in every run: the data's pair seed is fixed). The row is appended to ``<out>/<experiment>.jsonl`` (flushed) as soon
 as the run ends; a rerun skips every (variant, seed) whose row is there for the same budget and data, so an
 interrupted sweep resumes with the next unfinished run. A run whose training stops on non-finite losses
