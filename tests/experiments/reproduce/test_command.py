@@ -38,6 +38,9 @@ def test_smoke_preset_writes_jsonl_markdown_with_paper_columns_and_plots(name: s
     assert paper_value in text.split("## MAE(R)")[0]
     for suffix in ("rotation", "translation"):
         assert_png_drawn(out / f"{name}_{suffix}.png")
+    assert text.count("| end of the budget |") == len(rows)  # one line per run in "Where each run stopped"
+    for group in {v.key.split("/")[0] for v in experiment.variants}:
+        assert_png_drawn(out / f"{name}_curves_{group}_validation.png")
     assert f"wrote {out / name}.md" in capsys.readouterr().out
 
 

@@ -36,6 +36,7 @@ from lcreg.experiments.reproduce.runtime import (
     render_runtime,
 )
 from lcreg.experiments.reproduce.spec import Experiment
+from lcreg.experiments.reproduce.stops import plot_learning_curves, with_metrics_files
 from lcreg.experiments.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
 
 __all__ = [
@@ -177,11 +178,12 @@ def reproduce(
         log = sweep.open_log()
     else:
         log = run_sweep(sweep, progress=progress, rerun=not args.resume)
-    rows = finished_rows(sweep, log)
-    report = render(sweep, rows, command, failed_runs(sweep, log))
+    rows = with_metrics_files(finished_rows(sweep, log), out)  # also from a copy of <out> made elsewhere
+    curves = plot_learning_curves(sweep.experiment, rows, out, sweep.file_stem.name)
+    report = render(sweep, rows, command, failed_runs(sweep, log), curves)
     written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
     written += [sweep.log_path] if sweep.log_path.is_file() else []
-    return written + plot_sweep(sweep, rows)
+    return written + plot_sweep(sweep, rows) + curves
 
 
 def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:

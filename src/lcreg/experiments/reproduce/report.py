@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from lcreg.experiments.benchmarking import format_mean_std, machine_line, markdown_table
 from lcreg.experiments.reproduce.claims import ClaimResult, Comparison, judge
 from lcreg.experiments.reproduce.paper import PAPER_METRICS
 from lcreg.experiments.reproduce.spec import Cell, Experiment, Rows
+from lcreg.experiments.reproduce.stops import stops_table
 from lcreg.experiments.reproduce.sweep import Sweep
 
-__all__ = ["CLAIM_METRICS", "METRIC_TITLES", "claim_results", "metric_table", "render", "values"]
+__all__ = ["CLAIM_METRICS", "METRIC_TITLES", "claim_results", "metric_table", "render", "stops_lines", "values"]
 
 METRIC_TITLES = {
     "rmse_r_deg": "RMSE(R) (°)",
@@ -202,8 +204,28 @@ def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -
     return lines
 
 
-def render(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -> str:
-    """The whole report (Markdown, ends with a newline); ``failed`` lists the runs that diverged."""
+def stops_lines(sweep: Sweep, rows: Rows, curves: Sequence[Path]) -> list[str]:
+    """Where and why each run stopped (:func:`~lcreg.experiments.reproduce.stops.stops_table`), and the curve PNGs."""
+    if not any(rows.values()):
+        return []
+    lines = ["", "## Where each run stopped", "", stops_table(sweep.experiment, rows, sweep.preset)]
+    if curves:
+        names = ", ".join(f"`{Path(c).name}`" for c in curves)
+        lines += ["", f"Learning curves (mean over seeds, min-max shade; every validation of every run): {names}."]
+    return lines
+
+
+def render(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = (), curves: Sequence[Path] = ()) -> str:
+    """The whole report (Markdown, ends with a newline).
+
+    Args:
+        sweep: The sweep reported.
+        rows: Its finished runs by variant key.
+        command: The command line written in the report.
+        failed: The runs that diverged.
+        curves: The learning-curve PNGs written beside it
+            (:func:`~lcreg.experiments.reproduce.stops.plot_learning_curves`).
+    """
     experiment = sweep.experiment
     parts = header(sweep, rows, command, failed)
     parts += [
@@ -215,6 +237,7 @@ def render(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -
         parts += ["", f"## {METRIC_TITLES[metric]}", "", metric_table(experiment, rows, metric)]
     parts += ["", "## Other test metrics (not in the paper's table)", "", other_table(experiment, rows)]
     parts += ["", "## The paper's claims", "", f"Rule: {SPREAD_RULE}.", "", claims_table(experiment, rows)]
+    parts += stops_lines(sweep, rows, curves)
     if experiment.extra is not None and (extra := experiment.extra(rows)):
         parts += ["", *extra]
     if experiment.notes:

@@ -1,0 +1,72 @@
+"""Where each run of a sweep stopped and its learning curves, also from a copy of the output folder made elsewhere."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
+from lcreg.__main__ import main
+from lcreg.experiments.reproduce.lc import LC
+from lcreg.experiments.reproduce.stops import metrics_file, stops_table, with_metrics_files
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+
+def test_metrics_file_is_the_recorded_path_or_its_longest_tail_under_the_output_folder(tmp_path: Path) -> None:
+    recorded = tmp_path / "machine_a" / "out" / "runs" / "lc" / "dcp_X" / "seed0" / "metrics.csv"
+    recorded.parent.mkdir(parents=True)
+    recorded.write_text("step\n")
+    assert metrics_file({"metrics_csv": str(recorded)}) == recorded
+    copy = tmp_path / "docs" / "results" / "job" / "runs"
+    (copy / "runs" / "lc" / "dcp_X" / "seed0").mkdir(parents=True)
+    (copy / "runs" / "lc" / "dcp_X" / "seed0" / "metrics.csv").write_text("step\n")
+    (copy / "seed0").mkdir()
+    (copy / "seed0" / "metrics.csv").write_text("step\n")  # a shorter tail: not the run's file
+    shutil.rmtree(tmp_path / "machine_a")
+    row = {"metrics_csv": str(recorded)}
+    assert metrics_file(row) is None
+    assert metrics_file(row, copy) == copy / "runs" / "lc" / "dcp_X" / "seed0" / "metrics.csv"
+    assert metrics_file(row, tmp_path / "elsewhere") is None and metrics_file({}, copy) is None
+    rows = with_metrics_files({"dcp/X": [row, {"metrics_csv": None}]}, copy)
+    assert rows["dcp/X"][0]["metrics_csv"] == str(copy / "runs" / "lc" / "dcp_X" / "seed0" / "metrics.csv")
+    assert rows["dcp/X"][1] == {"metrics_csv": None} and row["metrics_csv"] == str(recorded)  # not modified
+
+
+def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_order() -> None:
+    base = {"selected_on": "val/rre_clip5_deg", "train_s": 12.4}
+    rows = {
+        "idam/LC": [{**base, "seed": 0, "steps": 5016, "stopped_early": False, "selected": "s.ckpt", "best_val": 1.3}],
+        "idam/X": [
+            {**base, "seed": 2, "steps": 4664, "stopped_early": True, "selected": "b.ckpt", "best_val": 1.50341},
+            {"seed": 1, "steps": 68, "train_s": 3.0},  # a row without selection fields
+        ],
+    }
+    lines = stops_table(LC, rows, "converge").splitlines()[2:]
+    assert lines == [
+        "| idam/X | 1 | 68 | step cap | – | – | 3 |",
+        "| idam/X | 2 | 4664 | early stop (no gain) | `b.ckpt` | 1.503 (`val/rre_clip5_deg`) | 12 |",
+        "| idam/LC | 0 | 5016 | step cap | `s.ckpt` | 1.3 (`val/rre_clip5_deg`) | 12 |",
+    ]
+    assert "| idam/LC | 0 | 5016 | end of the budget |" in stops_table(LC, rows, "cpu")
+
+
+def test_a_report_of_a_copied_output_folder_has_the_stops_and_learning_curves(tmp_path: Path) -> None:
+    """Trained in one folder, reported from a copy after the original is gone (as the queue commits results)."""
+    trained = tmp_path / "machine_a"
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "dcp/*"]
+    main([*args, "--out", str(trained)])
+    assert all(Path(r["metrics_csv"]).is_file() for r in read_jsonl(trained / "lc.jsonl"))
+    copy = tmp_path / "docs" / "job" / "runs"
+    shutil.copytree(trained, copy)
+    shutil.rmtree(trained)
+    for png in copy.glob("*.png"):
+        png.unlink()
+    main([*args, "--out", str(copy), "--report-only"])
+    text = (copy / "lc.md").read_text()
+    assert "## Where each run stopped" in text and "| dcp/LC | 0 | 2 | end of the budget |" in text
+    assert "`lc_curves_dcp_validation.png`" in text
+    assert_png_drawn(copy / "lc_curves_dcp_validation.png")
+    assert (copy / "lc_curves_dcp_training.png").is_file()
