@@ -17,6 +17,7 @@ import lcreg
 from lcreg.cli import ConfigLayers, build_cli, explicit_model_args, main
 from lcreg.metrics.functional import rotation_error_deg
 from lcreg.weights import (
+    PretrainedBuildError,
     PretrainedClassError,
     PretrainedMismatchError,
     PretrainedNotFoundError,
@@ -26,7 +27,7 @@ from lcreg.weights import (
 from lcreg.weights.export import export_weights
 
 from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
-from _weights_files import exported, tiny_model  # type: ignore[import-not-found]
+from _weights_files import exported, rewrite, tiny_model  # type: ignore[import-not-found]
 
 DVDS = config_args("models/dvds.yaml", "data/embedded.yaml")
 TINY = [*TINY_DVDS, "--data.init_args.num_test=4"]  # later arguments win
@@ -193,6 +194,16 @@ def test_fit_keeps_the_config_arguments_and_names_the_differing_ones(lk_weights:
     with pytest.raises(PretrainedMismatchError, match=r"batch_norm=False \(model: True\)") as info:
         main(["fit", *LK, *TINY_DATA, "--weights", str(lk_weights), *_outputs(tmp_path)])
     assert "jacobian='analytic' (model: 'finite_difference')" in str(info.value)
+
+
+def test_a_file_whose_arguments_the_class_refuses_is_named_in_one_line(lk_weights: Path, tmp_path: Path) -> None:
+    """A file exported by another lcreg version, with a constructor argument this class no longer has."""
+    content = read_weights(lk_weights)
+    lying = rewrite(lk_weights, tmp_path / "old.pt", init_args={**content.init_args, "warp_factor": 9})
+    refused = r"refuses the file's init_args .*Option 'warp_factor' is not"
+    with pytest.raises(PretrainedBuildError, match=refused) as info:
+        main(["test", *LK, *TINY_DATA, "--weights", str(lying), *_outputs(tmp_path)])
+    assert "\n" not in str(info.value) and str(lying) in str(info.value)
 
 
 @pytest.mark.parametrize(

@@ -361,11 +361,17 @@ class LcregCLI(LightningCLI):
         if not changed:
             return
         model = {"class_path": class_path, "init_args": changed}
+        parser = self.parser
+        if not isinstance(parser, LcregArgumentParser):  # pragma: no cover - build_cli always passes parser_class
+            raise TypeError(f"lcreg's CLI needs an LcregArgumentParser, got {type(parser).__name__}")
+        raising, parser.raise_errors = parser.raise_errors, True  # raise ConfigValueError instead of exiting
         try:
-            self.config = self.parser.parse_object({subcommand: {"model": model}}, self.config)
-        except Exception as err:  # jsonargparse: an argument the class no longer has, or a refused value
+            self.config = parser.parse_object({subcommand: {"model": model}}, self.config)
+        except ConfigValueError as err:  # an argument the class no longer has (another lcreg version), a bad value
             message = f"{class_path} refuses the file's init_args {sorted(changed)}: {one_line(str(err))}"
             raise PretrainedBuildError(weights.source, message, weights.path) from err
+        finally:
+            parser.raise_errors = raising
         values = ", ".join(f"{k}={v!r}" for k, v in changed.items())
         rank_zero_info(f"lcreg: --weights {source} sets the model's {values} (the file's; --model.init_args.NAME wins)")
 
