@@ -60,18 +60,22 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path: Pa
         str(tmp_path),
     ]
     main(args)
-    assert fits == ["idam", "idam_lc", "deepgmr"]
+    assert fits == ["idam", "idam_lc", "idam_lc", "deepgmr"]  # X, LC + X, LC (matched) + X
     main(args)  # everything finished: nothing trains, the report is written again
-    assert len(fits) == 3 and (tmp_path / "lc.md").is_file()
+    assert len(fits) == 4 and (tmp_path / "lc.md").is_file()
     log = tmp_path / "lc.jsonl"
     lines = log.read_text().splitlines()
     log.write_text("\n".join(lines[:1]) + "\n")  # interrupted after the first run
     main(args)
-    assert fits[3:] == ["idam_lc", "deepgmr"] and len(read_jsonl(log)) == 3
+    assert fits[4:] == ["idam_lc", "idam_lc", "deepgmr"] and len(read_jsonl(log)) == 4
+    matched = next(r for r in read_jsonl(log) if r["variant"] == "idam/LC-matched")
+    assert matched["overrides"]["model.init_args.loss_terms"][0]["init_args"]["weight"] == 51.6
 
 
 def _fake_train(calls: list[tuple[str, int]]) -> Any:
-    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+    def train(
+        name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Any
+    ) -> dict[str, Any]:
         calls.append((name, seed))
         return {"rmse_r_deg": 1.0, "train_s": 0.0}
 
@@ -132,11 +136,13 @@ def test_a_diverged_run_is_recorded_as_failed_not_retried_and_left_out_of_the_me
     calls: list[tuple[str, int]] = []
     ok = _fake_train(calls)
 
-    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+    def train(
+        name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Any
+    ) -> dict[str, Any]:
         if seed == 1:
             calls.append((name, seed))
             raise NonFiniteTrainingError("10 consecutive steps had a non-finite loss")
-        return ok(name, budget, data, run_dir, seed)
+        return ok(name, budget, data, run_dir, seed, overrides)
 
     sweep = Sweep(LC.select(["idam/X"]), "smoke", (0, 1), DataChoice(None), tmp_path)
     run_sweep(sweep, train)

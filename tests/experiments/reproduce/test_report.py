@@ -38,9 +38,12 @@ def sweep(experiment: Experiment, tmp_path: Path, preset: str = "cpu") -> Sweep:
 
 def test_lc_table_has_paper_ours_and_ratio_per_series(tmp_path: Path) -> None:
     table = metric_table(LC, lc_rows(), "rmse_r_deg").splitlines()
-    assert table[0] == "|  | row | paper: X | ours: X | ours / paper | paper: LC + X | ours: LC + X | ours / paper |"
+    assert table[0] == (
+        "|  | row | paper: X | ours: X | ours / paper | paper: LC + X | ours: LC + X | ours / paper "
+        "| ours: LC (matched) + X |"  # not in the paper: no paper column, no ratio
+    )
     dcp = table[2].split(" | ")
-    assert dcp[1:] == ["DCP-v2", "4.834", "9.67 ± 0.1", "2.00×", "3.950", "9.67 ± 0.1", "2.45× |"]
+    assert dcp[1:] == ["DCP-v2", "4.834", "9.67 ± 0.1", "2.00×", "3.950", "9.67 ± 0.1", "2.45×", "9.67 ± 0.1 |"]
 
 
 def test_zero_paper_values_have_no_ratio_and_pipes_are_escaped() -> None:
@@ -57,9 +60,9 @@ def test_report_states_budget_data_pairs_seeds_and_claims(tmp_path: Path) -> Non
         "Budget `cpu` per run:" in text and "- dcp: 72 steps × 8 pairs × 256 points, validated every 24 steps." in text
     )
     assert "ModelNet40 /data/modelnet40_mini, unseen objects: **164 test pairs**, 78 validation pairs" in text
-    assert "Seeds: 0, 1, 2" in text and "Runs finished: 24 of 8" not in text and "Runs finished: 24 of 24" in text
-    claims = [line for line in text.splitlines() if line.startswith("| LC + ")]
-    assert len(claims) == 8 and all("within spread" in line for line in claims)  # LC - X = 0 ± 0.1
+    assert "Seeds: 0, 1, 2" in text and "Runs finished: 36 of 36" in text
+    claims = [line for line in text.splitlines() if line.startswith("| LC ")]
+    assert len(claims) == 16 and all("within spread" in line for line in claims)  # LC - X = 0 ± 0.1
     assert "## Differences from the paper" in text and "`cpu`" in text
     assert "- Checkpoint chosen on `val/rre_mean_deg` (validation pairs" in text
 
@@ -103,9 +106,10 @@ def test_an_experiment_refuses_cells_of_unknown_variants_and_missing_budgets() -
         Experiment("e", "t", "p", variants=(Variant("x", "dcp", "h"),), cells=(), **good)
     with pytest.raises(ValueError, match="--only 'nope' matches no variant of lc"):
         LC.select(["nope"])
-    assert [v.key for v in LC.select(["idam/*"]).variants] == ["idam/X", "idam/LC"] and len(
+    assert [v.key for v in LC.select(["idam/*"]).variants] == ["idam/X", "idam/LC", "idam/LC-matched"] and len(
         LC.select(["idam/*"]).claims
-    ) == 1
+    ) == 2
+    assert [v.key for v in LC.select(["idam/X", "idam/LC"]).variants] == ["idam/X", "idam/LC"]
 
 
 def _not_blank(path: Path) -> np.ndarray:

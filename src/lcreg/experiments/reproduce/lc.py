@@ -4,7 +4,8 @@ Hosts: DCP-v2, PRNet, IDAM and DeepGMR, from the registry (``<host>`` and ``<hos
 ``configs/models/<host>.yaml`` with and without ``configs/lc.yaml``, on ModelNet40 under the DCP-family protocol of
 ``configs/data/dcp_protocol.yaml``), at their original batch sizes unless the budget sets one. X and LC + X of one
 seed start from the same host weights (the LC metric has its own seed) and see the same training pairs; only the loss
-differs.
+differs. Beyond the paper, ``<host>/LC-matched`` weights LC so that its encoder gradient equals the host's own
+(:data:`MATCHED_LC_WEIGHTS`): at the paper's weight 1 LC barely reaches IDAM's and DeepGMR's encoders.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from lcreg.experiments.reproduce.claims import Claim, Comparison
 from lcreg.experiments.reproduce.paper import LC_PLUS_X as PAPER
 from lcreg.experiments.reproduce.spec import Cell, Experiment, Rows, Variant
 
-__all__ = ["BUDGETS", "HOSTS", "LC", "lc_share_lines", "lc_trajectory"]
+__all__ = ["BUDGETS", "HOSTS", "LC", "MATCHED_LC_WEIGHTS", "lc_share_lines", "lc_terms", "lc_trajectory"]
 
 HOSTS = {"dcp": "DCP", "prnet": "PRNet", "idam": "IDAM", "deepgmr": "DeepGMR"}
 """Registry name of each host -> its row in the paper's table."""
@@ -44,8 +45,34 @@ BUDGETS: dict[Preset, dict[str, RunBudget]] = {
     "paper": dict.fromkeys(HOSTS, PAPER_BUDGET),
 }
 """Per host: a CPU step of PRNet (256 points) costs about 10 times one of IDAM (512 points), so the ``cpu`` budget
-differs per host: each host's 6 runs (X, LC + X × 3 seeds) take about half an hour, 2 h in all (estimate from measured
-s/step in ``docs/reproducing.md``)."""
+differs per host: each host's 9 runs (X, LC + X, LC (matched) + X × 3 seeds) take about 45 min, 3 h in all
+(estimate from measured s/step in ``docs/reproducing.md``)."""
+
+
+MATCHED_LC_WEIGHTS = {"dcp": 0.505, "prnet": 1.30, "idam": 51.6, "deepgmr": 58.8}
+"""Per host, the LC weight at which LC's gradient on the encoder equals the host's own loss's: the median of
+‖∇ own‖ / ‖∇ LC‖ over the first 20 training batches of the ``converge`` budget at initialisation, seed 0
+(``benchmarks/lc_gradient_share.py``, ``docs/results/converge/lc_gradient_share.md``; the rule was fixed in
+``docs/results/converge/README.md`` before any test number). At the paper's weight 1, LC has 3 % of IDAM's encoder
+gradient and 1/59 of DeepGMR's, so "LC + X does not beat X" at weight 1 would not show that LC cannot help them."""
+
+
+def lc_terms(weight: float) -> list[dict[str, Any]]:
+    """``model.init_args.loss_terms`` of ``configs/lc.yaml`` with another weight (the hosts have no other terms)."""
+    lc = {"class_path": "lcreg.nn.local_consistency.LocalConsistency", "init_args": {"num_local_points": 64}}
+    return [
+        {
+            "class_path": "lcreg.models.loss_terms.LocalConsistencyLoss",
+            "init_args": {"weight": weight, "local_consistency": lc},
+        }
+    ]
+
+
+def _matched(host: str) -> Variant:
+    """LC + ``host`` with :data:`MATCHED_LC_WEIGHTS`'s weight: key ``<host>/LC-matched``."""
+    return Variant(
+        f"{host}/LC-matched", _lc(host), host, {"model.init_args.loss_terms": lc_terms(MATCHED_LC_WEIGHTS[host])}
+    )
 
 
 def _label(host: str) -> str:
@@ -93,7 +120,9 @@ NOTES = (
     "Pairs: the DCP-family protocol (`configs/data/dcp_protocol.yaml`): the same points in both clouds, shuffled, "
     "Gaussian noise σ 0.01 clipped at 0.05 on both; without noise an untrained DeepGMR solves it exactly. The paper "
     "does not state the pair protocol of this table.",
-    "LC: `configs/lc.yaml` (|X1| = |X2| = 64, weight 1, frozen FC metric, target pairing), the same for every host.",
+    "LC: `configs/lc.yaml` (|X1| = |X2| = 64, weight 1, frozen FC metric, target pairing), the same for every host. "
+    "LC (matched) + X, not in the paper: the same term weighted so that its encoder gradient equals the host's own at "
+    "initialisation (IDAM 51.6, DeepGMR 58.8, DCP-v2 0.505, PRNet 1.30: `docs/results/converge/lc_gradient_share.md`).",
     "Data: `--root` (default `../shared/data/modelnet40_mini`, a real subset of ModelNet40) instead of the full "
     "ModelNet40. Budget: `cpu` trains 20 (PRNet) to 220 (IDAM, DeepGMR) steps of 8 pairs per run, 0.2 to 2.5 "
     "passes over the 705 training objects of modelnet40_mini; `paper` trains 200 epochs (the paper's protocol) "
@@ -106,22 +135,38 @@ LC = Experiment(
     paper_table="Local consistency loss can be integrated into various point cloud registration models (table4)",
     paper=PAPER,
     variants=tuple(
-        Variant(f"{host}/{kind}", name, host) for host in HOSTS for kind, name in (("X", host), ("LC", _lc(host)))
+        variant
+        for host in HOSTS
+        for variant in (Variant(f"{host}/X", host, host), Variant(f"{host}/LC", _lc(host), host), _matched(host))
     ),
     cells=tuple(
-        Cell("hosts", _label(host), series, f"{host}/{kind}", f"{prefix}{paper}")
+        Cell("hosts", _label(host), series, f"{host}/{kind}", f"{prefix}{paper}" if prefix is not None else None)
         for host, paper in HOSTS.items()
-        for series, kind, prefix in (("X", "X", ""), ("LC + X", "LC", "LC + "))
+        for series, kind, prefix in (
+            ("X", "X", ""),
+            ("LC + X", "LC", "LC + "),
+            ("LC (matched) + X", "LC-matched", None),
+        )
     ),
     claims=tuple(
-        Claim(f"LC + {_label(host)} beats {_label(host)}", (Comparison(f"{host}/LC", f"{host}/X"),)) for host in HOSTS
+        claim
+        for host in HOSTS
+        for claim in (
+            Claim(f"LC + {_label(host)} beats {_label(host)}", (Comparison(f"{host}/LC", f"{host}/X"),)),
+            Claim(
+                f"LC (matched weight) + {_label(host)} beats {_label(host)} (not a claim of the paper)",
+                (Comparison(f"{host}/LC-matched", f"{host}/X"),),
+            ),
+        )
     ),
     budgets=BUDGETS,
     series={
         "X": "the host as configured (`configs/models/<host>.yaml`, its original loss)",
-        "LC + X": "the same plus the local-consistency term (`configs/lc.yaml`)",
+        "LC + X": "the same plus the local-consistency term (`configs/lc.yaml`, weight 1 as in the paper)",
+        "LC (matched) + X": "the same term weighted to match the host's encoder gradient (`MATCHED_LC_WEIGHTS`; "
+        "not in the paper)",
     },
     notes=NOTES,
     extra=lc_share_lines,
 )
-"""The LC + X experiment (8 variants: 4 hosts × {X, LC + X})."""
+"""The LC + X experiment (12 variants: 4 hosts × {X, LC + X, LC (matched) + X})."""

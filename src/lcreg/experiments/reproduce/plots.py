@@ -32,6 +32,8 @@ BAR_GROUP = 0.8
 """Width of the bars of one row together (rows are 1 apart)."""
 BLOCK_GAP = 0.6
 """Extra space between blocks."""
+LEGEND_ENTRY_INCHES = 2.2
+"""Width one legend entry needs (the longest, "paper (full ModelNet40)", at font size 8)."""
 
 
 def bar_positions(experiment: Experiment) -> dict[tuple[str, str], float]:
@@ -137,7 +139,7 @@ def _render(sweep: Sweep, rows: Rows, metrics: tuple[str, ...], path: Path) -> P
     legend = fig.legend(
         handles=handles,
         loc="outside upper center",
-        ncols=len(handles),
+        ncols=min(len(handles), max(1, int(width / LEGEND_ENTRY_INCHES))),  # wraps instead of running off the canvas
         fontsize=8,
         frameon=False,
         title=_figure_title(sweep, rows),

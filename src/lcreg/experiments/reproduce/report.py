@@ -78,21 +78,28 @@ def metric_table(experiment: Experiment, rows: Rows, metric: str) -> str:
     """One metric: rows × series with ours (mean ± std), the paper's value and ``ours / paper``.
 
     When every row has one paper row for all its series (the ablation), the paper's value is one column after the
-    row name; otherwise (LC + X) each series has its own paper column.
+    row name; otherwise (LC + X) each series has its own paper column. A series the paper does not have (no cell
+    names a paper row, e.g. LC (matched) + X) has only its ``ours`` column.
     """
     series, shared = experiment.series_names(), _shared_paper(experiment)
+    paperless = {name for name in series if all(c.paper is None for c in experiment.cells if c.series == name)}
     header = ["", "row", *(["paper"] if shared else [])]
     for name in series:
-        header += [*([] if shared else [f"paper: {name}"]), f"ours: {name}", "ours / paper"]
+        if name in paperless:
+            header.append(f"ours: {name}")
+        else:
+            header += [*([] if shared else [f"paper: {name}"]), f"ours: {name}", "ours / paper"]
     lines = []
     for block in experiment.blocks():
         for i, row in enumerate(experiment.rows(block)):
-            cells = [experiment.cell(block, row, name) for name in series]
             line: list[object] = [block if i == 0 else "", row]
             if shared:
+                cells = [experiment.cell(block, row, name) for name in series]
                 line.append(_paper_cell(experiment, next(c.paper for c in cells if c), metric))
-            for cell in cells:
-                line += _series_cells(experiment, cell, rows, metric, with_paper=not shared)
+            for name in series:
+                cell = experiment.cell(block, row, name)
+                columns = _series_cells(experiment, cell, rows, metric, with_paper=not shared)
+                line += columns[-2:-1] if name in paperless else columns
             lines.append(line)
     return markdown_table(header, lines)
 

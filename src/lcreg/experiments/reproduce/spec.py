@@ -30,11 +30,14 @@ class Variant:
         key: Name in the JSONL, in claims and in ``--only`` (e.g. ``"paper/A"``, ``"dcp/LC"``).
         method: Registry name of the method (its configs are what is trained).
         budget_group: Key of the experiment's budgets (variants of one group get the same budget).
+        overrides: Config values by dotted key applied after the method's configs (e.g. another LC weight:
+            ``{"model.init_args.loss_terms": [...]}``; a list replaces the configs' list).
     """
 
     key: str
     method: str
     budget_group: str
+    overrides: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ and the sweep goes on.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import copy
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -48,8 +49,9 @@ METRICS = tuple(key for key, _ in REPORT_COLUMNS)
 KEY_FIELDS = ("experiment", "variant", "seed", "budget", "data")
 """Fields that identify a run in the JSONL: a row with the same values is a finished run, skipped on a rerun."""
 
-Trainer = Callable[[str, RunBudget, DataChoice, Path, int], dict[str, Any]]
-"""``train(method, budget, data, run_dir, seed) -> row fields``: :func:`train_and_test` (tests pass a fake)."""
+Trainer = Callable[[str, RunBudget, DataChoice, Path, int, Mapping[str, Any]], dict[str, Any]]
+"""``train(method, budget, data, run_dir, seed, overrides) -> row fields``: :func:`train_and_test` (tests pass a
+fake); ``overrides`` are the variant's config values (:attr:`Variant.overrides`)."""
 
 
 class OutputFiles:
@@ -132,15 +134,26 @@ class Sweep(PresetRun):
         return ResultLog(self.log_path, KEY_FIELDS)
 
 
-def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int) -> dict[str, Any]:
+def train_and_test(
+    name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Mapping[str, Any]
+) -> dict[str, Any]:
     """Train method ``name`` under ``budget`` on ``data``, test the checkpoint chosen on validation.
+
+    Args:
+        name: Registry name of the method.
+        budget: Steps, sizes and validation schedule.
+        data: The dataset.
+        run_dir: Logs and checkpoints of the run.
+        seed: ``seed_everything`` of the run.
+        overrides: The variant's own config values (:attr:`Variant.overrides`), applied last.
 
     Returns:
         Row fields: the test metrics (:data:`METRICS`), the selected checkpoint (its name; its weights are kept
         as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
-        the pair counts, the sizes and the times.
+        the pair counts, the sizes and the times (and ``overrides`` when the variant has any).
     """
-    values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget)}
+    recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
+    values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(recorded)}
     result = fit(name, values, monitor=budget.monitor, resume=budget.converge)
     best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
     load_into(result.model, result.best_checkpoint)
@@ -167,6 +180,7 @@ def train_and_test(name: str, budget: RunBudget, data: DataChoice, run_dir: Path
         "num_test_pairs": len(dm.test_set),
         "num_points": dm.hparams.num_points,
         "batch_size": dm.hparams.batch_size,
+        **({"overrides": recorded} if recorded else {}),
         **{key: float(tested[f"test/{key}"]) for key in METRICS},
     }
 
@@ -210,7 +224,7 @@ def run_sweep(
                 continue
             run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
             try:
-                fields = run(seed)
+                fields = run(seed, variant.overrides)
             except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
                 fields = {"failed": one_line(str(err), 300)}
             row = log.append({**key, "preset": sweep.preset, **fields})
