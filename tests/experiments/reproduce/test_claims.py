@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import copy
-
 import pytest
 
 from lcreg.experiments.reproduce.ablation import ABLATION
 from lcreg.experiments.reproduce.claims import Claim, Comparison, compare, judge
 from lcreg.experiments.reproduce.lc import LC
-from lcreg.experiments.reproduce.spec import Variant
 
 ORDER = Claim("A > B > C in error", (Comparison("B", "A"), Comparison("C", "B")))
 
@@ -67,21 +64,3 @@ def test_the_experiments_encode_the_papers_claims() -> None:
         (f"{host}/{lc}", f"{host}/X") for host in ("dcp", "prnet", "idam", "deepgmr") for lc in ("LC", "LC-matched")
     ]
     assert all("not a claim of the paper" in c.text for c in LC.claims if "matched" in c.text)
-
-
-@pytest.mark.parametrize("host", ["idam", "dcp"])
-def test_a_matched_variant_is_its_lc_host_with_only_the_lc_weight_changed(host: str) -> None:
-    """``<host>/LC-matched`` builds ``<host>_lc`` (``configs/lc.yaml``) with the LC weight of MATCHED_LC_WEIGHTS."""
-    from lcreg.experiments.benchmarking import build_cli_for, synthetic_overrides
-    from lcreg.experiments.reproduce.lc import MATCHED_LC_WEIGHTS
-
-    def lc_term(variant: Variant) -> tuple[float, dict[str, object]]:
-        model = build_cli_for(variant.method, (), {**synthetic_overrides(), **copy.deepcopy(variant.overrides)}).model
-        (term,) = model.loss_terms
-        public = {k: v for k, v in vars(term.local_consistency).items() if not k.startswith("_")}
-        return term.weight, public
-
-    weight, matched = lc_term(LC.variant(f"{host}/LC-matched"))
-    paper_weight, literal = lc_term(LC.variant(f"{host}/LC"))
-    assert (weight, paper_weight) == (MATCHED_LC_WEIGHTS[host], 1.0) and matched == literal
-    assert LC.variant(f"{host}/LC-matched").method == LC.variant(f"{host}/LC").method == f"{host}_lc"

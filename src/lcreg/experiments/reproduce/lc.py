@@ -10,12 +10,11 @@ differs. Beyond the paper, ``<host>/LC-matched`` weights LC so that its encoder 
 
 from __future__ import annotations
 
-import csv
 import statistics
 from pathlib import Path
 from typing import Any
 
-from lcreg.experiments.benchmarking import METHODS
+from lcreg.experiments.benchmarking import METHODS, read_metrics
 from lcreg.experiments.reproduce.budgets import CONVERGE_EPOCHS_OF_8, CONVERGE_SMALL_BATCH, Preset, RunBudget
 from lcreg.experiments.reproduce.claims import Claim, Comparison
 from lcreg.experiments.reproduce.paper import LC_PLUS_X as PAPER
@@ -87,30 +86,38 @@ def _lc(host: str) -> str:
 
 
 def lc_trajectory(row: dict[str, Any]) -> tuple[float, float, float] | None:
-    """First and last logged ``train/lc`` and the last ``train/loss`` of a run (from its ``metrics.csv``)."""
+    """First and last logged ``train/lc`` and the last ``train/loss`` of a run (``None`` without them).
+
+    Read with the segments of a resumed run before its ``metrics.csv``.
+    """
     path = Path(row.get("metrics_csv") or "")
     if not path.is_file():
         return None
-    with path.open() as fh:
-        steps = [r for r in csv.DictReader(fh) if r.get("train/lc_step")]
-    if not steps:
+    metrics = read_metrics(path)
+    lc, loss = metrics.get("train/lc"), metrics.get("train/loss")
+    if lc is None or loss is None or not len(lc.values) or not len(loss.values):
         return None
-    return float(steps[0]["train/lc_step"]), float(steps[-1]["train/lc_step"]), float(steps[-1]["train/loss_step"])
+    return float(lc.values[0]), float(lc.values[-1]), float(loss.values[-1])
 
 
 def lc_share_lines(rows: Rows) -> list[str]:
-    """How large the LC term was during training, per host (first and last logged step, mean over seeds)."""
+    """How large the LC term was during training, per host and LC weight (means over seeds).
+
+    Its first and last logged value, and the weighted term's share of the last total training loss.
+    """
     lines = []
     for host in HOSTS:
-        traj = [t for t in (lc_trajectory(dict(r)) for r in rows.get(f"{host}/LC", [])) if t is not None]
-        if not traj:
-            continue
-        first, last, loss = (statistics.fmean(v) for v in zip(*traj))
-        share = f"{100 * last / loss:.2g} % of the total training loss {loss:.3g}" if loss else "total loss 0"
-        lines.append(
-            f"- LC + {_label(host)}: LC term {first:.3g} at the first logged step, {last:.3g} at the last ({share})"
-        )
-    return ["## Size of the LC term during training (weight 1)", "", *lines] if lines else []
+        for key, weight in ((f"{host}/LC", 1.0), (f"{host}/LC-matched", MATCHED_LC_WEIGHTS[host])):
+            traj = [t for t in (lc_trajectory(dict(r)) for r in rows.get(key, [])) if t is not None]
+            if not traj:
+                continue
+            first, last, loss = (statistics.fmean(v) for v in zip(*traj))
+            share = f"{100 * weight * last / loss:.2g} % of the total training loss {loss:.3g}" if loss else "loss 0"
+            lines.append(
+                f"- LC + {_label(host)}, weight {weight:g}: LC term {first:.3g} at the first logged step, {last:.3g} "
+                f"at the last (weighted: {share})"
+            )
+    return ["## Size of the LC term during training", "", *lines] if lines else []
 
 
 NOTES = (
