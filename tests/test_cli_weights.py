@@ -196,6 +196,18 @@ def test_fit_keeps_the_config_arguments_and_names_the_differing_ones(lk_weights:
     assert "jacobian='analytic' (model: 'finite_difference')" in str(info.value)
 
 
+def test_validate_with_a_checkpoint_as_weights_logs_what_the_ckpt_path_does(trained: Trained, tmp_path: Path) -> None:
+    """``--weights run.ckpt`` loads all the checkpoint's tensors, the decoder and normal head of the reconstruction
+    and normal terms included: every logged validation metric equals ``--ckpt_path run.ckpt``'s."""
+    logged = {}
+    for name, args in (("weights", ["--weights"]), ("ckpt", ["--ckpt_path"])):
+        main(["validate", *DVDS, *TINY, *args, str(trained.checkpoint), *_outputs(tmp_path / name)])
+        rows = list(csv.DictReader((tmp_path / name / "runs" / "lcreg" / "version_0" / "metrics.csv").open()))
+        logged[name] = {k: float(v) for row in rows for k, v in row.items() if k.startswith("val/") and v}
+    assert {"val/recon", "val/normal", "val/rre_mean_deg"} <= set(logged["ckpt"])
+    assert logged["weights"] == pytest.approx(logged["ckpt"], rel=1e-6)
+
+
 def test_a_file_whose_arguments_the_class_refuses_is_named_in_one_line(lk_weights: Path, tmp_path: Path) -> None:
     """A file exported by another lcreg version, with a constructor argument this class no longer has."""
     content = read_weights(lk_weights)
