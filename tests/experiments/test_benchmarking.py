@@ -405,3 +405,22 @@ def test_output_path_and_options(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert Budget.parse("200,512,16") == Budget(200, 512, 16) and str(Budget(1, 2, 3)) == "1,2,3"
     with pytest.raises(SystemExit, match="steps,points,batch"):
         Budget.parse("200,512")
+
+
+def test_a_run_stopped_by_sigterm_exits_143_not_0(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Lightning ends ``fit`` on SIGTERM with a SystemExit of code None (exit status 0): a queue took a killed job for
+    a finished one. ``fit`` exits with TERMINATED_EXIT_CODE instead."""
+    from lightning.pytorch import LightningModule
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    from lcreg.experiments.benchmarking import TERMINATED_EXIT_CODE
+
+    def terminated(*_: object, **__: object) -> None:
+        raise SIGTERMException  # what Lightning raises once its SIGTERM handler has run
+
+    monkeypatch.setattr(LightningModule, "on_train_batch_end", terminated)
+    run = fit_overrides(max_steps=4, val_every=2, run_dir=tmp_path, name="killed", seed=0)
+    with pytest.raises(SystemExit) as stop:
+        fit("dvds", {**run, **TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32)})
+    assert stop.value.code == TERMINATED_EXIT_CODE == 143
+    assert isinstance(stop.value.__cause__, SIGTERMException) and stop.value.__cause__.code is None

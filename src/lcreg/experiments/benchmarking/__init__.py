@@ -63,6 +63,7 @@ from lcreg.experiments.benchmarking.registry import (
 from lcreg.experiments.benchmarking.training import (
     CONVERGE_METRIC,
     SELECTION_METRIC,
+    TERMINATED_EXIT_CODE,
     FitResult,
     converge_overrides,
     epoch_overrides,
@@ -92,6 +93,7 @@ __all__ = [
     "REFINE_CONFIG",
     "REPORT_COLUMNS",
     "SELECTION_METRIC",
+    "TERMINATED_EXIT_CODE",
     "VOXELIZE_CONFIG",
     "Band",
     "Budget",

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CONVERGE_METRIC",
     "SELECTION_METRIC",
+    "TERMINATED_EXIT_CODE",
     "FitResult",
     "converge_overrides",
     "epoch_overrides",
@@ -36,6 +37,10 @@ SELECTION_METRIC = "val/rre_mean_deg"
 CONVERGE_METRIC = "val/rre_clip5_deg"
 """Checkpoints and early stopping of ``converge`` runs: the mean of ``min(RRE, 5°)`` over the validation pairs
 (:class:`lcreg.metrics.registration.RotationErrorClippedMean`): one failed pair moves it by at most 5° / pairs."""
+TERMINATED_EXIT_CODE = 143
+"""Exit status of a run stopped by SIGTERM (128 + 15). Lightning ends ``fit`` with a ``SystemExit`` of code ``None``
+(exit status 0) on SIGTERM; :func:`fit` turns it into this, so a script or the training queue does not take a killed
+run for a finished one (the queue marks a job done on exit status 0)."""
 
 
 def training_loss(model: RegistrationModule, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
@@ -193,6 +198,7 @@ def fit(
         ValueError: If the config's checkpoint callback does not select on ``monitor``.
         lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses (a ValueError too).
         RuntimeError: If training wrote no best checkpoint.
+        SystemExit: Code :data:`TERMINATED_EXIT_CODE` when the run was stopped by SIGTERM (resumable).
     """
     from lcreg.models.base import RegistrationModule
     from lcreg.resume import keep_previous_metrics
@@ -211,7 +217,12 @@ def fit(
     elif validate_first:
         cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
     run = partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule, ckpt_path=start)
-    _, seconds = timed(run)
+    try:
+        _, seconds = timed(run)
+    except SystemExit as stop:  # Lightning's SIGTERMException is a SystemExit with code None: the process exits 0
+        if stop.code not in (None, 0):
+            raise
+        raise SystemExit(TERMINATED_EXIT_CODE) from stop
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")
