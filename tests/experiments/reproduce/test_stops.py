@@ -9,6 +9,7 @@ import pytest
 
 from _reproduce_outputs import assert_png_drawn, read_jsonl  # type: ignore[import-not-found]
 from lcreg.__main__ import main
+from lcreg.experiments.reproduce import stops
 from lcreg.experiments.reproduce.lc import LC
 from lcreg.experiments.reproduce.stops import metrics_file, stops_table, with_metrics_files
 
@@ -53,7 +54,9 @@ def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_ord
     assert "| idam/LC | 0 | 5016 | end of the budget |" in stops_table(LC, rows, "cpu")
 
 
-def test_a_report_of_a_copied_output_folder_has_the_stops_and_learning_curves(tmp_path: Path) -> None:
+def test_a_report_of_a_copied_output_folder_has_the_stops_and_learning_curves(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Trained in one folder, reported from a copy after the original is gone (as the queue commits results)."""
     trained = tmp_path / "machine_a"
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "dcp/*"]
@@ -64,7 +67,16 @@ def test_a_report_of_a_copied_output_folder_has_the_stops_and_learning_curves(tm
     shutil.rmtree(trained)
     for png in copy.glob("*.png"):
         png.unlink()
+    drawn: list[set[str]] = []
+    real = stops.plot_curves
+
+    def spy(runs: dict[str, list[dict[str, object]]], *a: object, **k: object) -> list[Path]:
+        drawn.append({key for seeds in runs.values() for metrics in seeds for key in metrics})
+        return real(runs, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(stops, "plot_curves", spy)
     main([*args, "--out", str(copy), "--report-only"])
+    assert drawn and "val/rre_mean_deg" in drawn[0] and not any(k.startswith("test/") for k in drawn[0])
     text = (copy / "lc.md").read_text()
     assert "## Where each run stopped" in text and "| dcp/LC | 0 | 2 | end of the budget |" in text
     assert "`lc_curves_dcp_validation.png`" in text

@@ -139,5 +139,7 @@ def plot_learning_curves(experiment: Experiment, rows: Rows, out: Path, stem: st
 
 
 def _curves(runs: Sequence[Mapping[str, Any]]) -> list[Any]:
+    """Each run's logged series without ``test/`` keys (one value at the run's end: not a curve)."""
     files = (metrics_file(row) for row in sorted(runs, key=_seed))
-    return [read_metrics(f) for f in files if f is not None]
+    metrics = (read_metrics(f) for f in files if f is not None)
+    return [{k: v for k, v in m.items() if not k.startswith("test/")} for m in metrics]
