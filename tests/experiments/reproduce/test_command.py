@@ -162,7 +162,7 @@ def test_a_diverged_run_is_recorded_as_failed_not_retried_and_left_out_of_the_me
 def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stopped(tmp_path: Path) -> None:
     from dataclasses import replace
 
-    from lcreg.experiments.benchmarking import CONVERGE_METRIC
+    from lcreg.experiments.benchmarking import CONVERGE_METRIC, machine_line
     from lcreg.experiments.reproduce.ablation import ABLATION
 
     # min_delta is 0: on 2 synthetic validation pairs the run may stop early or reach the cap; both are recorded.
@@ -174,3 +174,4 @@ def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stoppe
     assert row["selected_on"] == CONVERGE_METRIC and "val_rre_clip5_deg" in row["selected"]
     assert row["num_val_pairs"] == 2 * 2 and row["steps"] <= 4
     assert row["stopped_early"] == (row["steps"] < 4) and row["best_val_rre_mean_deg"] is None
+    assert row["machine"] == machine_line("cpu")  # the machine that trained the run, for the report's header

@@ -68,8 +68,22 @@ def test_report_states_budget_data_pairs_seeds_and_claims(tmp_path: Path) -> Non
 
 
 def test_a_converge_report_names_the_metric_its_checkpoints_were_chosen_on(tmp_path: Path) -> None:
-    text = render(sweep(LC, tmp_path, "converge"), lc_rows(), "lcreg reproduce lc --budget converge")
+    rows = {v.key: [row(1.0)] for v in ABLATION.variants}
+    text = render(sweep(ABLATION, tmp_path, "converge"), rows, "lcreg reproduce ablation --budget converge")
     assert "- Checkpoint chosen on `val/rre_clip5_deg` (validation pairs" in text and "`val/rre_mean_deg`" not in text
+
+
+def test_the_header_names_the_machines_that_trained_the_rows_not_the_one_writing_it(tmp_path: Path) -> None:
+    rows = lc_rows()
+    rows["dcp/X"] = [{**r, "machine": "NVIDIA H100 80GB HBM3 (cuda), torch 2.11.0, 1 threads"} for r in rows["dcp/X"]]
+    rows["dcp/LC"][0]["machine"] = "x86_64 (cpu), torch 2.13.0+cpu, 1 threads"
+    text = render(sweep(LC, tmp_path, "converge"), rows, "lcreg reproduce lc --budget converge")
+    machine = next(line for line in text.splitlines() if line.startswith("- Machine: "))
+    assert machine == (
+        "- Machine: NVIDIA H100 80GB HBM3 (cuda), torch 2.11.0, 1 threads: 3 runs; "
+        "x86_64 (cpu), torch 2.13.0+cpu, 1 threads: 1 runs; not recorded (rows written before lcreg recorded it): "
+        "32 runs."
+    )
 
 
 def test_claims_in_the_report_hold_or_fail_beyond_the_spread(tmp_path: Path) -> None:
@@ -162,9 +176,28 @@ def test_converge_budgets_stop_early_select_on_the_clipped_error_and_draw_more_v
     )
 
 
+def test_a_converge_budget_may_stop_and_select_on_another_validation_metric(tmp_path: Path) -> None:
+    from lcreg.experiments.reproduce.budgets import CONVERGE_SMALL_BATCH
+
+    with pytest.raises(ValueError, match="validation metric"):
+        RunBudget(steps=10, metric="val/rre_median_deg")  # not a converge budget
+    with pytest.raises(ValueError, match="validation metric"):
+        RunBudget(steps=10, patience=2, metric="train/loss")
+    budget = RunBudget(steps=3000, checks=60, patience=12, metric="val/rre_median_deg")
+    assert budget.monitor == "val/rre_median_deg"
+    assert budget.describe().endswith(
+        "until 12 validations bring no gain in `val/rre_median_deg` (1 pairs per validation object)"
+    )
+    callbacks = budget.fit_overrides(tmp_path, seed=0)["trainer.callbacks"]
+    assert {c["init_args"]["monitor"] for c in callbacks if "monitor" in c["init_args"]} == {"val/rre_median_deg"}
+    assert CONVERGE_SMALL_BATCH.monitor == "val/rre_median_deg"  # DCP-v2 and PRNet: errors near 5°
+    text = render(sweep(LC, tmp_path, "converge"), lc_rows(), "lcreg reproduce lc --budget converge")
+    assert "- Checkpoint chosen on `val/rre_median_deg` / `val/rre_clip5_deg` (validation pairs" in text
+
+
 def test_every_experiment_has_a_converge_budget() -> None:
     from lcreg.experiments.reproduce import EXPERIMENTS
 
     for name, experiment in EXPERIMENTS.items():
         assert "converge" in experiment.budgets, name
-    assert {b.patience for b in LC.budgets["converge"].values()} == {6, 8}
+    assert {b.patience for b in LC.budgets["converge"].values()} == {12, 8}

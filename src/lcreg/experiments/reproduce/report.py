@@ -10,6 +10,7 @@ finished; the claims section says for each of the paper's claims whether it hold
 from __future__ import annotations
 
 import statistics
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -184,6 +185,19 @@ def _pairs(rows: Rows, field: str) -> str:
     return "/".join(map(str, counts)) or "–"
 
 
+def machines(rows: Rows) -> str:
+    """The machines that trained the rows, with their run counts; no rows: the machine writing the report.
+
+    The rows of one queue job may come from a CPU and a lent GPU; rows written before rows recorded it count as not
+    recorded.
+    """
+    counts = Counter(r.get("machine") for runs in rows.values() for r in runs)
+    if not counts:
+        return machine_line()
+    named = sorted(counts.items(), key=lambda item: (item[0] is None, str(item[0])))
+    return "; ".join(f"{name or 'not recorded (rows written before lcreg recorded it)'}: {n} runs" for name, n in named)
+
+
 def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -> list[str]:
     """Title, command, budget, data, pair counts, seeds, finished (and failed) runs and time, machine; the series."""
     experiment = sweep.experiment
@@ -203,7 +217,7 @@ def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -
         f"- Seeds: {', '.join(map(str, sweep.seeds))} (mean ± sample std over seeds). Runs finished: {done} of "
         f"{total}; {hours:.2f} h of training and testing in all.",
         *(f"- Failed (non-finite training loss, left out of the means): {run}" for run in failed),
-        f"- Machine: {machine_line()}.",
+        f"- Machine: {machines(rows)}.",
         "",
         "Series:",
         *(f"- **{name}**: {text}" for name, text in experiment.series.items()),

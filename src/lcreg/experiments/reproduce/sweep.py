@@ -3,9 +3,9 @@
 Every run goes through the benchmark harness (:func:`lcreg.experiments.benchmarking.fit`): the method is built from its
 configs exactly as ``lcreg fit`` builds it, trained with ``seed_everything = seed`` (initialisation and training
 order), and validated during training on the validation pairs carved out of the training objects; the checkpoint with
-the lowest ``RunBudget.monitor`` (``val/rre_mean_deg``; ``converge``: ``val/rre_clip5_deg``) is kept (never the test
-set) and tested once on the deterministic test pairs (the same
-in every run: the data's pair seed is fixed). The row is appended to ``<out>/<experiment>.jsonl`` (flushed) as soon
+the lowest ``RunBudget.monitor`` (``val/rre_mean_deg``; ``converge``: ``val/rre_clip5_deg`` or the budget's
+``metric``) is kept (never the test set) and tested once on the deterministic test pairs (the same in every run: the
+data's pair seed is fixed). The row is appended to ``<out>/<experiment>.jsonl`` (flushed) as soon
 as the run ends; a rerun skips every (variant, seed) whose row is there for the same budget and data, so an
 interrupted sweep resumes with the next unfinished run. A run whose training stops on non-finite losses
 (:class:`~lcreg.models.base.NonFiniteTrainingError`) is recorded as failed (a result of that variant, not retried)
@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from lcreg.checkpoints import one_line
-from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, method, timed
+from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, machine_line, method, timed
 from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
 from lcreg.models.base import NonFiniteTrainingError
@@ -150,7 +150,8 @@ def train_and_test(
     Returns:
         Row fields: the test metrics (:data:`METRICS`), the selected checkpoint (its name; its weights are kept
         as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
-        the pair counts, the sizes and the times (and ``overrides`` when the variant has any).
+        the pair counts, the sizes, the times and the machine that trained it (and ``overrides`` when the variant
+        has any).
     """
     recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
     values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(recorded)}
@@ -169,6 +170,7 @@ def train_and_test(
         "epochs": int(result.trainer.current_epoch),
         "train_s": round(result.seconds, 1),
         "test_s": round(test_s, 1),
+        "machine": machine_line(result.model.device),
         "selected": result.best_checkpoint.name,
         "weights": str(weights),
         "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
