@@ -39,7 +39,8 @@ RUNS = {
     "tune_classical": [],
 }
 
-CHECKED_ELSEWHERE = {"bench_geometry", "train_queue"}  # their own test files run their --smoke and check it
+# their own test files run their --smoke and check it
+CHECKED_ELSEWHERE = {"bench_geometry", "device_payload", "train_queue"}
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
 
