@@ -42,6 +42,7 @@ from lcreg.experiments.benchmarking import (
     method_layers,
     output_path,
     pair_batches,
+    peak_memory_mib,
     peak_rss_increase_mib,
     read_metrics,
     registration_speed,
@@ -321,6 +322,22 @@ def test_peak_rss_increase_sees_a_transient_allocation() -> None:
     assert 15 <= mib < 200
     _, idle = peak_rss_increase_mib(lambda: None)
     assert idle is not None and idle < 15
+
+
+def test_peak_memory_is_the_resident_increase_on_cpu_and_the_allocator_peak_on_cuda(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def allocate() -> float:
+        block = torch.ones(16 * 2**20 // 4)  # 16 MiB, freed on return
+        return float(block.sum())
+
+    result, mib = peak_memory_mib(allocate, "cpu")
+    assert result == 16 * 2**20 // 4 and (mib is None or 15 <= mib < 200)
+    calls: list[str] = []  # CUDA, without a GPU: the peak is reset before the call and read after it
+    monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda device: calls.append(f"reset {device}"))
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda device: calls.append("read") or 3 * 2**20)
+    result, mib = peak_memory_mib(lambda: calls.append("fn") or 7, "cuda:0")
+    assert (result, mib, calls) == (7, 3.0, ["reset cuda:0", "fn", "read"])
 
 
 def test_registration_speed_is_the_median_pass_per_pair() -> None:

@@ -39,7 +39,17 @@ def test_metrics_file_is_the_recorded_path_or_its_longest_tail_under_the_output_
 def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_order() -> None:
     base = {"selected_on": "val/rre_clip5_deg", "train_s": 12.4}
     rows = {
-        "idam/LC": [{**base, "seed": 0, "steps": 5016, "stopped_early": False, "selected": "s.ckpt", "best_val": 1.3}],
+        "idam/LC": [
+            {
+                **base,
+                "seed": 0,
+                "steps": 5016,
+                "stopped_early": False,
+                "selected": "s.ckpt",
+                "best_val": 1.3,
+                "peak_mib": 812.46,
+            }
+        ],
         "idam/X": [
             {**base, "seed": 2, "steps": 4664, "stopped_early": True, "selected": "b.ckpt", "best_val": 1.50341},
             {"seed": 1, "steps": 68, "train_s": 3.0},  # a row without selection fields
@@ -47,9 +57,9 @@ def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_ord
     }
     lines = stops_table(LC, rows, "converge").splitlines()[2:]
     assert lines == [
-        "| idam/X | 1 | 68 | step cap | – | – | 3 |",
-        "| idam/X | 2 | 4664 | early stop (no gain) | `b.ckpt` | 1.503 (`val/rre_clip5_deg`) | 12 |",
-        "| idam/LC | 0 | 5016 | step cap | `s.ckpt` | 1.3 (`val/rre_clip5_deg`) | 12 |",
+        "| idam/X | 1 | 68 | step cap | – | – | 3 | – |",
+        "| idam/X | 2 | 4664 | early stop (no gain) | `b.ckpt` | 1.503 (`val/rre_clip5_deg`) | 12 | – |",
+        "| idam/LC | 0 | 5016 | step cap | `s.ckpt` | 1.3 (`val/rre_clip5_deg`) | 12 | 812 |",
     ]
     assert "| idam/LC | 0 | 5016 | end of the budget |" in stops_table(LC, rows, "cpu")
 

@@ -32,6 +32,7 @@ __all__ = [
     "RegistrationSpeed",
     "Timing",
     "device_of",
+    "peak_memory_mib",
     "peak_rss_increase_mib",
     "peak_rss_mib",
     "registration_speed",
@@ -219,6 +220,23 @@ def peak_rss_increase_mib(fn: Callable[[], T]) -> tuple[T, float | None]:
         return fn(), None
     out = fn()
     return out, _status_mib("VmHWM") - before
+
+
+def peak_memory_mib(fn: Callable[[], T], device: str | torch.device) -> tuple[T, float | None]:
+    """Call ``fn()`` once and measure the peak memory it took on ``device``, MiB.
+
+    CUDA: ``torch.cuda.max_memory_allocated`` after resetting the peak (tensors held by PyTorch's allocator, not the
+    allocator's cache or the CUDA context). Otherwise: :func:`peak_rss_increase_mib` (the process's resident set).
+
+    Returns:
+        ``(fn's result, MiB)``; the MiB are ``None`` where the CPU figure cannot be taken.
+    """
+    device = torch.device(device)
+    if device.type != "cuda":
+        return peak_rss_increase_mib(fn)
+    torch.cuda.reset_peak_memory_stats(device)
+    out = fn()
+    return out, torch.cuda.max_memory_allocated(device) / 2**20
 
 
 def run_fresh_process(args: Sequence[str]) -> dict[str, Any]:

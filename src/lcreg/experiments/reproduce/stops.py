@@ -31,6 +31,7 @@ STOPS_HEADER = [
     "selected checkpoint",
     "best validation",
     "train s (last segment of a resumed run)",
+    "peak MiB (GPU: allocated; CPU: resident increase)",
 ]
 
 
@@ -104,6 +105,7 @@ def stops_table(experiment: Experiment, rows: Rows, preset: Preset) -> str:
                     selected,
                     _best(row),
                     "–" if seconds is None else f"{float(seconds):.0f}",
+                    "–" if row.get("peak_mib") is None else f"{float(row['peak_mib']):.0f}",
                 ]
             )
     return markdown_table(STOPS_HEADER, lines)

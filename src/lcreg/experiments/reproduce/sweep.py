@@ -24,7 +24,15 @@ from typing import Any
 import torch
 
 from lcreg.checkpoints import one_line
-from lcreg.experiments.benchmarking import REPORT_COLUMNS, ResultLog, fit, machine_line, method, timed
+from lcreg.experiments.benchmarking import (
+    REPORT_COLUMNS,
+    ResultLog,
+    fit,
+    machine_line,
+    method,
+    peak_memory_mib,
+    timed,
+)
 from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
 from lcreg.models.base import NonFiniteTrainingError
@@ -150,12 +158,15 @@ def train_and_test(
     Returns:
         Row fields: the test metrics (:data:`METRICS`), the selected checkpoint (its name; its weights are kept
         as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
-        the pair counts, the sizes, the times and the machine that trained it (and ``overrides`` when the variant
-        has any).
+        the pair counts, the sizes, the times, the machine that trained it and the training's peak memory
+        (:func:`~lcreg.experiments.benchmarking.peak_memory_mib`; ``overrides`` when the variant has any).
     """
     recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
     values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(recorded)}
-    result = fit(name, values, monitor=budget.monitor, resume=budget.converge)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")  # where Lightning's "auto" trains
+    result, peak_mib = peak_memory_mib(
+        lambda: fit(name, values, monitor=budget.monitor, resume=budget.converge), device
+    )
     best_val = getattr(result.trainer.checkpoint_callback, "best_model_score", None)
     load_into(result.model, result.best_checkpoint)
     test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
@@ -171,6 +182,7 @@ def train_and_test(
         "train_s": round(result.seconds, 1),
         "test_s": round(test_s, 1),
         "machine": machine_line(result.model.device),
+        "peak_mib": None if peak_mib is None else round(peak_mib, 1),
         "selected": result.best_checkpoint.name,
         "weights": str(weights),
         "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
