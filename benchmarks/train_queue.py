@@ -72,12 +72,14 @@ class Job:
         """The command's arguments with ``{runs}``/``{results}`` filled in (``python`` and ``lcreg`` as written)."""
         return shlex.split(self.command.format(runs=runs / self.id, results=results / self.id))
 
-    def executable(self, runs: Path, results: Path) -> list[str]:
+    def executable(self, runs: Path, results: Path, jobs: int = 1) -> list[str]:
         """:meth:`argv` run by this interpreter: ``python`` is it, ``lcreg`` is ``python -c <lcreg.__main__.main>``, so
-        the code imported is that of the interpreter's path (the worktree's ``src`` with ``PYTHONPATH``)."""
+        the code imported is that of the interpreter's path (the worktree's ``src`` with ``PYTHONPATH``). ``jobs`` > 1
+        adds ``--jobs`` to an ``lcreg reproduce`` sweep (runs at once, e.g. on a GPU)."""
         words = self.argv(runs, results)
         head = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}.get(words[0], words[:1])
-        return [*head, *words[1:]]
+        parallel = ["--jobs", str(jobs)] if jobs > 1 and words[:2] == ["lcreg", "reproduce"] else []
+        return [*head, *words[1:], *parallel]
 
 
 def load_jobs(path: Path) -> list[Job]:
@@ -190,10 +192,13 @@ def status_line(job: Job, results: Path) -> str:
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
 
 
-def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None) -> bool:
-    """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done."""
+def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs: int = 1) -> bool:
+    """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done.
+
+    ``jobs``: runs at once of an ``lcreg reproduce`` job (:meth:`Job.executable`), each on one thread.
+    """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    argv = ["nice", "-n", "5", *job.executable(runs, results)]
+    argv = ["nice", "-n", "5", *job.executable(runs, results, jobs)]
     (results / job.id).mkdir(parents=True, exist_ok=True)
     if restored := restore(job, runs, results):
         print(f"queue: {job.id}: {restored} result files restored from {results / job.id / 'runs'}", flush=True)
@@ -234,6 +239,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--runs", type=Path, default=REPO / "runs" / "queue", help="run folders (checkpoints)")
     parser.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "converge")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop a command after this long (resumes)")
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="runs at once of an `lcreg reproduce` job (a GPU; default 1: one thread)"
+    )
     add_smoke_argument(parser)
     return parser.parse_args(argv)
 
@@ -254,7 +262,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.action == "sync":
             print(f"queue: {job.id}: {sync(job, args.runs, args.results)} result files copied")
         elif selected(job, args) and not (args.results / job.id / "DONE.json").is_file():
-            if not run_job(job, args.runs, args.results, args.max_minutes):
+            if not run_job(job, args.runs, args.results, args.max_minutes, args.jobs):
                 sys.exit(1)
     if args.smoke:
         print(status_line(jobs[0], args.results))

@@ -84,6 +84,12 @@ def test_smoke_runs_a_converge_learning_curve_through_the_queue(capsys: pytest.C
     assert "smoke" in out and " done " in out
 
 
+def _queue(folder: Path, command: str) -> Path:
+    file = folder / "other.toml"
+    file.write_text(f'[[job]]\nid = "o"\nsection = "cpu"\nwhat = "x"\ncommand = "{command}"\n')
+    return file
+
+
 def test_an_lcreg_job_runs_the_interpreters_lcreg_and_its_results_are_copied(tmp_path: Path) -> None:
     queue = load("train_queue")
     file = tmp_path / "q.toml"
@@ -91,6 +97,9 @@ def test_an_lcreg_job_runs_the_interpreters_lcreg_and_its_results_are_copied(tmp
     file.write_text(f'[[job]]\nid = "abl"\nsection = "cpu"\nwhat = "x"\ncommand = "{command}"\n')
     (job,) = queue.load_jobs(file)
     assert job.executable(tmp_path, tmp_path)[:2] == [sys.executable, "-c"]
+    assert job.executable(tmp_path, tmp_path, jobs=4)[-2:] == ["--jobs", "4"]  # several runs at once (a GPU)
+    (other,) = queue.load_jobs(_queue(tmp_path, "python benchmarks/learning_curves.py --smoke"))
+    assert "--jobs" not in other.executable(tmp_path, tmp_path, jobs=4)  # only lcreg reproduce sweeps take it
     queue.main(["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")])
     copied = tmp_path / "res" / "abl" / "runs"
     assert (copied / "ablation.jsonl").is_file() and (copied / "ablation.md").is_file()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +120,10 @@ def test_bad_arguments_give_one_clear_line(tmp_path: Path, capsys) -> None:
     assert "--only 'dvds/*' matches no variant of lc" in _error(
         ["lc", "--budget", "smoke", "--only", "dvds/*", *out], capsys
     )
+    assert "--jobs must be >= 1 (above 1 only for ablation, lc), got 0" in _error(
+        ["lc", "--budget", "smoke", "--jobs", "0", *out], capsys
+    )
+    assert ", got 2" in _error(["runtime", "--budget", "smoke", "--jobs", "2", *out], capsys)
     missing = tmp_path / "nowhere"
     message = _error(["ablation", "--budget", "cpu", "--root", str(missing), *out], capsys)
     assert message.startswith("lcreg reproduce: error: ModelNet40 not found at") and "pass --root DIR" in message
@@ -176,3 +181,72 @@ def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stoppe
     assert row["stopped_early"] == (row["steps"] < 4) and row["best_val_rre_mean_deg"] is None
     assert row["machine"] == machine_line("cpu")  # the machine that trained the run, for the report's header
     assert row["peak_mib"] is None or row["peak_mib"] > 0  # None only where Linux's resettable peak is missing
+
+
+def test_jobs_trains_runs_in_worker_processes_with_the_rows_of_a_serial_sweep(tmp_path: Path) -> None:
+    import subprocess
+
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X"]
+    # the serial sweep in a fresh process too: this test process runs torch on 1 thread, which changes the numbers
+    subprocess.run([sys.executable, "-m", "lcreg", *args, "--out", str(tmp_path / "serial")], check=True)
+    main([*args, "--out", str(tmp_path / "jobs"), "--jobs", "2"])
+    serial, jobs = (read_jsonl(tmp_path / name / "lc.jsonl") for name in ("serial", "jobs"))
+    assert sorted(r["seed"] for r in jobs) == [0, 1]
+    for row in jobs:  # each run in its own process, the same numbers as in one process
+        twin = next(r for r in serial if r["seed"] == row["seed"])
+        assert {k: row[k] for k in METRICS} == pytest.approx({k: twin[k] for k in METRICS}, rel=1e-5, abs=1e-6)
+        assert (Path(row["metrics_csv"]).parents[1] / "worker.log").is_file()
+    assert "Runs finished: 2 of 2" in (tmp_path / "jobs" / "lc.md").read_text()
+    main([*args, "--out", str(tmp_path / "jobs"), "--jobs", "2"])  # nothing left to run: no new rows
+    assert len(read_jsonl(tmp_path / "jobs" / "lc.jsonl")) == 2
+
+
+def test_a_failed_worker_ends_the_command_with_an_error_after_the_report(tmp_path: Path, capsys) -> None:
+    from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
+
+    ok = WorkerRun("a seed 0", (sys.executable, "-c", "pass"), tmp_path / "a" / "worker.log")
+    bad = WorkerRun("b seed 0", (sys.executable, "-c", "import sys; print('boom'); sys.exit(3)"), tmp_path / "b.log")
+    with pytest.raises(WorkersFailedError, match=r"1 run\(s\) did not finish: b seed 0 \(exit 3\)") as err:
+        run_workers([ok, bad], jobs=2, progress=print)
+    assert err.value.exit_code == 1 and (tmp_path / "b.log").read_text().strip() == "boom"
+    assert "a seed 0: finished" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--jobs"):
+        run_workers([ok], jobs=0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_workers_end_when_the_command_that_started_them_is_killed(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import time
+
+    pids = tmp_path / "pids"
+    worker = f"import os, time; open({str(pids)!r}, 'a').write(f'{{os.getpid()}}\\n'); time.sleep(120)"
+    parent = (
+        "from pathlib import Path; import sys\n"
+        "from lcreg.experiments.reproduce.parallel import WorkerRun, run_workers\n"
+        f"runs = [WorkerRun(str(i), (sys.executable, '-c', {worker!r}), Path({str(tmp_path)!r}) / f'{{i}}.log')"
+        " for i in range(2)]\n"
+        "run_workers(runs, jobs=2)\n"
+    )
+    process = subprocess.Popen([sys.executable, "-c", parent])
+    deadline = time.monotonic() + 60
+    while (not pids.is_file() or len(pids.read_text().split()) < 2) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    children = [int(p) for p in pids.read_text().split()]
+    process.send_signal(signal.SIGKILL)  # as the training queue's --max-minutes ends a chunk
+    process.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in children)
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"  # a zombie has ended

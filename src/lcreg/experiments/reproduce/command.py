@@ -18,11 +18,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from lcreg.experiments.benchmarking import write_text
+from lcreg.experiments.benchmarking import ResultLog, write_text
 from lcreg.experiments.reproduce.ablation import ABLATION
 from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
 from lcreg.experiments.reproduce.conditions import EvalExperiment, EvalRun, run_conditions
 from lcreg.experiments.reproduce.lc import LC
+from lcreg.experiments.reproduce.parallel import WorkersFailedError, run_workers, worker_runs
 from lcreg.experiments.reproduce.plots import plot_sweep
 from lcreg.experiments.reproduce.recall_curves import RECALL_CURVES, plot_recall_curves, render_recall_curves
 from lcreg.experiments.reproduce.report import render
@@ -113,6 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="skip runs already in the JSONL (default); --no-resume reruns them (the newest row of a run counts)",
     )
     parser.add_argument("--report-only", action="store_true", help="write the table and plots from the JSONL only")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="ablation, lc: runs trained at once, each in its own process (default 1; a GPU takes several)",
+    )
+    parser.add_argument("--no-report", action="store_true", help=argparse.SUPPRESS)  # the workers of --jobs
     return parser
 
 
@@ -161,9 +169,13 @@ def reproduce(
         The written files: the Markdown report, the JSONL (if any run finished) and the PNGs.
 
     Raises:
-        ReproduceUsageError: Unknown or planned experiment, ``--only`` matching nothing, bad seeds, missing data.
+        ReproduceUsageError: Unknown or planned experiment, ``--only`` matching nothing, bad seeds or ``--jobs``,
+            missing data.
+        WorkersFailedError: With ``--jobs``, some runs ended with an error (after the report of the others).
     """
     experiment = _experiment(args.experiment, args.only)
+    if args.jobs < 1 or (args.jobs > 1 and not isinstance(experiment, Experiment)):
+        raise ReproduceUsageError(f"--jobs must be >= 1 (above 1 only for {', '.join(EXPERIMENTS)}), got {args.jobs}")
     out = Path(args.out or f"runs/reproduce/{args.budget}")
     if isinstance(experiment, RuntimeExperiment):
         data = _data(args.budget, args.root, args.protocol or "unseen_categories")
@@ -174,10 +186,33 @@ def reproduce(
         return _evaluate(run, args, command, progress)
     data = _data(args.budget, args.root, args.protocol)
     sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+    failure = None
     if args.report_only:
+        log = sweep.open_log()
+    elif args.jobs > 1:
+        try:
+            run_workers(worker_runs(sweep, _worker_options(args, out), not args.resume), args.jobs, progress)
+        except WorkersFailedError as err:  # the finished runs are reported first
+            failure = err
         log = sweep.open_log()
     else:
         log = run_sweep(sweep, progress=progress, rerun=not args.resume)
+    if args.no_report:
+        return []
+    written = _report(sweep, log, command, out)
+    if failure is not None:
+        raise failure
+    return written
+
+
+def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
+    """The arguments every ``--jobs`` worker repeats."""
+    protocol = ["--protocol", args.protocol] if args.protocol else []
+    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol]
+
+
+def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]:
+    """Write the sweep's Markdown report, JSONL and PNGs; returns the written files."""
     rows = with_metrics_files(finished_rows(sweep, log), out)  # also from a copy of <out> made elsewhere
     curves = plot_learning_curves(sweep.experiment, rows, out, sweep.file_stem.name)
     report = render(sweep, rows, command, failed_runs(sweep, log), curves)
@@ -215,6 +250,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             written = reproduce(args, command)
         except ReproduceUsageError as err:
             _fail(str(err))
+        except WorkersFailedError as err:
+            sys.stderr.write(f"lcreg reproduce: {err}\n")
+            raise SystemExit(err.exit_code) from None
     for path in written:
         print(f"wrote {path}")
 
