@@ -212,3 +212,24 @@ def test_last_checkpoint_records_the_best_checkpoint_of_the_same_validation(tmp_
     assert Path(recorded["best_model_path"]) == Path(checkpoint.best_model_path)  # type: ignore[union-attr]
     assert float(recorded["best_model_score"]) == cli.trainer.global_step  # the last validation, at the last step
     assert [p.name for p in run.glob("*.ckpt") if p.name != "last.ckpt"] == [Path(recorded["best_model_path"]).name]
+
+
+def test_lcreg_fit_stopped_by_sigterm_exits_143_and_keeps_its_last_checkpoint(tmp_path: Path) -> None:
+    """Before: Lightning ended `fit` on SIGTERM with a SystemExit of code None, so `lcreg fit` exited 0 as if the run
+    had finished (a scheduler's preemption or a queue's stop looked like a finished run)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    outputs = [f"--trainer.logger.init_args.save_dir={tmp_path}", f"--trainer.default_root_dir={tmp_path}"]
+    argv = [sys.executable, "-m", "lcreg", "fit", *RUN, *outputs, "--trainer.max_epochs=10000"]
+    process = subprocess.Popen(argv, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
+    last = tmp_path / "lcreg" / "version_0" / "checkpoints" / "last.ckpt"
+    deadline = time.monotonic() + 240
+    while not last.is_file() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 143, stderr[-2000:]
+    assert "training stopped by SIGTERM; `--ckpt_path last` resumes it" in stderr and last.is_file()

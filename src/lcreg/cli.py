@@ -65,11 +65,13 @@ from typing import Any, NoReturn
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import ArgsType, LightningArgumentParser, LightningCLI
 from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from lcreg.checkpoints import CheckpointError, check_class, check_keys, one_line, read_checkpoint
 from lcreg.checks import DatasetLayoutError, DatasetNotFoundError, MissingDependencyError
 from lcreg.config import ConfigFileError, ConfigValueError, UsageError, config_texts, expand_configs
 from lcreg.models.base import EVALUATION_ARGS, NonFiniteTrainingError, RegistrationModule
+from lcreg.resume import TERMINATED_EXIT_CODE
 
 __all__ = [
     "ConfigFileError",
@@ -621,13 +623,17 @@ def main(args: ArgsType = None) -> None:
             "lcreg.__main__.main) or lcreg.experiments.reproduce.command.main"
         )
     _wandb_offline_if_no_account(config_texts([str(a) for a in argv]))
-    if args is not None or _debug():
-        build_cli(args)
-        return
     try:
-        build_cli(argv)
-    except Exception as err:
-        _exit_on(err)
+        if args is not None or _debug():
+            build_cli(args)
+            return
+        try:
+            build_cli(argv)
+        except Exception as err:
+            _exit_on(err)
+    except SIGTERMException as stop:  # a SystemExit of code None: the process would exit 0, as if training ended
+        sys.stderr.write("lcreg: training stopped by SIGTERM; `--ckpt_path last` resumes it from its last.ckpt\n")
+        raise SystemExit(TERMINATED_EXIT_CODE) from stop
 
 
 def _constructor_error(err: Exception) -> str:

@@ -18,9 +18,19 @@ from typing import Any
 
 from lcreg.checkpoints import CheckpointNotFoundError
 
-__all__ = ["LastCheckpoint", "best_checkpoint_of", "find_last_checkpoint", "keep_previous_metrics"]
+__all__ = [
+    "TERMINATED_EXIT_CODE",
+    "LastCheckpoint",
+    "best_checkpoint_of",
+    "find_last_checkpoint",
+    "keep_previous_metrics",
+]
 
 LAST = "last.ckpt"
+TERMINATED_EXIT_CODE = 143
+"""Exit status of training stopped by SIGTERM (128 + 15): ``lcreg fit`` and the benchmark harness's ``fit``.
+Lightning ends ``fit`` on SIGTERM with ``SIGTERMException``, a ``SystemExit`` of code ``None`` (exit status 0), so a
+scheduler or the training queue would take a preempted run for a finished one; ``last.ckpt`` resumes it."""
 _VERSION = re.compile(r"^version_(\d+)$")
 _VERSIONED_LOGGERS = ("CSVLogger", "TensorBoardLogger")
 

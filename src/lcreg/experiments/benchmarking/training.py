@@ -12,6 +12,7 @@ import torch
 
 from lcreg.experiments.benchmarking.building import Values, build_cli_for
 from lcreg.experiments.benchmarking.measure import timed
+from lcreg.resume import TERMINATED_EXIT_CODE
 
 if TYPE_CHECKING:
     from lightning.pytorch import LightningDataModule, Trainer
@@ -37,10 +38,6 @@ SELECTION_METRIC = "val/rre_mean_deg"
 CONVERGE_METRIC = "val/rre_clip5_deg"
 """Checkpoints and early stopping of ``converge`` runs: the mean of ``min(RRE, 5°)`` over the validation pairs
 (:class:`lcreg.metrics.registration.RotationErrorClippedMean`): one failed pair moves it by at most 5° / pairs."""
-TERMINATED_EXIT_CODE = 143
-"""Exit status of a run stopped by SIGTERM (128 + 15). Lightning ends ``fit`` with a ``SystemExit`` of code ``None``
-(exit status 0) on SIGTERM; :func:`fit` turns it into this, so a script or the training queue does not take a killed
-run for a finished one (the queue marks a job done on exit status 0)."""
 
 
 def training_loss(model: RegistrationModule, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
