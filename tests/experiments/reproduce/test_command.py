@@ -250,3 +250,12 @@ def _alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"  # a zombie has ended
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA device")
+def test_a_gpu_row_names_the_gpu_and_its_peak_memory(tmp_path: Path) -> None:
+    """Lightning moves the model back to the CPU after ``fit``: the row must name the device that trained it."""
+    main(["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)])
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert "(cuda)" in row["machine"] and row["peak_mib"] > 0

@@ -181,7 +181,7 @@ def train_and_test(
         "epochs": int(result.trainer.current_epoch),
         "train_s": round(result.seconds, 1),
         "test_s": round(test_s, 1),
-        "machine": machine_line(result.model.device),
+        "machine": machine_line(result.trainer.strategy.root_device),  # the model is back on the CPU after fit
         "peak_mib": None if peak_mib is None else round(peak_mib, 1),
         "selected": result.best_checkpoint.name,
         "weights": str(weights),
