@@ -96,6 +96,9 @@ def test_resume_keys_on_budget_and_data_and_no_resume_reruns(tmp_path: Path) -> 
     assert calls[3:] == [("idam", 0)]
     run_sweep(sweep, _fake_train(calls), rerun=True)
     assert calls[4:] == [("idam", 0), ("idam", 1)] and len(read_jsonl(sweep.log_path)) == 6
+    ordered = Sweep(LC.select(["deepgmr/X", "idam/*"]), "smoke", (0,), DataChoice(None), tmp_path / "order")
+    run_sweep(ordered, _fake_train(calls))  # in the order of --only
+    assert [method for method, _ in calls[6:]] == ["deepgmr", "idam", "idam_lc", "idam_lc"]
 
 
 def _error(args: list[str], capsys) -> str:

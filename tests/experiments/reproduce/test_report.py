@@ -124,6 +124,18 @@ def test_an_experiment_refuses_cells_of_unknown_variants_and_missing_budgets() -
         LC.select(["idam/*"]).claims
     ) == 2
     assert [v.key for v in LC.select(["idam/X", "idam/LC"]).variants] == ["idam/X", "idam/LC"]
+    # --only sets the run order: the paper's claims (X, LC) of both hosts before the matched variants
+    order = LC.select(["idam/X", "idam/LC", "deepgmr/X", "deepgmr/LC", "*/LC-matched"]).variants
+    assert [v.key for v in order] == [
+        "idam/X",
+        "idam/LC",
+        "deepgmr/X",
+        "deepgmr/LC",
+        "dcp/LC-matched",
+        "prnet/LC-matched",
+        "idam/LC-matched",
+        "deepgmr/LC-matched",
+    ]
 
 
 def _not_blank(path: Path) -> np.ndarray:

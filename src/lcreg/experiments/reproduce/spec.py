@@ -111,7 +111,9 @@ class Experiment:
     def select(self, patterns: Sequence[str]) -> Experiment:
         """The experiment restricted to the variants whose key matches a pattern (``fnmatch``; none: all).
 
-        Cells of other variants are dropped, and so are claims that compare them.
+        The variants come in the order of the first pattern each matches (the experiment's order within a pattern),
+        so ``--only`` also sets the order a sweep runs them in. Cells of other variants are dropped, and so are
+        claims that compare them.
 
         Raises:
             ValueError: If a pattern matches no variant (the message lists the keys).
@@ -122,11 +124,15 @@ class Experiment:
         for pattern in patterns:
             if not fnmatch.filter(keys, pattern):
                 raise ValueError(f"--only {pattern!r} matches no variant of {self.name}; known: {', '.join(keys)}")
-        kept = {k for k in keys if any(fnmatch.fnmatchcase(k, p) for p in patterns)}
+        first = {
+            v.key: next((i for i, p in enumerate(patterns) if fnmatch.fnmatchcase(v.key, p)), None)
+            for v in self.variants
+        }
+        kept = {k for k, i in first.items() if i is not None}
         claims = tuple(c for c in self.claims if all({x.better, x.worse} <= kept for x in c.comparisons))
         return replace(
             self,
-            variants=tuple(v for v in self.variants if v.key in kept),
+            variants=tuple(sorted((v for v in self.variants if v.key in kept), key=lambda v: first[v.key] or 0)),
             cells=tuple(c for c in self.cells if c.variant in kept),
             claims=claims,
         )
