@@ -256,3 +256,33 @@ def test_configs_carry_the_original_hyperparameters() -> None:
     assert model["lr_scheduler"]["init_args"]["milestones"] == [30, 60, 80]
     assert (model["num_keypoints"], model["num_iterations"], model["sampler"]) == (512, 3, "gumbel_softmax")
     assert plain["trainer"]["max_epochs"] == 100  # batch 36: tests/test_method_configs.py::test_original_batch_sizes
+
+
+def test_training_logs_the_temperature_the_gumbel_sampler_uses(tmp_path: Path) -> None:
+    import csv
+
+    from lightning.pytorch import Trainer
+    from lightning.pytorch.loggers import CSVLogger
+
+    from lcreg.data.datamodule import SyntheticDataModule
+
+    torch.manual_seed(0)
+    data = SyntheticDataModule(num_points=64, batch_size=2, num_train=4, num_val=2, num_test=2, points_per_shape=128)
+    trainer = Trainer(
+        max_steps=2,
+        logger=CSVLogger(tmp_path, name="prnet"),
+        log_every_n_steps=1,
+        limit_val_batches=0,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+    )
+    trainer.fit(_tiny(), datamodule=data)
+    rows = list(csv.DictReader(next(tmp_path.rglob("metrics.csv")).open()))
+    logged = [
+        (float(r["train/temperature_min"]), float(r["train/temperature_mean"]))
+        for r in rows
+        if r.get("train/temperature_min")
+    ]
+    assert len(logged) == 2 and all(0.01 - 1e-6 <= low <= mean <= 100 for low, mean in logged)  # temp_factor 100

@@ -265,6 +265,19 @@ class PRNet(RegistrationModule):
         aux = {key: torch.stack(values, dim=1) for key, values in history.items()}
         return RegistrationResult.fixed_iterations(cumulative, self.num_iterations, aux)
 
+    def training_forward(self, batch: RegistrationBatch) -> RegistrationResult:
+        """``forward``, logging the TemperatureNet's output (``train/temperature_min``, ``_mean``: pairs, iterations).
+
+        In the Gumbel sampler it is ``tau``: a temperature near its floor ``1 / temp_factor`` makes the samples hard
+        and the straight-through gradient ``1 / tau`` times larger (a lead when training diverges).
+        """
+        result = self(batch.points_src, batch.points_ref)
+        if self._trainer is not None:
+            temperature = result.aux["temperature"].detach()
+            for name, value in (("min", temperature.min()), ("mean", temperature.mean())):
+                self.log(f"train/temperature_{name}", value, on_step=True, on_epoch=False, batch_size=len(batch))
+        return result
+
     def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """Discounted sum over iterations of the pose, feature-alignment and cycle-consistency terms (+ LC)."""
         gt = self.ground_truth(batch)
