@@ -275,6 +275,17 @@ def test_absent_keys_leave_their_panels_and_figures_out(tmp_path: Path) -> None:
 
 
 @needs_matplotlib
+def test_the_title_of_a_one_panel_figure_fits_its_width(tmp_path: Path) -> None:
+    """Before: "Other logged values (line: mean over seeds, shade: min–max)" ran past both edges of a 4-inch PNG."""
+    seeds = [{"lr": series([0, 5], [1e-3, 1e-4 * (1 + s)])} for s in range(2)]
+    (path,) = plot_curves({"a run with a long label": seeds}, tmp_path)
+    image = read_png(path)
+    assert_drawn(image, 1)
+    top = image[: image.shape[0] // 5, :, :3]  # title and legend rows
+    assert (top[:, :3] > 0.9).all() and (top[:, -3:] > 0.9).all()  # no text cut at the left or right edge
+
+
+@needs_matplotlib
 def test_negative_values_keep_a_linear_axis(tmp_path: Path) -> None:
     runs = {"D": [{"train/loss": series([0, 1, 2], [0.5, -0.2, -0.4])}]}
     (path,) = plot_curves(runs, tmp_path)

@@ -18,6 +18,7 @@ import csv
 import fnmatch
 import glob
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +47,7 @@ __all__ = [
     "Series",
     "aggregate",
     "canonical_key",
+    "draw_curves",
     "ema",
     "figure_pixels",
     "load_runs",
@@ -65,6 +67,8 @@ LEGEND_HEIGHT = 0.45
 """Inches above the panels for the variant legend."""
 COLUMNS = 3
 """Panels per figure row."""
+TITLE_CHAR_PT = 6.0
+"""Width of an average character of the 10 pt figure title, points (wide enough for capitals and digits)."""
 
 
 @dataclass(frozen=True)
@@ -524,7 +528,12 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
 
 
 def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smooth: float) -> Path:
-    """Draw ``specs`` on an Agg canvas of :func:`figure_pixels` and write the PNG."""
+    """Draw ``specs`` (:func:`draw_curves`) and write the PNG."""
+    return save_png(draw_curves(title, specs, runs, smooth), path)
+
+
+def draw_curves(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float = 0.0) -> Figure:
+    """``specs`` as panels on an Agg canvas of :func:`figure_pixels`, the title and variants above them."""
     width, height = figure_pixels(len(specs))
     fig = agg_figure(width / DPI, height / DPI, DPI, "learning curves")
     axes = fig.subplots(math.ceil(len(specs) / COLUMNS), min(len(specs), COLUMNS), squeeze=False).ravel()
@@ -534,8 +543,14 @@ def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smoot
     for ax in axes[len(specs) :]:
         ax.set_visible(False)
     drawn = [label for label in runs if any(label in labels for _, _, labels in specs)]
-    _legend(fig, _title(title, runs, specs, smooth), runs, colours, drawn)
-    return save_png(fig, path)
+    _legend(fig, _wrapped(_title(title, runs, specs, smooth), width), runs, colours, drawn)
+    return fig
+
+
+def _wrapped(title: str, width_px: int) -> str:
+    """``title`` broken into lines that fit ``width_px`` at 10 pt (a one-panel figure is 4 inches wide)."""
+    chars = max(20, int(width_px / (TITLE_CHAR_PT * DPI / 72)))
+    return textwrap.fill(title, chars, break_long_words=False)
 
 
 def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float = 0.0) -> list[Path]:
