@@ -20,7 +20,7 @@ results=$PWD/.gpu-results; rm -rf "$results"; mkdir -p "$results"
 [ -d "docs/results/converge/$job" ] && cp -r "docs/results/converge/$job" "$results/"   # restores finished rows
 timeout $((minutes * 60 + 90)) python3 benchmarks/train_queue.py run --only "$job" --max-minutes "$minutes" \
     --jobs "$jobs" --runs "$PWD/.gpu-runs" --results "$results" > "$OUT/log.txt" 2>&1
+echo "queue exit status $? (1: stopped at the limit, resumes)"
 nvidia-smi --query-gpu=memory.used,memory.total,utilization.gpu --format=csv
-echo "queue exit status $?"
 grep -E "^queue|Traceback|Error" "$OUT/log.txt" | tail -30
 tar czf "$OUT/results.tgz" -C "$results" --exclude='*.ckpt' "$job" && ls -la "$OUT"
