@@ -47,7 +47,6 @@ __all__ = [
     "Series",
     "aggregate",
     "canonical_key",
-    "draw_curves",
     "ema",
     "figure_pixels",
     "load_runs",
@@ -528,12 +527,7 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
 
 
 def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smooth: float) -> Path:
-    """Draw ``specs`` (:func:`draw_curves`) and write the PNG."""
-    return save_png(draw_curves(title, specs, runs, smooth), path)
-
-
-def draw_curves(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float = 0.0) -> Figure:
-    """``specs`` as panels on an Agg canvas of :func:`figure_pixels`, the title and variants above them."""
+    """Draw ``specs`` on an Agg canvas of :func:`figure_pixels` and write the PNG."""
     width, height = figure_pixels(len(specs))
     fig = agg_figure(width / DPI, height / DPI, DPI, "learning curves")
     axes = fig.subplots(math.ceil(len(specs) / COLUMNS), min(len(specs), COLUMNS), squeeze=False).ravel()
@@ -544,7 +538,7 @@ def draw_curves(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float
         ax.set_visible(False)
     drawn = [label for label in runs if any(label in labels for _, _, labels in specs)]
     _legend(fig, _wrapped(_title(title, runs, specs, smooth), width), runs, colours, drawn)
-    return fig
+    return save_png(fig, path)
 
 
 def _wrapped(title: str, width_px: int) -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from lcreg.experiments.reproduce.spec import Variant
 from lcreg.experiments.reproduce.sweep import Sweep
+from lcreg.resume import TERMINATED_EXIT_CODE
 
 __all__ = ["WorkerRun", "WorkersFailedError", "pending_runs", "run_workers", "worker_runs"]
 
@@ -32,11 +33,13 @@ class WorkersFailedError(RuntimeError):
     """Some worker processes of ``--jobs`` exited with an error (their runs have no row).
 
     Attributes:
-        exit_code: 143 when a worker was stopped by a signal (the run resumes), else 1.
+        exit_code: :data:`~lcreg.resume.TERMINATED_EXIT_CODE` when a worker was stopped by a signal (the run
+            resumes), else 1.
     """
 
     def __init__(self, failed: Sequence[tuple[str, int]]) -> None:
-        self.exit_code = 143 if any(code in (143, -signal.SIGTERM, -signal.SIGKILL) for _, code in failed) else 1
+        stopped = (TERMINATED_EXIT_CODE, -signal.SIGTERM, -signal.SIGKILL)
+        self.exit_code = TERMINATED_EXIT_CODE if any(code in stopped for _, code in failed) else 1
         names = ", ".join(f"{name} (exit {code})" for name, code in failed)
         super().__init__(f"{len(failed)} run(s) did not finish: {names}; see worker.log in their run folders")
 
