@@ -1,24 +1,31 @@
 """Prepare what a lent GPU machine (the ``device`` tool) needs to run the training queue: ``.carry/`` (git-ignored).
 
     python benchmarks/device_payload.py [--root ../shared/data/modelnet40_mini] [--out .carry] [--no-wheels]
-    python benchmarks/device_payload.py --smoke     # the data step on the embedded test files (checks the script)
+    python benchmarks/device_payload.py --unpack .carry --to ../shared/data   # on the device (device_chunk.sh)
+    python benchmarks/device_payload.py --smoke     # pack and unpack a small generated folder (checks the script)
 
 The device receives the working tree (at most 64 MiB with the carried paths) and nothing beside it: not ``../shared``,
 and its Python lacks jsonargparse. This writes
 
-* ``<out>/modelnet40_mini/``: the ModelNet40 folder with only the ``data`` and ``label`` arrays, gzip-compressed
-  (20 MB instead of 49 MB; the tracked files are about 27 MB). The ``normal`` arrays are dropped: DCP-v2, PRNet,
-  IDAM, DeepGMR, PointNetLK, PCRNet and FMR-Net never read them, DVDs does (its GPU jobs need the full files). Every
-  array written is read back and compared with the source, bit for bit;
-* ``<out>/wheels/``: jsonargparse and its ``signatures`` extras at this environment's versions, for Python 3.12.
+* ``<out>/<dataset>/``: the dataset folder, every file whole (the h5 arrays with their normals, which DVDs reads),
+  each ``.h5`` file lzma-compressed to ``<name>.h5.xz`` (``modelnet40_mini``: 24 MB instead of 49 MB; its train
+  file 19.6 MB, against 32.3 MB with gzip level 4 inside the h5), and ``MANIFEST.json`` with every file's size and
+  SHA-256. Every compressed file is decompressed and checked against the source before the script ends;
+* ``<out>/wheels/``: jsonargparse and its ``signatures`` extras at this environment's versions, for Python 3.12;
 
-Then ``benchmarks/device_chunk.sh`` runs a queue job there (``device.run("bash benchmarks/device_chunk.sh <job>
+and prints the size of what would travel (tracked and untracked files not ignored, plus ``<out>``) against the limit.
+On the device ``--unpack`` (standard library only) restores the folders under ``--to`` and checks each file's SHA-256
+against the manifest, so the device trains on the same bytes as the developer machine. Then
+``benchmarks/device_chunk.sh`` runs a queue job there (``device.run("bash benchmarks/device_chunk.sh <job>
 <minutes>", carry=[".carry"])``; docs/reproducing.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import lzma
 import shutil
 import subprocess
 import sys
@@ -26,43 +33,94 @@ import tempfile
 from importlib import metadata
 from pathlib import Path
 
-import h5py
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
-KEPT = ("data", "label")
-"""The h5 arrays the device's jobs read."""
+MANIFEST = "MANIFEST.json"
+"""Written into each packed dataset folder: ``{file name: {"bytes": int, "sha256": str}}`` of the source files."""
+COMPRESSED = (".h5",)
+"""Suffixes of the files packed as ``<name>.xz``; every other file is copied as it is."""
+LIMIT_BYTES = 64 * 2**20
+"""What may travel to the device with one call (the ``device`` tool's limit)."""
 WHEELS = ("jsonargparse", "docstring-parser", "typeshed-client")
 """Packages missing on the device image (``lcreg.cli`` needs ``jsonargparse[signatures]``)."""
 PLATFORM = ["--python-version", "3.12", "--implementation", "cp", "--platform", "manylinux2014_x86_64"]
 
 
-def strip_h5(source: Path, target: Path) -> int:
-    """Copy ``source`` to ``target`` keeping :data:`KEPT` (gzip level 4); returns the bytes written.
+class PayloadError(RuntimeError):
+    """A packed file is missing from the manifest or its bytes differ from the source's."""
+
+
+def sha256(path: Path) -> str:
+    """The SHA-256 hex digest of the file ``path``."""
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def pack_dataset(root: Path, out: Path) -> int:
+    """Pack the folder ``root`` into ``out`` (see the module docstring); returns the bytes written.
 
     Raises:
-        RuntimeError: If an array read back from ``target`` differs from the source's.
+        PayloadError: If a compressed file does not decompress to the source's bytes.
     """
-    with h5py.File(source, "r") as src, h5py.File(target, "w") as dst:
-        for key in KEPT:
-            dst.create_dataset(key, data=src[key][...], compression="gzip", compression_opts=4)
-    with h5py.File(source, "r") as src, h5py.File(target, "r") as dst:
-        for key in KEPT:
-            if not np.array_equal(src[key][...], dst[key][...]):
-                raise RuntimeError(f"{target}: {key!r} differs from {source} after the copy")
-    return target.stat().st_size
-
-
-def copy_dataset(root: Path, out: Path) -> int:
-    """Copy the folder ``root`` into ``out`` (h5 files stripped by :func:`strip_h5`); returns the bytes written."""
     out.mkdir(parents=True, exist_ok=True)
-    written = 0
-    for path in sorted(root.iterdir()):
-        if path.suffix == ".h5":
-            written += strip_h5(path, out / path.name)
-        elif path.is_file():
-            written += Path(shutil.copy2(path, out / path.name)).stat().st_size
-    return written
+    manifest = {}
+    for path in sorted(p for p in root.iterdir() if p.is_file()):
+        manifest[path.name] = {"bytes": path.stat().st_size, "sha256": sha256(path)}
+        if path.suffix in COMPRESSED:
+            packed = out / f"{path.name}.xz"
+            packed.write_bytes(lzma.compress(path.read_bytes(), preset=6))
+            if hashlib.sha256(lzma.decompress(packed.read_bytes())).hexdigest() != manifest[path.name]["sha256"]:
+                raise PayloadError(f"{packed} does not decompress to the bytes of {path}")
+        else:
+            shutil.copyfile(path, out / path.name)
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
+    return sum(p.stat().st_size for p in out.iterdir())
+
+
+def unpack_dataset(packed: Path, target: Path) -> list[Path]:
+    """Restore the dataset folder ``packed`` (written by :func:`pack_dataset`) as ``target``; returns its files.
+
+    Raises:
+        PayloadError: If ``packed`` has no manifest, or a file is missing or differs from the manifest.
+    """
+    manifest_path = packed / MANIFEST
+    if not manifest_path.is_file():
+        raise PayloadError(f"{packed}: no {MANIFEST} (not written by device_payload.py)")
+    target.mkdir(parents=True, exist_ok=True)
+    restored = []
+    for name, expected in json.loads(manifest_path.read_text()).items():
+        source, dest = packed / name, target / name
+        if (packed / f"{name}.xz").is_file():
+            dest.write_bytes(lzma.decompress((packed / f"{name}.xz").read_bytes()))
+        elif source.is_file():
+            shutil.copyfile(source, dest)
+        else:
+            raise PayloadError(f"{packed}: {name!r} is in {MANIFEST} but neither it nor {name}.xz is there")
+        if dest.stat().st_size != expected["bytes"] or sha256(dest) != expected["sha256"]:
+            raise PayloadError(f"{dest}: its bytes differ from the source's ({MANIFEST} of {packed})")
+        restored.append(dest)
+    return restored
+
+
+def unpack_all(carry: Path, to: Path) -> list[Path]:
+    """:func:`unpack_dataset` for every packed folder (one with a manifest) in ``carry``, each into ``to/<name>``."""
+    folders = sorted(p for p in carry.iterdir() if (p / MANIFEST).is_file())
+    return [path for folder in folders for path in unpack_dataset(folder, to / folder.name)]
+
+
+def travelling_bytes(repo: Path, carried: Path) -> int:
+    """Bytes that one ``device`` call sends: ``repo``'s tracked and untracked-not-ignored files, plus ``carried``."""
+    listing = subprocess.run(
+        ["git", "-C", str(repo), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        check=True,
+        capture_output=True,
+    ).stdout.decode()
+    files = [repo / name for name in listing.split("\0") if name]
+    return sum(p.stat().st_size for p in files if p.is_file()) + sum(
+        p.stat().st_size for p in carried.rglob("*") if p.is_file()
+    )
 
 
 def download_wheels(out: Path) -> list[Path]:
@@ -79,21 +137,38 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", type=Path, default=ROOT.parent / "shared" / "data" / "modelnet40_mini")
     parser.add_argument("--out", type=Path, default=ROOT / ".carry")
     parser.add_argument("--no-wheels", action="store_true", help="only the data")
-    parser.add_argument("--smoke", action="store_true", help="strip a small generated h5 folder into a temp folder")
+    parser.add_argument("--unpack", type=Path, metavar="CARRY", help="restore the packed folders of CARRY (device)")
+    parser.add_argument("--to", type=Path, default=ROOT.parent / "shared" / "data", help="where --unpack restores")
+    parser.add_argument("--smoke", action="store_true", help="pack and unpack a small generated folder (temp folders)")
     args = parser.parse_args(argv)
+    if args.unpack is not None:
+        if not args.unpack.is_dir():
+            parser.error(f"--unpack {str(args.unpack)!r} is not a folder (the .carry/ written by this script)")
+        restored = unpack_all(args.unpack, args.to)
+        print(f"{args.to}: {len(restored)} files restored, each checked against its {MANIFEST}")
+        return 0
     if args.smoke:
         args.root, args.out, args.no_wheels = _smoke_folder(), Path(tempfile.mkdtemp(prefix="lcreg-payload-")), True
     if not args.root.is_dir():
         parser.error(f"--root {str(args.root)!r} is not a folder (ModelNet40, official h5 layout)")
-    size = copy_dataset(args.root, args.out / args.root.name)
-    print(f"{args.out / args.root.name}: {size / 1e6:.1f} MB ({', '.join(KEPT)} of every h5 file, checked equal)")
+    size = pack_dataset(args.root, args.out / args.root.name)
+    print(f"{args.out / args.root.name}: {size / 1e6:.1f} MB (every file, h5 files lzma-compressed, checked)")
     if not args.no_wheels:
         print("\n".join(str(w) for w in download_wheels(args.out / "wheels")))
-    return 0
+    if args.smoke:
+        restored = unpack_all(args.out, args.out / "unpacked")
+        print(f"{args.out / 'unpacked'}: {len(restored)} files restored and checked")
+        return 0
+    travels = travelling_bytes(ROOT, args.out)
+    print(f"one device call sends {travels / 2**20:.1f} MiB of {LIMIT_BYTES / 2**20:.0f} MiB (tree + {args.out})")
+    return 0 if travels <= LIMIT_BYTES else 1
 
 
 def _smoke_folder() -> Path:
     """A two-file h5 folder (with normals) in a temp folder."""
+    import h5py
+    import numpy as np
+
     folder = Path(tempfile.mkdtemp(prefix="lcreg-payload-src-"))
     rng = np.random.default_rng(0)
     for name in ("ply_data_train0.h5", "ply_data_test0.h5"):
