@@ -315,3 +315,20 @@ def test_instantiate_refuses_a_malformed_key_or_a_missing_file() -> None:
         instantiate(["configs/dvds.yaml"], {"model.init_args.nonsense": 1})
     with pytest.raises(ConfigFileError, match=r"nowhere\.yaml"):
         instantiate(["configs/nowhere.yaml"])
+
+
+def test_an_integer_batch_limit_counts_batches_and_a_float_is_a_fraction(tmp_path: Path) -> None:
+    """``--trainer.limit_val_batches 1`` validates on one batch. It used to parse as 1.0 (every batch): ``typing``
+    handed the Trainer's ``Optional[Union[int, float]]`` back as ``Union[float, int, None]``."""
+    limits = ["--trainer.limit_val_batches=1", "--trainer.limit_train_batches=1.0", "--trainer.limit_test_batches=0.5"]
+    cli = build_cli(
+        ["--config", str(DVDS), *TINY, "--data.init_args.num_val=4", *limits, *_outputs(tmp_path)], run=False
+    )
+    assert type(cli.trainer.limit_val_batches) is int and cli.trainer.limit_val_batches == 1
+    assert type(cli.trainer.limit_train_batches) is float and cli.trainer.limit_test_batches == 0.5
+    cli.trainer.fit(cli.model, cli.datamodule)
+    assert cli.trainer.num_val_batches == [1] and cli.trainer.num_training_batches == 2  # of 2 val and 2 train batches
+    from lcreg.cli import instantiate
+
+    typed = instantiate([str(DVDS)], {"trainer.limit_predict_batches": 1, "trainer.logger": False})
+    assert type(typed.trainer.limit_predict_batches) is int

@@ -63,8 +63,8 @@ def _per_pair_rotation_errors(run: Path) -> torch.Tensor:
 
 
 def test_test_with_weights_end_to_end(trained: Trained, tmp_path: Path) -> None:
-    """The logged per-pair errors are those of ``lcreg.pretrained(file)`` on the same pairs (the first of two batches;
-    ``limit_test_batches=1`` would be read as 1.0, every batch)."""
+    """The logged per-pair errors are those of ``lcreg.pretrained(file)`` on the same pairs (the first of two
+    batches)."""
     main(
         [
             "test",

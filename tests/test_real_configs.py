@@ -115,7 +115,6 @@ def test_dvds_voxelised_on_seven_scenes_through_lcreg_test() -> None:
         "--model.init_args.encoder_channels=[16, 32]",
         "--model.init_args.voxel_grid.init_args.points_per_voxel=64",
     ]
-    # limit_test_batches=1 would parse as the fraction 1.0 (every batch): ask for 2 batches
     main(["test", *config, *QUIET, *small, f"--data.init_args.root={root}", "--trainer.limit_test_batches=2"])
     assert len(_test_rows()) == 2
 

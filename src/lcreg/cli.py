@@ -98,6 +98,10 @@ TRAINER_DEFAULTS: dict[str, Any] = {
 }
 
 
+BATCH_LIMITS = tuple(f"trainer.limit_{stage}_batches" for stage in ("train", "val", "test", "predict"))
+"""Trainer options where an int counts batches and a float is a fraction: ``1`` is one batch, ``1.0`` every batch."""
+
+
 FILE_ERRORS = (
     CheckpointError,
     NonFiniteTrainingError,
@@ -392,7 +396,11 @@ class LcregCLI(LightningCLI):
         return kwargs
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        """Accept ``--weights`` and the ``compose`` key of configs (already expanded by :func:`expand_configs`)."""
+        """Accept ``--weights`` and ``compose`` (expanded by :func:`expand_configs`); read batch limits' ints as ints.
+
+        ``--trainer.limit_*_batches 1`` is one batch, ``1.0`` every batch (:func:`_int_before_float`).
+        """
+        _int_before_float(parser, BATCH_LIMITS)
         parser.add_argument(
             "--compose",
             type=list[str] | None,
@@ -475,6 +483,18 @@ class LcregCLI(LightningCLI):
         if config.get("enable_progress_bar") is not False and not any(isinstance(c, TQDMProgressBar) for c in listed):
             callbacks.append(TimedProgressBar())
         return super()._instantiate_trainer(config, callbacks)
+
+
+def _int_before_float(parser: LightningArgumentParser, keys: Sequence[str]) -> None:
+    """Parse the options ``keys`` as ``int | float | None``, trying int first.
+
+    The Trainer annotates ``limit_*_batches`` as ``Optional[Union[int, float]]``, which ``typing`` may hand back as
+    ``Union[float, int, None]`` (its cache treats unions in any order as equal); jsonargparse then reads ``1`` as
+    ``1.0``, which Lightning takes as "every batch". A PEP 604 union keeps its order.
+    """
+    for action in parser._actions:
+        if action.dest in keys and hasattr(action, "_typehint"):
+            action._typehint = int | float | None  # jsonargparse's ActionTypeHint: the type it parses with
 
 
 def explicit_model_args(args: ArgsType | ConfigLayers) -> frozenset[str]:
