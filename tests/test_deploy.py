@@ -37,6 +37,24 @@ def test_the_graph_equals_the_eager_solve(kind: str, jacobian: str) -> None:
     torch.testing.assert_close(out, _eager(model, src, ref, 5), atol=1e-5, rtol=0)
 
 
+def test_the_graph_keeps_the_models_starts(tmp_path: Path) -> None:
+    """With ``eval_start_angles_deg`` the graph picks, per item, the start the eager solve picks (a 126° turn about
+    z, where starts other than the identity win), in the module and in its TorchScript file."""
+    model = tiny_model("dvds", seed=1).eval()
+    model.eval_start_angles_deg, model.eval_iterations = (60.0, 120.0), 5
+    src, ref = _pairs()
+    ref = ref @ se3.exp(torch.tensor([[0.0, 0.0, 2.2, 0.0, 0.0, 0.0]]))[0, :3, :3].T
+    model.solver.tolerance = 0.0
+    with torch.no_grad():
+        eager = model(src, ref)
+        graph = DeployedLK(model).eval()
+        out = graph(src, ref)
+    assert graph.num_starts == 13 and (eager.aux["start"] != 0).any()
+    torch.testing.assert_close(out, eager.transform_ref_src, atol=1e-5, rtol=0)
+    path = export_registrar(model, tmp_path / "dvds.ts", "torchscript", points=200)
+    torch.testing.assert_close(torch.jit.load(str(path))(src, ref), out, atol=1e-6, rtol=0)
+
+
 def test_cholesky_solve_matches_torch_solve() -> None:
     g = torch.Generator().manual_seed(2)
     m = torch.randn(4, 6, 6, generator=g, dtype=torch.float64)
@@ -53,10 +71,12 @@ def test_torchscript_file_runs_alone_and_agrees(tmp_path: Path) -> None:
     torch.testing.assert_close(torch.jit.load(str(path))(src, ref), expected, atol=1e-6, rtol=0)
 
 
-def test_onnx_file_runs_in_onnxruntime_and_agrees(tmp_path: Path) -> None:
+@pytest.mark.parametrize("angles", [(), (60.0,)], ids=["identity", "starts"])
+def test_onnx_file_runs_in_onnxruntime_and_agrees(tmp_path: Path, angles: tuple[float, ...]) -> None:
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
     model = tiny_model("dvds", seed=4).eval()
+    model.eval_start_angles_deg = angles
     path = export_registrar(model, tmp_path / "dvds.onnx", "onnx", points=200, iterations=4)
     src, ref = _pairs(b=2, n=150)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])

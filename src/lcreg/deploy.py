@@ -10,7 +10,9 @@
 * the damped 6x6 normal equations solved by an unrolled Cholesky factorisation (no general ``pinv``/``solve``
   operator), in the model's dtype;
 * a fixed number of iterations (the eager solver stops an item early once its update is below ``tolerance``: the one
-  documented difference; after convergence further updates are below the tolerance too).
+  documented difference; after convergence further updates are below the tolerance too);
+* the model's starts (``eval_start_angles_deg``) stacked along the batch, each item keeping the start with the lowest
+  final descriptor residual, as the eager solve does.
 
 Input checks stay outside the graph, in :func:`register_exported` and the eager model. The graph maps
 ``points_src (B, N, 3)``, ``points_ref (B, M, 3)`` (float32) to ``transform_ref_src (B, 4, 4)``; ``unit_scale`` is not
@@ -29,6 +31,7 @@ import torch
 from torch import nn
 
 from lcreg.geometry import se3
+from lcreg.nn.lk import axis_rotation_starts
 
 __all__ = ["DeployedLK", "ExportFormat", "build_parser", "export_registrar", "main"]
 
@@ -43,6 +46,9 @@ class DeployedLK(nn.Module):
             normalisation, its solver's Jacobian mode, damping and finite-difference step are copied).
         iterations: IC-LK iterations (default: the model's ``eval_iterations``, else its solver's
             ``max_iterations``).
+
+    The model's ``eval_start_angles_deg`` are kept (:func:`~lcreg.nn.lk.axis_rotation_starts`); a model with a
+    ``voxel_grid`` is exported without it (the whole-cloud solve).
 
     Raises:
         TypeError: ``model`` is not an IC-LK model.
@@ -72,6 +78,10 @@ class DeployedLK(nn.Module):
             self.register_buffer(f"weight{i}", weight.detach().clone())
             self.register_buffer(f"bias{i}", bias.detach().clone())
         self.layers = len(folded)
+        starts = axis_rotation_starts(model.eval_start_angles_deg, folded[0][0].dtype)
+        self.starts: torch.Tensor
+        self.register_buffer("starts", starts)  # (S, 4, 4), the identity first
+        self.num_starts = int(starts.shape[0])
 
     def _layer(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         return getattr(self, f"weight{i}"), getattr(self, f"bias{i}")
@@ -130,15 +140,26 @@ class DeployedLK(nn.Module):
         lam = self.damping * jtj.diagonal(dim1=1, dim2=2).mean(-1) + 1e-30
         eye = torch.eye(6, dtype=jtj.dtype, device=jtj.device)
         pinv = _cholesky_solve(jtj + lam[:, None, None] * eye, jt)  # (B, 6, K)
-        g = eye[None, :4, :4].expand(points_src.shape[0], 4, 4) * 1.0
+        b, n = points_src.shape[0], self.num_starts
+        if n > 1:  # the starts stacked along the batch, start-major (as the eager solver)
+            src0, feat_ref, pinv = src0.repeat(n, 1, 1), feat_ref.repeat(n, 1), pinv.repeat(n, 1, 1)
+        g = self.starts.to(src0.dtype)[:, None].expand(n, b, 4, 4).reshape(n * b, 4, 4)
         for _ in range(self.iterations):
-            moved = src0 @ g[:, :3, :3].transpose(1, 2) + g[:, None, :3, 3]
-            resid = self.encode(moved) - feat_ref
+            resid = self.encode(_moved(g, src0)) - feat_ref
             dxi = -(pinv @ resid[..., None]).squeeze(-1)
             g = se3.exp(dxi) @ g
+        if n > 1:
+            final = (self.encode(_moved(g, src0)) - feat_ref).norm(dim=-1).reshape(n, b)
+            best = final.argmin(0)  # (B,)
+            g = g.reshape(n, b, 16).gather(0, best[None, :, None].expand(1, b, 16))[0].reshape(b, 4, 4)
         rot, trans = g[:, :3, :3], g[:, :3, 3]
         trans = trans + mean_ref - (rot @ mean_src[..., None]).squeeze(-1)
         return torch.cat([torch.cat([rot, trans[..., None]], dim=-1), g[:, 3:4]], dim=1)
+
+
+def _moved(g: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``g (B, 4, 4)`` applied to ``points (B, N, 3)``."""
+    return points @ g[:, :3, :3].transpose(1, 2) + g[:, None, :3, 3]
 
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

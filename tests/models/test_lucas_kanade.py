@@ -97,3 +97,34 @@ def test_voxel_grid_is_used_outside_training_only_and_not_saved() -> None:
     assert PointNetLK(**SMALL).voxel_grid is None  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="VoxelGrid"):
         PointNetLK(**SMALL, voxel_grid=3)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("cls", [DVDs, PointNetLK], ids=["dvds", "pointnetlk"])
+def test_eval_starts_are_used_outside_training_only_and_saved(cls: type[LucasKanadeModule]) -> None:
+    from lcreg.nn.lk import axis_rotation_starts
+
+    batch = tiny_batch(batch_size=2, num_points=64)
+    extra = {"lambda_recon": 0, "lambda_normal": 0} if cls is DVDs else {}
+    model = cls(**SMALL, eval_iterations=3, eval_start_angles_deg=[60], **extra)  # type: ignore[arg-type]
+    assert model.eval_start_angles_deg == (60.0,) and list(model.hparams["eval_start_angles_deg"]) == [60]
+    model.eval()
+    with torch.no_grad():
+        got = model(batch.points_src, batch.points_ref)
+        starts = axis_rotation_starts([60.0], batch.points_src.dtype)
+        expected = model.solver(model.encoder, batch.points_src, batch.points_ref, max_iterations=3, starts=starts)
+    torch.testing.assert_close(got.transform_ref_src, expected.transform_ref_src)
+    assert got.aux["start"].shape == (2,)
+    model.train()
+    assert "start" not in model(batch.points_src, batch.points_ref).aux  # training: the identity start alone
+    assert "start" not in cls(**SMALL, **extra).eval()(batch.points_src, batch.points_ref).aux  # type: ignore[arg-type]
+
+
+def test_eval_starts_are_checked() -> None:
+    from lcreg.nn.voxel_lk import VoxelGrid
+
+    with pytest.raises(ValueError, match="eval_start_angles_deg"):
+        PointNetLK(**SMALL, eval_start_angles_deg=[float("nan")])  # type: ignore[arg-type]
+    model = PointNetLK(**SMALL, eval_start_angles_deg=[60], voxel_grid=VoxelGrid(grid=2))  # type: ignore[arg-type]
+    batch = tiny_batch(batch_size=1, num_points=64)
+    with pytest.raises(ValueError, match="not with `voxel_grid`"):
+        model.eval()(batch.points_src, batch.points_ref)

@@ -244,3 +244,76 @@ def test_float64_clouds_with_a_float32_encoder() -> None:
     out32 = InverseCompositionalLK(max_iterations=3)(encoder, src.float(), src.float())
     assert out64.transform_ref_src.dtype == torch.float64
     torch.testing.assert_close(out64.transform_ref_src.float(), out32.transform_ref_src)
+
+
+def test_axis_rotation_starts_match_scipy_rotations() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from lcreg.nn.lk import axis_rotation_starts
+
+    assert torch.equal(axis_rotation_starts([], dtype=torch.float64), torch.eye(4, dtype=torch.float64)[None])
+    starts = axis_rotation_starts([60.0, 30.0], dtype=torch.float64)
+    assert starts.shape == (13, 4, 4) and torch.equal(starts[0], torch.eye(4, dtype=torch.float64))
+    for i, angle in enumerate((60.0, 30.0)):
+        for axis in range(3):
+            for k, sign in enumerate((1.0, -1.0)):
+                vec = [0.0, 0.0, 0.0]
+                vec[axis] = sign * angle
+                expected = torch.tensor(Rotation.from_rotvec(vec, degrees=True).as_matrix())
+                torch.testing.assert_close(starts[1 + 6 * i + 2 * axis + k, :3, :3], expected)
+    assert (starts[:, :3, 3] == 0).all()
+
+
+def test_one_identity_start_is_the_plain_solve() -> None:
+    src, ref, _ = _problem(b=3)
+    enc, solver = _encoder(), InverseCompositionalLK(max_iterations=6)
+    plain = solver(enc, src, ref)
+    started = solver(enc, src, ref, starts=torch.eye(4, dtype=torch.float64)[None])
+    torch.testing.assert_close(started.transform_ref_src, plain.transform_ref_src)
+    assert torch.equal(started.num_iters, plain.num_iters) and (started.aux["start"] == 0).all()
+    torch.testing.assert_close(started.residual_history, plain.residual_history)
+
+
+def test_several_starts_keep_the_lowest_final_residual_per_item() -> None:
+    """Against a per-start, per-item loop of one-start solves: each item gets the start with the lowest final
+    residual, its transform, iterations and residual history."""
+    from lcreg.nn.lk import axis_rotation_starts
+
+    src, ref, gt = _problem(b=3)
+    turn = so3.exp(torch.tensor([[0.0, 0.0, 2.2]], dtype=torch.float64))  # 126 deg about z
+    ref = ref @ turn.transpose(1, 2)
+    gt = se3.make_transform(turn.expand(3, 3, 3), torch.zeros(3, 3, dtype=torch.float64)) @ gt
+    enc, solver = _encoder(), InverseCompositionalLK(max_iterations=8)
+    starts = axis_rotation_starts([60.0, 120.0], dtype=torch.float64)
+    batched = solver(enc, src, ref, starts=starts)
+    for i in range(len(src)):
+        singles = [solver(enc, src[i : i + 1], ref[i : i + 1], starts=s[None]) for s in starts]
+        finals = torch.cat([s.aux["final_residual"] for s in singles])
+        best = int(finals.argmin())
+        assert int(batched.aux["start"][i]) == best
+        torch.testing.assert_close(batched.aux["final_residual"][i], finals[best])
+        torch.testing.assert_close(batched.transform_ref_src[i], singles[best].transform_ref_src[0])
+        assert batched.residual_history is not None and singles[best].residual_history is not None
+        steps = int(singles[best].num_iters[0])
+        assert int(batched.num_iters[i]) == steps  # the history runs on while other items iterate
+        torch.testing.assert_close(batched.residual_history[i, :steps], singles[best].residual_history[0, :steps])
+    identity_only = solver(enc, src, ref, starts=starts[:1])
+    assert (batched.aux["final_residual"] <= identity_only.aux["final_residual"]).all()
+    # from the identity IC-LK fails on this turn; the +120 deg start about z (index 11) finds it
+    assert (rotation_error_deg(identity_only.transform_ref_src, gt) > 90).all()
+    assert (batched.aux["start"] == 11).all() and (rotation_error_deg(batched.transform_ref_src, gt) < 1e-3).all()
+
+
+def test_starts_are_differentiable_and_checked() -> None:
+    src, ref, _ = _problem(b=2)
+    enc = _encoder()
+    from lcreg.nn.lk import axis_rotation_starts
+
+    solver = InverseCompositionalLK(max_iterations=3, differentiable=True)
+    result = solver(enc, src, ref, starts=axis_rotation_starts([45.0], dtype=torch.float64))
+    result.transform_ref_src.sum().backward()
+    grads = [p.grad for p in enc.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    for bad in (torch.eye(4)[None, :3], torch.eye(4), torch.zeros(0, 4, 4)):
+        with pytest.raises(ValueError, match="`starts` must have shape"):
+            solver(enc, src, ref, starts=bad)

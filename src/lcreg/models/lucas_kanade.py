@@ -15,13 +15,14 @@ collapsing self-supervised descriptor shows there first (issue 12); ``benchmarks
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
 
 from lcreg.models.base import RegistrationModule
-from lcreg.nn.lk import InverseCompositionalLK, JacobianMode, jacobian_diagnostics
+from lcreg.nn.lk import InverseCompositionalLK, JacobianMode, axis_rotation_starts, jacobian_diagnostics
 from lcreg.nn.losses import lk_pose_loss
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
@@ -46,11 +47,15 @@ class LucasKanadeModule(RegistrationModule):
             the Jacobian and the iterations; DVDs holds the estimate fixed).
         voxel_grid: Voxelised IC-LK outside training (:class:`~lcreg.nn.voxel_lk.VoxelGrid`; ``None``: one
             descriptor per cloud). Not a submodule and not saved: any trained checkpoint can be evaluated with it.
+        eval_start_angles_deg: Outside training, IC-LK also starts from rotations by ``+-a`` degrees about the x, y
+            and z axes for each ``a`` (:func:`~lcreg.nn.lk.axis_rotation_starts`; 6 starts per angle, each item
+            keeps the one with the lowest final descriptor residual). ``()``: the identity alone. Not with
+            ``voxel_grid``.
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``optimizer``, ``lr_scheduler``,
             ``loss_terms``, ``refiner``).
 
     Raises:
-        ValueError: If ``eval_iterations < 1``.
+        ValueError: If ``eval_iterations < 1`` or an angle of ``eval_start_angles_deg`` is not finite.
         TypeError: If ``voxel_grid`` is not a ``VoxelGrid``.
     """
 
@@ -66,9 +71,12 @@ class LucasKanadeModule(RegistrationModule):
         fd_step: float = 1e-2,
         differentiable: bool = False,
         voxel_grid: VoxelGrid | None = None,
+        eval_start_angles_deg: Sequence[float] = (),
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        if not all(math.isfinite(a) for a in eval_start_angles_deg):
+            raise ValueError(f"`eval_start_angles_deg` must be finite angles in degrees, got {eval_start_angles_deg}")
         self.voxel_grid = voxel_grid  # a plain attribute, checked (_set_voxel_grid): not a submodule, not saved
         if eval_iterations is not None and eval_iterations < 1:
             raise ValueError(f"`eval_iterations` must be >= 1 or None, got {eval_iterations}")
@@ -77,6 +85,7 @@ class LucasKanadeModule(RegistrationModule):
             max_iterations, tolerance, damping, jacobian, fd_step=fd_step, differentiable=differentiable
         )
         self.eval_iterations = eval_iterations
+        self.eval_start_angles_deg = tuple(float(a) for a in eval_start_angles_deg)
 
     _voxel_grid: VoxelGrid | None = None
     _plain_components: ClassVar[tuple[str, ...]] = ("refiner", "voxel_grid")
@@ -105,8 +114,13 @@ class LucasKanadeModule(RegistrationModule):
         if self.training:
             return self.solver(self.encoder, points_src, points_ref)
         if self._voxel_grid is not None:
+            if self.eval_start_angles_deg:
+                raise ValueError("`eval_start_angles_deg` applies to the whole-cloud solve, not with `voxel_grid`")
             return voxel_lk(self.solver, self.encoder, self._voxel_grid, points_src, points_ref, self.eval_iterations)
-        return self.solver(self.encoder, points_src, points_ref, max_iterations=self.eval_iterations)
+        starts = None
+        if self.eval_start_angles_deg:
+            starts = axis_rotation_starts(self.eval_start_angles_deg, points_src.dtype, points_src.device)
+        return self.solver(self.encoder, points_src, points_ref, max_iterations=self.eval_iterations, starts=starts)
 
     def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """The training-mode solve with the graph kept through it, whatever ``differentiable`` says."""

@@ -9,6 +9,11 @@ Given an encoder ``psi`` and clouds ``X`` (source) and ``Y`` (reference), find `
    with ``eta = J^+ r``, hence the minus sign); an item stops once ``||dxi|| < tolerance``.
 4. Undo the centring: ``T = Trans(mean Y) G Trans(-mean X)``.
 
+Several starts (``starts``, e.g. :func:`axis_rotation_starts`): the loop runs from each initial ``G`` at once (the
+starts stacked along the batch) and each item keeps the start whose final residual ``||psi(G X0) - psi(Y0)||`` is
+lowest. A descriptor's IC-LK converges to the nearest minimum of the residual; a failed pair often has a lower
+minimum farther away, which a rotated start reaches.
+
 The damping ``lambda = damping * mean(diag(J^T J)) + tiny`` keeps a singular ``J^T J`` (e.g. dead ReLUs)
 from producing NaN: a zero Jacobian gives ``dxi = 0``. The 6x6 systems are solved in float64.
 
@@ -19,7 +24,8 @@ Jacobians: ``"analytic"`` (exact, via the encoder's ``twist_jacobian``; PointNet
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import torch
@@ -30,7 +36,14 @@ from lcreg.geometry import se3
 from lcreg.nn.dtypes import to_module_dtype
 from lcreg.types import RegistrationResult
 
-__all__ = ["TWIST_NAMES", "InverseCompositionalLK", "JacobianMode", "jacobian_diagnostics", "twist_jacobian"]
+__all__ = [
+    "TWIST_NAMES",
+    "InverseCompositionalLK",
+    "JacobianMode",
+    "axis_rotation_starts",
+    "jacobian_diagnostics",
+    "twist_jacobian",
+]
 
 JacobianMode = Literal["analytic", "autodiff", "finite_difference"]
 Encoder = Callable[[torch.Tensor], torch.Tensor]
@@ -106,6 +119,28 @@ def jacobian_diagnostics(jacobian: torch.Tensor, feature: torch.Tensor) -> dict[
     return out
 
 
+def axis_rotation_starts(
+    angles_deg: Sequence[float], dtype: torch.dtype | None = None, device: torch.device | None = None
+) -> torch.Tensor:
+    """The identity and rotations by ``+-a`` about the x, y and z axes for each ``a`` of ``angles_deg``.
+
+    Args:
+        angles_deg: Rotation angles in degrees (``[]``: the identity alone).
+        dtype: Dtype of the result.
+        device: Device of the result.
+
+    Returns:
+        ``(1 + 6 len(angles_deg), 4, 4)`` transforms, the identity first, then for each angle
+        ``+x, -x, +y, -y, +z, -z``.
+    """
+    twists = torch.zeros(1 + 6 * len(angles_deg), 6, dtype=torch.float64)
+    for i, angle in enumerate(angles_deg):
+        for axis in range(3):
+            for k, sign in enumerate((1.0, -1.0)):
+                twists[1 + 6 * i + 2 * axis + k, axis] = sign * math.radians(angle)
+    return se3.exp(twists).to(dtype=dtype or torch.get_default_dtype(), device=device)
+
+
 class InverseCompositionalLK(nn.Module):
     """IC-LK solver; holds hyper-parameters only, the encoder is passed at call time.
 
@@ -163,6 +198,7 @@ class InverseCompositionalLK(nn.Module):
         points_ref: torch.Tensor,
         max_iterations: int | None = None,
         differentiable: bool | None = None,
+        starts: torch.Tensor | None = None,
     ) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
 
@@ -174,18 +210,26 @@ class InverseCompositionalLK(nn.Module):
                 20 at test).
             differentiable: Overrides the solver's ``differentiable`` for this call (a loss term that trains
                 through the solve of a model whose own loss holds the estimate fixed).
+            starts: Initial transforms of the centred source ``(S, 4, 4)`` (``None``: the identity alone); each item
+                keeps the start with the lowest final residual (see the module docstring).
 
         Returns:
             :class:`RegistrationResult` with ``residual_history (B, iterations)`` (``||r||`` before each update),
             ``aux["feature_ref"] (B, K)``, ``aux["jacobian"] (B, K, 6)`` at the centred reference and
             ``aux["residual"] (B, K)``, the last residual ``r`` (before the last update; differentiable when the
-            solve is).
+            solve is); with ``starts`` also ``aux["start"] (B,)``, the index of the start kept, and
+            ``aux["final_residual"] (B,)``, its ``||r||`` after the last update.
+
+        Raises:
+            ValueError: ``max_iterations < 1`` or ``starts`` not ``(S, 4, 4)`` with ``S >= 1``.
         """
         if max_iterations is not None and max_iterations < 1:
             raise ValueError(f"`max_iterations` must be >= 1, got {max_iterations}")
         check_points(points_src, "points_src")
         check_points(points_ref, "points_ref")
         check_same_batch(points_src=points_src, points_ref=points_ref)
+        if starts is not None and (starts.ndim != 3 or starts.shape[0] < 1 or starts.shape[1:] != (4, 4)):
+            raise ValueError(f"`starts` must have shape (S>=1, 4, 4), got {tuple(starts.shape)}")
         dtype = points_src.dtype
         if isinstance(encoder, nn.Module):  # float64 clouds, float32 encoder (or the reverse): compute in its dtype
             points_src, points_ref = to_module_dtype(encoder, (points_src, points_ref))
@@ -195,7 +239,7 @@ class InverseCompositionalLK(nn.Module):
         try:
             grad = self.differentiable if differentiable is None else differentiable
             with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
-                result = self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations)
+                result = self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations, starts)
             result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
             return result
         finally:
@@ -203,7 +247,12 @@ class InverseCompositionalLK(nn.Module):
                 encoder.train()
 
     def _solve(
-        self, encoder: Encoder | nn.Module, points_src: torch.Tensor, points_ref: torch.Tensor, max_iterations: int
+        self,
+        encoder: Encoder | nn.Module,
+        points_src: torch.Tensor,
+        points_ref: torch.Tensor,
+        max_iterations: int,
+        starts: torch.Tensor | None = None,
     ) -> RegistrationResult:
         b = points_src.shape[0]
         mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
@@ -211,24 +260,36 @@ class InverseCompositionalLK(nn.Module):
         src0, ref0 = points_src - mean_src[:, None], points_ref - mean_ref[:, None]
         feat_ref, jac = twist_jacobian(encoder, ref0, self.jacobian, self.fd_step)
         pinv = self.pseudo_inverse(jac)
-        g = se3.identity(b, device=points_src.device, dtype=points_src.dtype)
-        active = torch.ones(b, dtype=torch.bool, device=points_src.device)
-        iters = torch.zeros(b, dtype=torch.long, device=points_src.device)
+        n = 1 if starts is None else starts.shape[0]  # the starts are stacked along the batch, start-major
+        if starts is None:
+            g = se3.identity(b, device=points_src.device, dtype=points_src.dtype)
+        else:
+            g = starts.to(points_src)[:, None].expand(n, b, 4, 4).reshape(n * b, 4, 4)
+        src_n, feat_n, pinv_n = src0.repeat(n, 1, 1), feat_ref.repeat(n, 1), pinv.repeat(n, 1, 1)
+        active = torch.ones(n * b, dtype=torch.bool, device=points_src.device)
+        iters = torch.zeros(n * b, dtype=torch.long, device=points_src.device)
         history = []
         for _ in range(max_iterations):
-            resid = encoder(se3.transform_points(g, src0)) - feat_ref  # (B, K)
+            resid = encoder(se3.transform_points(g, src_n)) - feat_n  # (S B, K)
             history.append(resid.norm(dim=-1))
-            dxi = -(pinv @ resid[..., None]).squeeze(-1) * active[:, None]  # (B, 6)
+            dxi = -(pinv_n @ resid[..., None]).squeeze(-1) * active[:, None]  # (S B, 6)
             g = se3.exp(dxi) @ g
             iters = iters + active.long()
             active = active & (dxi.norm(dim=-1) >= self.tolerance)
             if not bool(active.any()):
                 break
-        transform = se3.uncenter(g, mean_src, mean_ref)
+        aux = {"feature_ref": feat_ref, "jacobian": jac}
+        if starts is not None:
+            final = (encoder(se3.transform_points(g, src_n)) - feat_n).norm(dim=-1).reshape(n, b)
+            best = final.argmin(0)  # (B,)
+            pick = best * b + torch.arange(b, device=best.device)  # rows of the kept starts
+            g, active, iters, resid = g[pick], active[pick], iters[pick], resid[pick]
+            history = [h[pick] for h in history]
+            aux.update(start=best, final_residual=final.gather(0, best[None])[0])
         return RegistrationResult(
-            transform_ref_src=transform,
+            transform_ref_src=se3.uncenter(g, mean_src, mean_ref),
             converged=~active,
             num_iters=iters,
             residual_history=torch.stack(history, dim=1),
-            aux={"feature_ref": feat_ref, "jacobian": jac, "residual": resid},
+            aux={**aux, "residual": resid},
         )
