@@ -34,12 +34,11 @@ gradient clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same wi
 encoder: the solve then sees the same function as the training pass), ``pointnetlk_nobn_steplr`` that with the lr
 halved every 5 epochs (its validation mean RRE rose after step 500 at a constant lr). ``selfsup_lr3e-5`` and
 ``selfsup_steplr`` are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of issue 23);
-``selfsup_tw25`` weighs the
-self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall thresholds),
-``selfsup_tw100`` 100 times; ``selfsup_frac50`` draws its two samplings from half the cloud each (they share half
-their points, as two independent samplings of 1024 of ModelNet40's 2048 points do; the recipe's 0.75 shares three
-quarters); ``pcrnet`` and ``fmr`` are those baselines with their own configs (``configs/models/``), at the batch and
-points given here.
+``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall
+thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_frac50`` draws its two samplings
+from half the cloud each (they share half their points, as two independent samplings of 1024 of ModelNet40's 2048
+points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines with their own configs
+(``configs/models/``), at the batch and points given here.
 """
 
 from __future__ import annotations
@@ -123,6 +122,7 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_steplr": Variant("dvds_selfsup", overrides=HALVE_EVERY_5_EPOCHS),
     "selfsup_tw25": recipe_with(translation_weight=25.0),
     "selfsup_tw100": recipe_with(translation_weight=100.0),
+    "selfsup_tw400": recipe_with(translation_weight=400.0),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "fmr": Variant("fmr"),

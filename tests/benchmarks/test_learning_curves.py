@@ -57,7 +57,7 @@ def test_recipe_levers_change_only_their_self_motion_argument() -> None:
     assert terms(module.recipe_with()) == recipe
     assert [term[0][1] for term in recipe] == ["LocalConsistencyLoss", "SelfMotionLoss"]
     assert recipe[0][1][1] == "LocalConsistency" and recipe[0][1][2]["num_local_points"] == 64
-    levers = {"selfsup_tw25": {"translation_weight": 25.0}, "selfsup_tw100": {"translation_weight": 100.0}}
+    levers = {f"selfsup_tw{w}": {"translation_weight": float(w)} for w in (25, 100, 400)}
     for name, changed in {**levers, "selfsup_frac50": {"sample_fraction": 0.5}}.items():
         lever = terms(module.VARIANTS[name])
         assert lever[0] == recipe[0]
