@@ -14,6 +14,9 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from lcreg.config import configs_root
 from lcreg.experiments.benchmarking import METHODS, read_metrics
 from lcreg.experiments.reproduce.budgets import CONVERGE_EPOCHS_OF_8, CONVERGE_SMALL_BATCH, Preset, RunBudget
 from lcreg.experiments.reproduce.claims import Claim, Comparison
@@ -57,13 +60,11 @@ gradient and 1/59 of DeepGMR's, so "LC + X does not beat X" at weight 1 would no
 
 
 def lc_terms(weight: float) -> list[dict[str, Any]]:
-    """``model.init_args.loss_terms`` of ``configs/lc.yaml`` with another weight (the hosts have no other terms)."""
-    lc = {"class_path": "lcreg.nn.local_consistency.LocalConsistency", "init_args": {"num_local_points": 64}}
+    """``model.init_args.loss_terms`` of ``configs/lc.yaml`` (read from the packaged file) with another weight."""
+    content = yaml.safe_load((configs_root() / "lc.yaml").read_text())
     return [
-        {
-            "class_path": "lcreg.models.loss_terms.LocalConsistencyLoss",
-            "init_args": {"weight": weight, "local_consistency": lc},
-        }
+        {**term, "init_args": {**term["init_args"], "weight": weight}}
+        for term in content["model"]["init_args"]["loss_terms+"]
     ]
 
 
