@@ -127,6 +127,12 @@ def test_bad_arguments_give_one_clear_line(tmp_path: Path, capsys) -> None:
         ["lc", "--budget", "smoke", "--jobs", "0", *out], capsys
     )
     assert ", got 2" in _error(["runtime", "--budget", "smoke", "--jobs", "2", *out], capsys)
+    assert "--partial applies to ablation, lc (training sweeps); robustness sets its own data" in _error(
+        ["robustness", "--budget", "smoke", "--partial", "prnet", *out], capsys
+    )
+    assert "invalid _count_or_fraction value: 'most'" in _error(
+        ["lc", "--budget", "smoke", "--partial", "prnet", "--partial-keep", "most", *out], capsys
+    )
     missing = tmp_path / "nowhere"
     message = _error(["ablation", "--budget", "cpu", "--root", str(missing), *out], capsys)
     assert message.startswith("lcreg reproduce: error: ModelNet40 not found at") and "pass --root DIR" in message
@@ -184,6 +190,24 @@ def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stoppe
     assert row["stopped_early"] == (row["steps"] < 4) and row["best_val_rre_mean_deg"] is None
     assert row["machine"] == machine_line("cpu")  # the machine that trained the run, for the report's header
     assert row["peak_mib"] is None or row["peak_mib"] > 0  # None only where Linux's resettable peak is missing
+
+
+def test_partial_crops_every_cloud_of_a_sweep_and_keys_its_runs_apart_from_full_clouds(tmp_path: Path) -> None:
+    """``--partial prnet --partial-keep 0.5``: the workers of ``--jobs`` get the crop too; full-cloud keys unchanged."""
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    main([*args, "--partial", "prnet", "--partial-keep", "0.5", "--jobs", "2"])
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert row["data"].endswith(", partial: prnet crop keeping 0.5")
+    assert (row["num_points"], row["points_per_cloud"]) == (128, 64)
+    config = (Path(row["metrics_csv"]).parent / "config.yaml").read_text()
+    assert "partial: prnet" in config and "partial_keep: 0.5" in config
+    # Rows of full clouds keep the key they had before crops existed (the queue's finished runs stay finished).
+    synthetic = "embedded synthetic shapes (2 validation and test pairs; smoke: numbers mean nothing)"
+    assert (DataChoice(None).describe(), DataChoice("/m").describe()) == (synthetic, "ModelNet40 /m, unseen objects")
+    assert "partial" not in str(DataChoice("/m").overrides(RunBudget(steps=2, points=128, batch=2)))
+    calls: list[tuple[str, int]] = []
+    run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
+    assert calls == [("idam", 0)]  # the full-cloud run is another run
 
 
 def test_jobs_trains_runs_in_worker_processes_with_the_rows_of_a_serial_sweep(tmp_path: Path) -> None:

@@ -157,22 +157,45 @@ class DataChoice:
         protocol: ``"unseen_objects"`` (train and test on the first 20 categories) or ``"unseen_categories"``.
         workers: DataLoader workers (``None``: the config's); 0 on a 2-core CPU, where a loader process only
             competes with training.
+        partial: ``"none"`` (full clouds) or a crop of every cloud (training, validation and test):
+            ``"prnet"`` (PRNet's and IDAM's shared far anchor) or ``"viewpoint"``
+            (:class:`~lcreg.data.datamodule.PairDataModule`).
+        partial_keep: Points a crop keeps: a fraction of the budget's points (PRNet and IDAM keep 0.75: 768 of
+            1024) or a count.
     """
 
     root: str | None
     protocol: str = "unseen_objects"
     workers: int | None = 0
+    partial: str = "none"
+    partial_keep: int | float = 0.75
 
     def overrides(self, budget: RunBudget) -> Values:
         """Data values of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
         pairs = cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None})
         if self.root is None:
-            return {**synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), **pairs}
+            return {
+                **synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2),
+                **pairs,
+                **self._crop(),
+            }
         values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
-        return {**cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}), **pairs}
+        return {
+            **cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}),
+            **pairs,
+            **self._crop(),
+        }
+
+    def _crop(self) -> Values:
+        """The crop's data values (none for full clouds, so their runs keep the configs' values)."""
+        if self.partial == "none":
+            return {}
+        return cli_args("data", {"partial": self.partial, "partial_keep": self.partial_keep})
 
     def describe(self) -> str:
-        """One line for tables and the JSONL key."""
+        """One line for tables and the JSONL key (full clouds: the same line as before crops existed)."""
+        crop = "" if self.partial == "none" else f", partial: {self.partial} crop keeping {self.partial_keep:g}"
         if self.root is None:
-            return f"embedded synthetic shapes ({SMOKE_PAIRS} validation and test pairs; smoke: numbers mean nothing)"
-        return f"ModelNet40 {self.root}, {self.protocol.replace('_', ' ')}"
+            shapes = f"embedded synthetic shapes ({SMOKE_PAIRS} validation and test pairs; smoke: numbers mean nothing)"
+            return shapes + crop
+        return f"ModelNet40 {self.root}, {self.protocol.replace('_', ' ')}{crop}"

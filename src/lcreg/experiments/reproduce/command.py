@@ -101,6 +101,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="ModelNet40 protocol (default: unseen_objects; runtime: unseen_categories, the paper's)",
     )
     parser.add_argument(
+        "--partial",
+        choices=("none", "prnet", "viewpoint"),
+        default="none",
+        help="ablation, lc: crop every cloud (training, validation, test): 'prnet' is PRNet's and IDAM's shared far "
+        "anchor (default: %(default)s, full clouds)",
+    )
+    parser.add_argument(
+        "--partial-keep",
+        type=_count_or_fraction,
+        default=0.75,
+        help="points a --partial crop keeps: a fraction of the budget's points or a count (default: %(default)s, "
+        "PRNet's and IDAM's 768 of 1024)",
+    )
+    parser.add_argument(
         "--only",
         nargs="+",
         default=[],
@@ -124,6 +138,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _count_or_fraction(text: str) -> int | float:
+    """``--partial-keep``: ``"768"`` is a count, ``"0.75"`` a fraction (the data module checks the range)."""
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
 def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment | EvalExperiment:
     if name in PLANNED:
         raise ReproduceUsageError(f"experiment {name!r} is not available yet; available: {', '.join(AVAILABLE)}")
@@ -137,15 +159,18 @@ def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperimen
         raise ReproduceUsageError(str(err)) from None
 
 
-def _data(preset: Preset, root: str, protocol: str | None) -> DataChoice:
+def _data(
+    preset: Preset, root: str, protocol: str | None, partial: str = "none", partial_keep: int | float = 0.75
+) -> DataChoice:
     if preset == "smoke":
-        return DataChoice(None)
+        return DataChoice(None, partial=partial, partial_keep=partial_keep)
     if not Path(root).expanduser().is_dir():
         raise ReproduceUsageError(
             f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
         )
     workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
-    return DataChoice(str(Path(root).expanduser().resolve()), protocol or "unseen_objects", workers)
+    resolved = str(Path(root).expanduser().resolve())
+    return DataChoice(resolved, protocol or "unseen_objects", workers, partial, partial_keep)
 
 
 def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
@@ -177,6 +202,10 @@ def reproduce(
     if args.jobs < 1 or (args.jobs > 1 and not isinstance(experiment, Experiment)):
         raise ReproduceUsageError(f"--jobs must be >= 1 (above 1 only for {', '.join(EXPERIMENTS)}), got {args.jobs}")
     out = Path(args.out or f"runs/reproduce/{args.budget}")
+    if args.partial != "none" and not isinstance(experiment, Experiment):
+        raise ReproduceUsageError(
+            f"--partial applies to {', '.join(EXPERIMENTS)} (training sweeps); {args.experiment} sets its own data"
+        )
     if isinstance(experiment, RuntimeExperiment):
         data = _data(args.budget, args.root, args.protocol or "unseen_categories")
         return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
@@ -184,7 +213,7 @@ def reproduce(
         data = _data(args.budget, args.root, "unseen_categories")
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
-    data = _data(args.budget, args.root, args.protocol)
+    data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep)
     sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
     failure = None
     if args.report_only:
@@ -208,7 +237,8 @@ def reproduce(
 def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
     """The arguments every ``--jobs`` worker repeats."""
     protocol = ["--protocol", args.protocol] if args.protocol else []
-    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol]
+    crop = ["--partial", args.partial, "--partial-keep", str(args.partial_keep)] if args.partial != "none" else []
+    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop]
 
 
 def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]:

@@ -193,6 +193,7 @@ def train_and_test(
         "num_val_pairs": len(dm.val_set),
         "num_test_pairs": len(dm.test_set),
         "num_points": dm.hparams.num_points,
+        **({"points_per_cloud": dm.points_per_cloud} if dm.points_per_cloud != dm.hparams.num_points else {}),
         "batch_size": dm.hparams.batch_size,
         **({"overrides": recorded} if recorded else {}),
         **{key: float(tested[f"test/{key}"]) for key in METRICS},
