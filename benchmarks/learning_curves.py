@@ -35,10 +35,12 @@ encoder: the solve then sees the same function as the training pass), ``pointnet
 halved every 5 epochs (its validation mean RRE rose after step 500 at a constant lr). ``selfsup_lr3e-5`` and
 ``selfsup_steplr`` are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of issue 23);
 ``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall
-thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_frac50`` draws its two samplings
-from half the cloud each (they share half their points, as two independent samplings of 1024 of ModelNet40's 2048
-points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines with their own configs
-(``configs/models/``), at the batch and points given here.
+thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_tw100_fine`` adds to
+``selfsup_tw100`` a second self-motion term on small motions (Euler U[0, 2 deg], t U[-0.02, 0.02], translation
+weighted 100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_frac50`` draws its
+two samplings from half the cloud each (they share half their points, as two independent samplings of 1024 of
+ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines
+with their own configs (``configs/models/``), at the batch and points given here.
 """
 
 from __future__ import annotations
@@ -94,11 +96,22 @@ HALVE_EVERY_5_EPOCHS = {
 RECIPE_SELF_MOTION = {"max_angle_deg": 45.0, "max_translation": 0.5, "sample_fraction": 0.75}  # self_motion.yaml
 
 
-def recipe_with(**self_motion: float) -> Variant:
-    """The recipe (``configs/dvds_selfsup_modelnet40.yaml``) with some of its self-motion term's arguments changed."""
+FINE_SELF_MOTION = {"name": "self_motion_fine", "max_angle_deg": 2.0, "max_translation": 0.02}
+"""A second self-motion term on motions at the scale of the recall thresholds (2 deg, 0.01): what is left after
+the coarse solve, where the precision of goal (c) is decided."""
+
+
+def recipe_with(*extra_motions: Mapping[str, Any], **self_motion: float) -> Variant:
+    """The recipe (``configs/dvds_selfsup_modelnet40.yaml``) with some of its self-motion term's arguments changed.
+
+    Args:
+        *extra_motions: ``SelfMotionLoss`` arguments of further self-motion terms, appended after the recipe's.
+        **self_motion: Arguments of the recipe's self-motion term that change.
+    """
+    motions = [{**RECIPE_SELF_MOTION, **self_motion}, *map(dict, extra_motions)]
     terms = [
         {"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss"},  # configs/lc.yaml: the defaults
-        {"class_path": "lcreg.models.loss_terms.SelfMotionLoss", "init_args": {**RECIPE_SELF_MOTION, **self_motion}},
+        *({"class_path": "lcreg.models.loss_terms.SelfMotionLoss", "init_args": args} for args in motions),
     ]
     return Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": terms})
 
@@ -123,6 +136,7 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw25": recipe_with(translation_weight=25.0),
     "selfsup_tw100": recipe_with(translation_weight=100.0),
     "selfsup_tw400": recipe_with(translation_weight=400.0),
+    "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "fmr": Variant("fmr"),

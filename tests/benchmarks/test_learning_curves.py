@@ -62,6 +62,10 @@ def test_recipe_levers_change_only_their_self_motion_argument() -> None:
         lever = terms(module.VARIANTS[name])
         assert lever[0] == recipe[0]
         assert lever[1][0][2] == {**recipe[1][0][2], **changed} != recipe[1][0][2]
+    fine = terms(module.VARIANTS["selfsup_tw100_fine"])  # selfsup_tw100 and a second term on small motions
+    assert fine[:2] == terms(module.VARIANTS["selfsup_tw100"]) and fine[2][0][1] == "SelfMotionLoss"
+    small = {"name": "self_motion_fine", "max_angle_deg": 2.0, "max_translation": 0.02, "translation_weight": 100.0}
+    assert fine[2][0][2] == {**recipe[1][0][2], **small}
 
 
 def test_report_joins_the_finished_runs_of_other_run_folders(tmp_path: Path) -> None:
