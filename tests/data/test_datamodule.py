@@ -16,7 +16,7 @@ from lcreg.data.datamodule import (
     SyntheticDataModule,
 )
 from lcreg.data.pairs import ObjectSet, PairProtocol
-from lcreg.data.synthetic import synthetic_shapes
+from lcreg.data.synthetic import PRIMITIVES, synthetic_shapes
 from lcreg.types import RegistrationBatch
 
 PROTOCOL = PairProtocol(num_points=64)
@@ -113,6 +113,21 @@ def test_dataset_validates_shapes() -> None:
         PairDataset(np.zeros((4, 10)), None, PROTOCOL)
     with pytest.raises(ShapeError, match="normals"):
         PairDataset(np.zeros((4, 10, 3)), np.zeros((4, 9, 3)), PROTOCOL)
+    with pytest.raises(ShapeError, match="labels"):
+        PairDataset(np.zeros((4, 10, 3)), None, PROTOCOL, labels=np.zeros(3))
+
+
+def test_object_labels_follow_the_pairs_objects(shapes: tuple) -> None:
+    points, normals, labels = shapes
+    ds = PairDataset.from_objects(ObjectSet(points, normals, labels), PROTOCOL, pairs_per_object=3)
+    index = torch.tensor([0, 7, 17, 6])
+    assert ds.object_labels(index).tolist() == [labels[0], labels[1], labels[5], labels[0]]
+    assert PairDataset(points, normals, PROTOCOL).object_labels(index) is None
+    dm = _small_module()
+    dm.setup("test")
+    assert dm.test_set is not None and dm.test_set.labels is not None
+    kinds = dm.pair_classes("test", torch.arange(6))
+    assert kinds == [dm.class_names()[int(k)] for k in dm.test_set.labels] and set(kinds) <= set(PRIMITIVES)
 
 
 # ------------------------------------------------------------------------------------------------ DataModules

@@ -149,6 +149,24 @@ def test_datamodule_on_a_written_layout(tmp_path: Path) -> None:
     assert batch.normals_src is not None and batch.normals_src.shape == (4, 32, 3)
 
 
+def test_pair_classes_name_each_pairs_object_by_shape_names(tmp_path: Path) -> None:
+    """Pair ``i`` is a pair of object ``i % S``; its class is that object's line of ``shape_names.txt``."""
+    test_labels = np.array([4, 1, 7])
+    _write_layout(tmp_path, {"train": np.arange(40) % 20, "test": test_labels})
+    dm = ModelNet40DataModule(root=str(tmp_path), num_points=32, val_fraction=0.25, val_pairs_per_object=2)
+    dm.setup("test")
+    assert dm.class_names() is None  # no shape_names.txt: the labels themselves
+    assert dm.pair_classes("test", torch.tensor([2, 0])) == ["7", "4"]
+    names = [f"class{k}" for k in range(40)]
+    (tmp_path / "shape_names.txt").write_text("\n".join(names) + "\n")
+    assert dm.pair_classes("test", torch.tensor([0, 1, 2])) == ["class4", "class1", "class7"]
+    dm.setup("fit")
+    assert dm.val_set is not None and dm.val_set.labels is not None and len(dm.val_set) == 20
+    index = torch.arange(20)
+    expected = [names[int(dm.val_set.labels[i % 10])] for i in range(20)]
+    assert dm.pair_classes("val", index) == expected and expected[:10] == expected[10:]
+
+
 @pytest.mark.parametrize(
     ("labels", "stage", "match"),
     [

@@ -225,7 +225,7 @@ def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
     assert "test/rre_mean_deg" in trainer.callback_metrics
     assert "test/loss" not in trainer.callback_metrics  # the training losses are not computed at test time
     rows = list(csv.reader((tmp_path / "test_per_pair.csv").open()))
-    assert rows[0] == ["index", "rotation_error_deg", "translation_error"] and len(rows) == 3
+    assert rows[0] == ["index", "rotation_error_deg", "translation_error", "class"] and len(rows) == 3
 
 
 class MinimalHost(RegistrationModule):

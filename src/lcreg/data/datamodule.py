@@ -23,10 +23,10 @@ from torch.utils.data import DataLoader, Dataset
 
 from lcreg.checks import DatasetLayoutError, ShapeError, dataset_root
 from lcreg.data.collate import collate_pairs
-from lcreg.data.modelnet40 import EXPECTED_LAYOUT, modelnet40_objects
+from lcreg.data.modelnet40 import EXPECTED_LAYOUT, load_shape_names, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
 from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
-from lcreg.data.synthetic import synthetic_shapes
+from lcreg.data.synthetic import PRIMITIVES, synthetic_shapes
 
 __all__ = [
     "ModelNet40DataModule",
@@ -54,6 +54,7 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         pairs_per_object: Pairs drawn from every object (``>= 1``): the dataset has ``S * pairs_per_object`` items,
             item ``i`` is a pair of object ``i % S`` (with its own generator, ``seed + i`` when deterministic).
             More pairs per object make a small validation split steadier without taking objects from training.
+        labels: Optional class label of every object ``(S,)`` (:meth:`object_labels`; not part of the items).
 
     Raises:
         ShapeError: If ``points``/``normals`` are not ``(S, P, 3)`` with the same shape.
@@ -74,13 +75,17 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         deterministic: bool = False,
         seed: int = 0,
         pairs_per_object: int = 1,
+        labels: np.ndarray | torch.Tensor | None = None,
     ) -> None:
         self.points = torch.as_tensor(points)
         self.normals = None if normals is None else torch.as_tensor(normals)
+        self.labels = None if labels is None else torch.as_tensor(labels, dtype=torch.int64)
         if self.points.ndim != 3 or self.points.shape[-1] != 3:
             raise ShapeError("points", ("S", "P", 3), self.points.shape)
         if self.normals is not None and self.normals.shape != self.points.shape:
             raise ShapeError("normals", tuple(self.points.shape), self.normals.shape)
+        if self.labels is not None and self.labels.shape != self.points.shape[:1]:
+            raise ShapeError("labels", tuple(self.points.shape[:1]), self.labels.shape)
         self.protocol = protocol
         self.deterministic = deterministic
         self.seed = int(seed)
@@ -95,8 +100,12 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         seed: int = 0,
         pairs_per_object: int = 1,
     ) -> PairDataset:
-        """Build a dataset from an :class:`~lcreg.data.pairs.ObjectSet`."""
-        return cls(objects.points, objects.normals, protocol, deterministic, seed, pairs_per_object)
+        """Build a dataset from an :class:`~lcreg.data.pairs.ObjectSet` (its labels included)."""
+        return cls(objects.points, objects.normals, protocol, deterministic, seed, pairs_per_object, objects.labels)
+
+    def object_labels(self, index: torch.Tensor) -> torch.Tensor | None:
+        """Class label of the object of each pair ``index (K,)``: ``labels[index % S]`` ``(K,)``, or ``None``."""
+        return None if self.labels is None else self.labels[index.cpu().long() % self.num_objects]
 
     @property
     def num_objects(self) -> int:
@@ -258,6 +267,23 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
                 "check the dataset's files, labels and the split options)"
             )
 
+    def class_names(self) -> list[str] | None:
+        """Names of the class labels (label = list index), or ``None``; subclasses that know them override this."""
+        return None
+
+    def pair_classes(self, split: Literal["val", "test"], index: torch.Tensor) -> list[str] | None:
+        """The class of the object of each pair ``index (K,)`` of a set-up split (its name, else its label).
+
+        ``lcreg test`` writes it into ``test_per_pair.csv``, so that failures can be read per class (e.g. objects
+        with an axis of symmetry, whose rotation about it is not observable). ``None`` when the split has no labels.
+        """
+        dataset = self.test_set if split == "test" else self.val_set
+        labels = None if dataset is None else dataset.object_labels(index)
+        if labels is None:
+            return None
+        names = self.class_names() or []
+        return [names[label] if 0 <= label < len(names) else str(label) for label in labels.tolist()]
+
     @property
     def points_per_cloud(self) -> int:
         """Points in every cloud this module yields (``num_points``, or the crop's ``partial_keep``)."""
@@ -332,6 +358,10 @@ class ModelNet40DataModule(PairDataModule):
         self.protocol = protocol
         self.unseen_categories_test = unseen_categories_test
 
+    def class_names(self) -> list[str] | None:
+        """The names of ``shape_names.txt`` (``None`` when the dataset has no such file)."""
+        return load_shape_names(self.root)
+
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
         dataset_root(self.root, type(self).__name__, EXPECTED_LAYOUT)
         part: Literal["train", "test"] = "train" if stage == "fit" else "test"
@@ -375,6 +405,10 @@ class SyntheticDataModule(PairDataModule):
         self.num_test = num_test
         self.points_per_shape = points_per_shape
         self.shape_seed = shape_seed
+
+    def class_names(self) -> list[str]:
+        """A shape's label is the kind of its first primitive (:data:`~lcreg.data.synthetic.PRIMITIVES`)."""
+        return list(PRIMITIVES)
 
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
         if stage == "fit":

@@ -352,6 +352,10 @@ class ScanObjectNNDataModule(PairDataModule):
         self.background = background
         self.drop_background_points = drop_background_points
 
+    def class_names(self) -> list[str]:
+        """:data:`SCANOBJECTNN_CLASSES` (label = index)."""
+        return list(SCANOBJECTNN_CLASSES)
+
     def _load_objects(self, stage: Literal["fit", "test"]) -> dict[str, ObjectSet]:
         dataset_root(self.root, type(self).__name__, EXPECTED_LAYOUT)
         split: Split = "train" if stage == "fit" else "test"

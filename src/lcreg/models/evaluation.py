@@ -102,7 +102,11 @@ class EvaluationLogic(TrainingLogic):
         self.test_pairs.reset()
 
     def on_test_epoch_end(self) -> None:
-        """Summary line and ``test_per_pair.csv`` (index, rotation error deg, translation error)."""
+        """Summary line and ``test_per_pair.csv`` (index, rotation error deg, translation error[, class]).
+
+        The ``class`` column is the pair's object class, where the DataModule knows it (``pair_classes``: the
+        :class:`~lcreg.data.datamodule.PairDataModule` family).
+        """
         self._summary("test")
         if self.test_pairs.update_count == 0:
             return
@@ -110,17 +114,27 @@ class EvaluationLogic(TrainingLogic):
         rot, trans, index = self.test_pairs.per_pair()
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
-            if (index < 0).any():  # batches without indices: number the pairs in order
+            numbered = (index < 0).any()  # batches without indices: number the pairs in order
+            if numbered:
                 index = torch.arange(len(rot))
             order = torch.argsort(index)
             index, rot, trans = index[order], rot[order], trans[order]
+            columns = [index.tolist(), rot.tolist(), trans.tolist()]
+            classes = None if numbered else self._pair_classes(index)
             path = Path(log_dir) / "test_per_pair.csv"
             path.parent.mkdir(parents=True, exist_ok=True)
             with path.open("w", newline="") as fh:
                 writer = csv.writer(fh)
-                writer.writerow(["index", "rotation_error_deg", "translation_error"])
-                writer.writerows(zip(index.tolist(), rot.tolist(), trans.tolist()))
+                writer.writerow(["index", "rotation_error_deg", "translation_error", *(["class"] if classes else [])])
+                writer.writerows(zip(*columns, *([classes] if classes else [])))
             rank_zero_info(f"per-pair test errors written to {path}")
+
+    def _pair_classes(self, index: torch.Tensor) -> list[str] | None:
+        """The object class of each test pair ``index (K,)``, from the DataModule's ``pair_classes`` if it has one."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        pair_classes = getattr(datamodule, "pair_classes", None)
+        classes = pair_classes("test", index) if callable(pair_classes) else None
+        return classes if classes is not None and len(classes) == len(index) else None
 
     def setup(self, stage: str) -> None:
         """Before any step: check the data's cloud size; add the data's recalls unless ``recall_thresholds`` is set.
