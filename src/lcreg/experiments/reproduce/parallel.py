@@ -19,11 +19,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from lcreg.experiments.reproduce.spec import Variant
-from lcreg.experiments.reproduce.sweep import Sweep
+from lcreg.experiments.reproduce.sweep import Sweep, pending_runs
 from lcreg.resume import TERMINATED_EXIT_CODE
 
-__all__ = ["WorkerRun", "WorkersFailedError", "pending_runs", "run_workers", "worker_runs"]
+__all__ = ["WorkerRun", "WorkersFailedError", "run_workers", "worker_runs"]
 
 POLL_S = 0.5
 """Seconds between checks of the running workers."""
@@ -57,13 +56,6 @@ class WorkerRun:
     name: str
     argv: tuple[str, ...]
     log: Path
-
-
-def pending_runs(sweep: Sweep, rerun: bool) -> list[tuple[Variant, int]]:
-    """The (variant, seed) pairs of ``sweep`` without a row for its budget and data (all of them with ``rerun``)."""
-    log = sweep.open_log()
-    runs = [(v, s) for v in sweep.experiment.variants for s in sweep.seeds]
-    return [(v, s) for v, s in runs if rerun or not log.done(**sweep.key(v, s))]
 
 
 def worker_runs(sweep: Sweep, options: Sequence[str], rerun: bool) -> list[WorkerRun]:

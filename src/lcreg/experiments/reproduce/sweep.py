@@ -48,6 +48,7 @@ __all__ = [
     "Trainer",
     "failed_runs",
     "finished_rows",
+    "pending_runs",
     "run_sweep",
     "train_and_test",
 ]
@@ -230,11 +231,11 @@ def run_sweep(
         The JSONL log with every finished row.
     """
     log = sweep.open_log()
+    pending = {(variant.key, seed) for variant, seed in pending_runs(sweep, rerun, log)}
     for variant in sweep.experiment.variants:
         budget = sweep.experiment.budget(sweep.preset, variant)
         for seed in sweep.seeds:
-            key = sweep.key(variant, seed)
-            if log.done(**key) and not rerun:
+            if (variant.key, seed) not in pending:
                 progress(f"{variant.key} seed {seed}: finished before, skipped")
                 continue
             run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
@@ -242,9 +243,22 @@ def run_sweep(
                 fields = run(seed, variant.overrides)
             except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
                 fields = {"failed": one_line(str(err), 300)}
-            row = log.append({**key, "preset": sweep.preset, **fields})
+            row = log.append({**sweep.key(variant, seed), "preset": sweep.preset, **fields})
             progress(f"{variant.key} seed {seed}: {_outcome(row)}")
     return log
+
+
+def pending_runs(sweep: Sweep, rerun: bool, log: ResultLog | None = None) -> list[tuple[Variant, int]]:
+    """The (variant, seed) pairs of ``sweep`` without a row for its budget and data (all of them with ``rerun``).
+
+    Args:
+        sweep: The sweep.
+        rerun: Every run is pending (``--no-resume``).
+        log: Its JSONL log if already open (default: opened here).
+    """
+    log = log or sweep.open_log()
+    runs = [(v, s) for v in sweep.experiment.variants for s in sweep.seeds]
+    return [(v, s) for v, s in runs if rerun or not log.done(**sweep.key(v, s))]
 
 
 def _outcome(row: dict[str, Any]) -> str:
