@@ -172,19 +172,14 @@ class DataChoice:
 
     def overrides(self, budget: RunBudget) -> Values:
         """Data values of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
-        pairs = cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None})
-        if self.root is None:
-            return {
-                **synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2),
-                **pairs,
-                **self._crop(),
-            }
-        values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
-        return {
-            **cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}),
-            **pairs,
+        shared = {
+            **cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None}),
             **self._crop(),
         }
+        if self.root is None:
+            return {**synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), **shared}
+        values = {"root": self.root, "protocol": self.protocol, "seed": PAIR_SEED, "num_workers": self.workers}
+        return {**cli_args("data", {**values, "num_points": budget.points, "batch_size": budget.batch}), **shared}
 
     def _crop(self) -> Values:
         """The crop's data values (none for full clouds, so their runs keep the configs' values)."""
