@@ -1,19 +1,21 @@
 """DVDs training step: the reference implementation against the fast one, side by side in one process.
 
     python benchmarks/bench_dvds_step.py [--root ../shared/data/modelnet40_mini] [--batch 16] [--points 1024]
-                                         [--repeats 5] [--threads N] [--breakdown] [--device cpu|cuda]
+                                         [--repeats 5] [--threads N] [--breakdown] [--device cpu|cuda] [--recipe]
     python benchmarks/bench_dvds_step.py --smoke     # seconds, tiny embedded synthetic pairs (checks the script runs)
 
-The model is ``configs/dvds_modelnet40.yaml`` (DVDs with the local-consistency term, as trained), with seeded random
-weights (the work of a step does not depend on them: IC-LK always runs its 10 iterations). The batch is the first
-``--batch`` validation pairs of ModelNet40 at ``--points`` points (``--root``, unseen objects; carved out of the
-training objects) when the data is present, otherwise the embedded synthetic shapes. One step is what the training
-loop runs: gradients zeroed, ``model.training_forward(batch)``, ``model.training_losses(result, batch)["loss"]``,
-``.backward()``.
+The model is ``configs/dvds_modelnet40.yaml`` (DVDs with the local-consistency term, the paper objective), or with
+``--recipe`` ``configs/dvds_selfsup_modelnet40.yaml`` (plus the self-motion term, which trains through an eval-mode
+IC-LK solve: the shipped weights' recipe), with seeded random weights (the work of a step does not depend on them: IC-LK
+always runs its 10 iterations). The batch is the first ``--batch`` validation pairs of ModelNet40 at ``--points`` points
+(``--root``, unseen objects; carved out of the training objects) when the data is present, otherwise the embedded
+synthetic shapes. One step is what the training loop runs: gradients zeroed, ``model.training_forward(batch)``,
+``model.training_losses(result, batch)["loss"]``, ``.backward()``.
 
 * ``reference``: the step inside :func:`lcreg.reference.reference_mode`, i.e. the straightforward implementations
-  (dense last encoder layer with a dense backward, full ``(B, N, K)`` Jacobian pooling, the folding grid copied
-  per cloud, Chamfer on the ``torch.cdist`` matrix);
+  (dense last encoder layer with a dense backward, in training mode and through the eval-mode solve the self-motion
+  term differentiates, full ``(B, N, K)`` Jacobian pooling, the folding grid copied per cloud, Chamfer on the
+  ``torch.cdist`` matrix);
 * ``fast``: the default code path.
 
 Both run on the same weights and batch; time per step is the median of ``--repeats`` alternating rounds after
@@ -105,6 +107,7 @@ def agreement(model: DVDs, batch: RegistrationBatch) -> str:
     """Largest loss-term difference and largest relative gradient difference between the two paths."""
     results = {}
     for name in MODES:
+        torch.manual_seed(0)  # the same self-generated pairs in both paths (self-motion term)
         with mode(name):
             losses = training_step(model, batch)
         grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
@@ -207,6 +210,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seed", type=int, default=0, help="weight initialisation")
     parser.add_argument("--breakdown", action="store_true", help="also time each component of the step")
+    parser.add_argument("--recipe", action="store_true", help="the self-motion recipe (dvds_selfsup_modelnet40.yaml)")
     parser.add_argument("--out", default=None, help="also write the report (Markdown) here")
     add_smoke_argument(parser)
     return apply_smoke(parser.parse_args(argv), SMOKE)
@@ -215,7 +219,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
 def setup(args: argparse.Namespace) -> tuple[DVDs, RegistrationBatch, str]:
     """The configured DVDs model (train mode, seeded weights) and the benchmark batch (no pose: self-supervised)."""
     torch.manual_seed(args.seed)
-    model = build("dvds", values=cli_args("model", {"diagnostics_every_n_steps": 0}))
+    model = build("dvds_selfsup" if args.recipe else "dvds", values=cli_args("model", {"diagnostics_every_n_steps": 0}))
     if not isinstance(model, DVDs):  # pragma: no cover - the registry builds DVDs
         raise TypeError(f"expected DVDs, got {type(model).__name__}")
     batches, source = pair_batches(args.root, "val", pairs=args.batch, num_points=args.points, batch_size=args.batch)
@@ -230,8 +234,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     model, batch, source = setup(args)
     device = torch.device(args.device)
+    config = "configs/dvds_selfsup_modelnet40.yaml" if args.recipe else "configs/dvds_modelnet40.yaml"
     head = (
-        f"DVDs training step (configs/dvds_modelnet40.yaml, LC included), batch {len(batch)} x {args.points} points "
+        f"DVDs training step ({config}, LC included), batch {len(batch)} x {args.points} points "
         f"from {source}; device {args.device}: {machine_line(args.device)}; median of {args.repeats} after "
         f"{args.warmup} warm-up"
     )

@@ -21,6 +21,7 @@ RUNS = {
     "bench_baselines": [],
     "bench_dvds": [],
     "bench_dvds_step": [],
+    "bench_dvds_step --recipe": ["--recipe"],
     "bench_runtime": [],
     "bench_export": [],
     "compare_methods": [],

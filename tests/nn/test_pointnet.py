@@ -224,6 +224,43 @@ def test_small_clouds_use_the_dense_training_backward() -> None:
     assert enc._pools_sparsely(pointnet._SPARSE_MIN_POINTS)
 
 
+def _eval_outputs(enc: PointNetEncoder, points: torch.Tensor, reference: bool) -> list[torch.Tensor]:
+    """Eval-mode descriptor with a graph, and the gradients of a weighted sum of it (points, then parameters)."""
+    enc.zero_grad()
+    points = points.clone().requires_grad_()
+    with _mode(reference):
+        out = enc(points)
+    weights = torch.linspace(-1, 2, out.shape[-1], dtype=out.dtype)
+    (out * weights).sum().backward()
+    assert points.grad is not None
+    return [out.detach(), points.grad, *(p.grad for p in enc.parameters() if p.grad is not None)]
+
+
+@pytest.mark.parametrize("batch_norm", [True, False])
+@pytest.mark.parametrize("chunk_size", [1, 7, 1000])
+def test_eval_forward_with_a_graph_matches_the_chunked_max(batch_norm: bool, chunk_size: int) -> None:
+    """Through an eval-mode solve (the self-motion term's): arg-max points only, same values and gradients.
+
+    The reference is the chunked max under autograd (the path without a graph, differentiated densely); the
+    gradients reach the points, every linear layer and the BatchNorm affine terms alike.
+    """
+    enc = _encoder(batch_norm)
+    enc.chunk_size = chunk_size
+    points = _points(n=pointnet._SPARSE_MIN_POINTS + 32)
+    ref, fast = _eval_outputs(enc, points, True), _eval_outputs(enc, points, False)
+    assert len(fast) == len(ref) == 2 + (4 if batch_norm else 2) * len(CHANNELS)
+    for a, b in zip(fast, ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-12)
+    with torch.no_grad():
+        torch.testing.assert_close(enc(points), ref[0], atol=1e-12, rtol=1e-12)
+
+
+def test_eval_forward_with_a_graph_passes_gradcheck() -> None:
+    enc = _encoder(batch_norm=True)
+    points = _points(b=1, n=pointnet._SPARSE_MIN_POINTS).requires_grad_()
+    assert torch.autograd.gradcheck(enc, (points,), eps=1e-6, atol=1e-6)
+
+
 @pytest.mark.parametrize("batch_norm", [True, False])
 @pytest.mark.parametrize("chunk_size", [1, 7, 1000])
 def test_fast_twist_jacobian_matches_the_reference(batch_norm: bool, chunk_size: int) -> None:

@@ -106,6 +106,11 @@ class PointNetEncoder(nn.Module):
             weight, bias = self._folded(i)
             h = torch.relu(nn.functional.linear(h, weight, bias))
         weight, bias = self._folded(len(self.linears) - 1)
+        if torch.is_grad_enabled() and not reference_active() and points.shape[1] >= _SPARSE_MIN_POINTS:
+            # A graph through an eval-mode solve (a loss term training through IC-LK): as in training, differentiate
+            # the wide last layer at the arg-max points only; autograd through the chunked max below would keep and
+            # scatter every (B, chunk, K) block.
+            return torch.relu(_dot_at(h, self._pooled_argmax(h, weight), weight, bias))
         # max and ReLU commute and the bias is per channel: pool the wide last layer chunk by chunk (cache-friendly).
         pooled = torch.stack([nn.functional.linear(c, weight).amax(1) for c in h.split(self.chunk_size, dim=1)])
         return torch.relu(pooled.amax(0) + bias)
