@@ -17,7 +17,10 @@ long study can be run in chunks.
 validations, capped by ``--steps``; the best checkpoint is chosen on the same metric. ``--val-pairs K`` draws K
 validation pairs from every validation object (``val_pairs_per_object``: 4 gives 312 pairs on ``modelnet40_mini``), so
 one failed pair moves the criterion by at most 5° / 312. A run that was cut off (killed, session over) resumes from its
-``last.ckpt`` on the next call with the same arguments, early-stopping state included.
+``last.ckpt`` on the next call with the same arguments, early-stopping state included. ``--monitor
+val/pose_clip_r2_t0p01`` stops and selects on the translation-aware error instead (the mean of
+min(max(RRE / 2°, RTE / 0.01), 2.5), :class:`lcreg.metrics.registration.PoseErrorClippedMean`: below 1 exactly for the
+pairs within recall (2°, 0.01)); such runs are keyed apart (``converge p<P> v<K> m<metric>``).
 
 ``--out x.md`` writes the summary table of every finished run of the chosen variants
 (:func:`lcreg.experiments.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``,
@@ -146,6 +149,10 @@ VARIANTS: dict[str, Variant] = {
     ),
 }
 SMOKE = {"steps": 2, "val_every": 1, "seeds": [0], "variants": ["model_D", "selfsup"]}
+MONITORS = (CONVERGE_METRIC, "val/pose_clip_r2_t0p01")
+"""What ``--monitor`` may stop and select a converge run on: the rotation-only clipped error, or the translation-aware
+one of recall (2°, 0.01) (:class:`lcreg.metrics.registration.PoseErrorClippedMean`)."""
+
 KEY = ("variant", "seed", "points", "steps", "budget")
 """A run's identity in ``runs.jsonl``: ``budget`` is ``None`` for a fixed step budget (the rows of earlier versions),
 ``"converge p<P> v<K>"`` for a converge run."""
@@ -162,15 +169,31 @@ def data_overrides(args: argparse.Namespace) -> Values:
 
 
 def budget_key(args: argparse.Namespace) -> str | None:
-    """``None`` for a fixed step budget, ``"converge p<P> v<K>"`` for a converge run (see :data:`KEY`)."""
-    return None if args.patience is None else f"converge p{args.patience} v{args.val_pairs}"
+    """``None`` for a fixed step budget, ``"converge p<P> v<K>"`` for a converge run (see :data:`KEY`).
+
+    A converge run on another ``--monitor`` than :data:`CONVERGE_METRIC` appends ``" m<monitor>"``.
+    """
+    if args.patience is None:
+        return None
+    metric = "" if args.monitor == CONVERGE_METRIC else f" m{args.monitor}"
+    return f"converge p{args.patience} v{args.val_pairs}{metric}"
+
+
+def run_folder(args: argparse.Namespace, name: str) -> str:
+    """The folder of variant ``name``'s runs under ``--run-dir``: ``name``, or ``name@<metric>`` on another
+    ``--monitor`` (a converge run resumes from its folder's ``last.ckpt``: runs on two monitors must not share one)."""
+    if args.patience is None or args.monitor == CONVERGE_METRIC:
+        return name
+    return f"{name}@{args.monitor.rsplit('/', 1)[-1]}"
 
 
 def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> Values:
     """The step budget of every run: fixed, or until ``--patience`` validations bring no improvement."""
     if args.patience is None:
         return fit_overrides(args.steps, args.val_every, run_dir, name="", seed=seed)
-    return converge_overrides(args.steps, args.val_every, args.patience, run_dir, name="", seed=seed)
+    return converge_overrides(
+        args.steps, args.val_every, args.patience, run_dir, name="", seed=seed, monitor=args.monitor
+    )
 
 
 def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
@@ -183,7 +206,7 @@ def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
         print(f"{name} seed {seed}: done before, skipped", flush=True)
         return
     variant = VARIANTS[name]
-    run_dir = Path(args.run_dir) / name
+    run_dir = Path(args.run_dir) / run_folder(args, name)
     values = {
         **data_overrides(args),
         **training_overrides(args, run_dir, seed),
@@ -191,7 +214,7 @@ def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
         **variant.overrides,
     }
     converge = args.patience is not None
-    monitor = CONVERGE_METRIC if converge else SELECTION_METRIC
+    monitor = args.monitor if converge else SELECTION_METRIC
     result = fit(variant.method, values, variant.configs, validate_first=True, monitor=monitor, resume=converge)
     metrics = Path(result.trainer.log_dir or run_dir) / "metrics.csv"
     stopped = result.trainer.global_step
@@ -213,6 +236,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--patience", type=int, default=None, help="converge budget: stop after this many validations without gain"
     )
     parser.add_argument("--val-pairs", type=int, default=1, help="validation pairs per validation object")
+    parser.add_argument(
+        "--monitor",
+        default=CONVERGE_METRIC,
+        choices=MONITORS,
+        help="converge budget: the validation metric that stops the run and selects its checkpoint",
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--run-dir", default="runs/learning_curves")
@@ -265,10 +294,12 @@ def stops_table(rows: Sequence[dict[str, Any]]) -> str:
 
 
 def metrics_file(run_dir: Path, row: dict[str, Any]) -> Path:
-    """A finished run's ``metrics.csv``: the recorded path, or the same run under ``run_dir`` (a copied folder,
-    e.g. the committed results of the training queue)."""
+    """A finished run's ``metrics.csv``: the recorded path, or the same run (its last three path parts,
+    ``<folder>/seed<k>/metrics.csv``) under ``run_dir`` (a copied folder, e.g. the committed results of the queue)."""
     recorded = Path(row["metrics_csv"])
-    return recorded if recorded.is_file() else run_dir / row["variant"] / f"seed{row['seed']}" / "metrics.csv"
+    return (
+        recorded if recorded.is_file() else run_dir / recorded.parent.parent.name / recorded.parent.name / recorded.name
+    )
 
 
 def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:

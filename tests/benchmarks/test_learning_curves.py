@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -98,3 +99,22 @@ def test_report_joins_the_finished_runs_of_other_run_folders(tmp_path: Path) -> 
     assert text.index("| val/rre_mean_deg | selfsup |") < text.index(
         "| val/rre_mean_deg | model_D |"
     )  # --variants order
+
+
+def test_a_converge_run_on_the_pose_monitor_selects_on_it_and_is_keyed_apart(tmp_path: Path) -> None:
+    """``--monitor val/pose_clip_r2_t0p01``: checkpoints named and chosen on it; its rows do not count as the clip5
+    rule's runs (the same variants and seed train again under the default monitor)."""
+    module = load("learning_curves")
+    common = ["--smoke", "--run-dir", str(tmp_path), "--patience", "2", "--val-pairs", "1"]
+    pose = "converge p2 v1 mval/pose_clip_r2_t0p01"
+    module.main([*common, "--monitor", "val/pose_clip_r2_t0p01"])
+    rows = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
+    assert [r["budget"] for r in rows] == [pose] * len(module.SMOKE["variants"])
+    for row in rows:
+        assert "val_pose_clip_r2_t0p01" in Path(row["best_checkpoint"]).name
+        logged = Path(row["metrics_csv"]).read_text().splitlines()[0].split(",")
+        assert "val/pose_clip_r2_t0p01" in logged and "val/rre_clip5_deg" in logged
+    module.main(common)
+    rows = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
+    assert [r["budget"] for r in rows[2:]] == ["converge p2 v1"] * 2
+    assert all("val_rre_clip5_deg" in Path(r["best_checkpoint"]).name for r in rows[2:])

@@ -16,6 +16,7 @@ from lcreg.metrics.registration import (
     EulerRotationRMSE,
     NumFailed,
     PerPairErrors,
+    PoseErrorClippedMean,
     RegistrationRecall,
     RotationErrorClippedMean,
     RotationErrorMean,
@@ -36,6 +37,7 @@ KEYS = [
     "rre_mean_deg",
     "rre_median_deg",
     "rre_clip5_deg",
+    "pose_clip_r2_t0p01",
     "rte_mean",
     "recall_r2_t0p01",
     "recall_r5_t0p05",
@@ -111,6 +113,7 @@ def test_failure_policy(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
     assert out["rre_mean_deg"] == pytest.approx((10 + 20 + 180) / 4)
     assert out["rre_median_deg"] == pytest.approx(15.0)
     assert out["rre_clip5_deg"] == pytest.approx((0 + 5 + 5 + 5) / 4)  # the failure counts as the clip, 5 deg
+    assert out["pose_clip_r2_t0p01"] == pytest.approx((0.5 + 2.5 + 2.5 + 2.5) / 4)  # the failure counts as the clip
     assert out["rte_mean"] == pytest.approx((0.1 + math.sqrt(0.08) + 0.005 + 0.5) / 4)
     assert out["recall_r2_t0p01"] == pytest.approx(1 / 4)  # the failure counts in the denominator
     assert all(math.isfinite(v) for v in out.values())
@@ -322,3 +325,27 @@ def test_clipped_mean_matches_numpy_and_bounds_one_failure() -> None:
 def test_clipped_mean_refuses_a_bad_clip(clip: float) -> None:
     with pytest.raises(ValueError, match="clip_deg"):
         RotationErrorClippedMean(clip_deg=clip)
+
+
+def test_pose_clipped_mean_matches_numpy_and_is_below_one_exactly_within_the_recall() -> None:
+    gen = torch.Generator().manual_seed(1)
+    scale = torch.linspace(0.1, 2.5, 60, dtype=torch.float64)[:, None]  # pairs from well within to beyond the clip
+    angles = torch.rand(60, 3, generator=gen, dtype=torch.float64) * 2.0 * scale
+    trans = (torch.rand(60, 3, generator=gen, dtype=torch.float64) - 0.5) * 0.02 * scale
+    gt = torch.stack([transform([0, 0, 0], [0, 0, 0]) for _ in range(60)])
+    pred = torch.stack([transform(a.tolist(), t.tolist()) for a, t in zip(angles, trans, strict=True)])
+    metric, recall = PoseErrorClippedMean(rot_unit_deg=2.0, trans_unit=0.01, clip=2.5), RegistrationRecall(2.0, 0.01)
+    for m in (metric, recall):
+        m.update(pred, gt)
+    rre = np.degrees(Rotation.from_matrix(pred[:, :3, :3].numpy()).magnitude())
+    rte = np.linalg.norm(trans.numpy(), axis=1)
+    units = np.maximum(rre / 2.0, rte / 0.01)
+    assert float(metric.compute()) == pytest.approx(np.minimum(units, 2.5).mean(), abs=1e-9)
+    assert (units > 2.5).any() and (units < 1).any() and ((rte / 0.01 > rre / 2.0) & (units < 2.5)).any()
+    assert float(recall.compute()) == pytest.approx((units < 1).mean())
+
+
+@pytest.mark.parametrize("bad", [{"rot_unit_deg": 0.0}, {"trans_unit": -0.01}, {"clip": float("nan")}, {"clip": True}])
+def test_pose_clipped_mean_refuses_bad_units_naming_them(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match=f"`{next(iter(bad))}`"):
+        PoseErrorClippedMean(**bad)

@@ -41,6 +41,7 @@ __all__ = [
     "NoPairsError",
     "NumFailed",
     "PerPairErrors",
+    "PoseErrorClippedMean",
     "RegistrationRecall",
     "RotationErrorClippedMean",
     "RotationErrorMean",
@@ -240,6 +241,35 @@ class RotationErrorClippedMean(_PairErrorMetric):
         return self._rotation().clamp(max=self.clip_deg).mean()
 
 
+class PoseErrorClippedMean(_PairErrorMetric):
+    """Mean of ``min(max(RRE / rot_unit_deg, RTE / trans_unit), clip)``: the pose error in recall-threshold units.
+
+    A pair is within the recall at ``(rot_unit_deg, trans_unit)`` exactly when its value is below 1, so this is a
+    smooth, translation-aware companion of that recall for model selection: it counts rotation and translation alike
+    (:class:`RotationErrorClippedMean` sees only the rotation), and a failed pair counts as ``clip`` however far off.
+
+    Args:
+        rot_unit_deg: Rotation unit in degrees (> 0), the recall's rotation threshold.
+        trans_unit: Translation unit in point units (> 0), the recall's translation threshold.
+        clip: Clip in units (> 0); 2.5 caps a pair at (5 deg, 0.025) for the (2 deg, 0.01) units.
+        **kwargs: Forwarded to ``torchmetrics.Metric``.
+    """
+
+    higher_is_better = False
+
+    def __init__(self, rot_unit_deg: float = 2.0, trans_unit: float = 0.01, clip: float = 2.5, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        for name, value in (("rot_unit_deg", rot_unit_deg), ("trans_unit", trans_unit), ("clip", clip)):
+            if not _positive_number(value):
+                raise ValueError(f"`{name}` must be a finite number > 0, got {value!r}")
+        self.rot_unit_deg, self.trans_unit, self.clip = float(rot_unit_deg), float(trans_unit), float(clip)
+
+    def compute(self) -> torch.Tensor:
+        """Return the scalar clipped mean in units (failed pairs count as ``clip``)."""
+        units = torch.maximum(self._rotation() / self.rot_unit_deg, self._translation() / self.trans_unit)
+        return torch.where(self._failed(), torch.full_like(units, self.clip), units.clamp(max=self.clip)).mean()
+
+
 class TranslationErrorMean(_PairErrorMetric):
     """Mean translation error (RTE) ``||t_pred - t_gt||`` in point units."""
 
@@ -368,6 +398,7 @@ def registration_metrics(prefix: str = "", recall_thresholds: Sequence[tuple[flo
 
     Keys (after ``prefix``): ``rmse_r_deg``, ``mae_r_deg`` (DCP Euler), ``rmse_t``, ``mae_t``, ``rre_mean_deg``,
     ``rre_median_deg``, ``rre_clip5_deg`` (mean of ``min(RRE, 5°)``, :class:`RotationErrorClippedMean`),
+    ``pose_clip_r2_t0p01`` (mean of ``min(max(RRE / 2°, RTE / 0.01), 2.5)``, :class:`PoseErrorClippedMean`),
     ``rte_mean``, ``recall_r2_t0p01`` (2 degrees and 0.01) and ``recall_r5_t0p05``
     (5 degrees and 0.05), then one :func:`recall_key` per extra pair of ``recall_thresholds`` (e.g.
     ``recall_r15_t0p3``; a pair already listed adds nothing). Module names cannot contain ``.``, hence ``0p01``
@@ -401,6 +432,7 @@ def registration_metrics(prefix: str = "", recall_thresholds: Sequence[tuple[flo
             "rre_mean_deg": RotationErrorMean(),
             "rre_median_deg": RotationErrorMedian(),
             "rre_clip5_deg": RotationErrorClippedMean(clip_deg=5.0),
+            "pose_clip_r2_t0p01": PoseErrorClippedMean(rot_unit_deg=2.0, trans_unit=0.01, clip=2.5),
             "rte_mean": TranslationErrorMean(),
             **{key: RegistrationRecall(rot_thr_deg=rot, trans_thr=trans) for key, (rot, trans) in recalls.items()},
         },

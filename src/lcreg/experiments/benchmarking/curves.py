@@ -196,6 +196,7 @@ SUMMARY_KEYS = (
     "val/rre_mean_deg",
     "val/rre_median_deg",
     "val/rre_clip5_deg",
+    "val/pose_clip_r2_t0p01",
     "val/rte_mean",
     "val/recall_r5_t0p05",
     "val/recall_r2_t0p01",
