@@ -24,7 +24,7 @@ from torch.utils.data import DataLoader, Dataset
 from lcreg.checks import DatasetLayoutError, ShapeError, dataset_root
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, load_shape_names, modelnet40_objects
-from lcreg.data.pairs import ObjectSet, PairProtocol, make_pair
+from lcreg.data.pairs import ObjectSet, PairProtocol, PartialMode, make_pair
 from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
 from lcreg.data.synthetic import PRIMITIVES, synthetic_shapes
 
@@ -186,7 +186,7 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         max_translation: float = 0.5,
         noise_sigma: float = 0.0,
         noise_clip: float = 0.05,
-        partial: Literal["none", "prnet", "viewpoint"] = "none",
+        partial: PartialMode = "none",
         partial_keep: int | float = 768,
         independent_sampling: bool = True,
         normalize: bool = True,

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -37,10 +37,10 @@ from lcreg.checks import ShapeError, TooFewPointsError, check_finite, check_floa
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.geometry.se3 import transform_normals, transform_points
 
-__all__ = ["ANCHOR_DISTANCE", "ObjectSet", "PairProtocol", "make_pair"]
+__all__ = ["ANCHOR_DISTANCE", "ObjectSet", "PairProtocol", "PartialMode", "make_pair"]
 
 PartialMode = Literal["none", "prnet", "viewpoint"]
-_PARTIAL_MODES = ("none", "prnet", "viewpoint")
+_PARTIAL_MODES: tuple[str, ...] = get_args(PartialMode)
 
 ANCHOR_DISTANCE = 500.0
 """Distance of the PRNet crop anchor from the origin (PRNet/IDAM use ``500 * (±1, ±1, ±1)`` plus ``U[0, 1)``)."""

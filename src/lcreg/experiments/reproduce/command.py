@@ -16,8 +16,9 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import NoReturn, get_args
 
+from lcreg.data.pairs import PartialMode
 from lcreg.experiments.benchmarking import ResultLog, write_text
 from lcreg.experiments.reproduce.ablation import ABLATION
 from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
@@ -102,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--partial",
-        choices=("none", "prnet", "viewpoint"),
+        choices=get_args(PartialMode),
         default="none",
         help="ablation, lc: crop every cloud (training, validation, test): 'prnet' is PRNet's and IDAM's shared far "
         "anchor (default: %(default)s, full clouds)",
