@@ -14,7 +14,7 @@ from lightning.pytorch import LightningModule, Trainer
 from lightning.pytorch.callbacks import Callback, TQDMProgressBar
 from torch.utils.data import DataLoader
 
-from lcreg.callbacks import TimedProgressBar
+from lcreg.callbacks import TimedProgressBar, TrainingClock
 
 BATCHES = 8
 
@@ -99,3 +99,16 @@ def test_the_bar_moves_at_every_slow_step_and_at_most_every_interval_on_fast_one
 def test_a_bad_interval_is_a_value_error(bad: float) -> None:
     with pytest.raises(ValueError, match="min_interval_s"):
         TimedProgressBar(min_interval_s=bad)
+
+
+def test_training_clock_adds_a_resumed_segment_to_the_checkpoint_time() -> None:
+    ticks = iter([100.0, 103.0, 107.0, 500.0, 502.0])
+    first = TrainingClock(clock=lambda: next(ticks))
+    assert first.seconds() == 0.0  # not started
+    first.on_fit_start(None, None)  # type: ignore[arg-type]  # 100
+    state = first.state_dict()  # a checkpoint at 103: 3 s trained
+    assert state == {"seconds": 3.0} and first.seconds() == 7.0  # 107: the time after the checkpoint is this run's
+    resumed = TrainingClock(clock=lambda: next(ticks))
+    resumed.load_state_dict(state)
+    resumed.on_fit_start(None, None)  # type: ignore[arg-type]  # 500
+    assert resumed.seconds() == 5.0  # 3 s kept from the checkpoint + 2 s of this segment

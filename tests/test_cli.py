@@ -183,7 +183,7 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
     from lightning.pytorch.loggers import CSVLogger
 
-    from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar
+    from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar, TrainingClock
 
     model_only = CONFIGS / "models" / "pcrnet.yaml"
     cli = build_cli(["--config", str(model_only), "--config", str(CONFIGS / "data" / "embedded.yaml")], run=False)
@@ -194,6 +194,7 @@ def test_trainer_defaults_live_in_the_cli(tmp_path: Path) -> None:
     assert (checkpoint.monitor, checkpoint.mode, checkpoint.save_last) == ("val/rre_mean_deg", "min", None)
     (latest,) = [c for c in cli.trainer.callbacks if isinstance(c, LatestCheckpoint)]
     assert latest.every_n_train_steps == 50 and any(isinstance(c, RngState) for c in cli.trainer.callbacks)
+    assert sum(isinstance(c, TrainingClock) for c in cli.trainer.callbacks) == 1
     (bar,) = [c for c in cli.trainer.callbacks if isinstance(c, TQDMProgressBar)]
     assert isinstance(bar, TimedProgressBar) and (bar.refresh_rate, bar.min_interval_s) == (1, 0.5)
     raw = yaml.safe_load(model_only.read_text())

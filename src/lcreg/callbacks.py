@@ -1,4 +1,4 @@
-"""Lightning callbacks used by the CLI: latest-state checkpoint, RNG state, predictions, a time-based progress bar."""
+"""Lightning callbacks: latest-state checkpoint, RNG state, predictions, a time-based progress bar, a training clock."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.types import RegistrationResult
 
-__all__ = ["LatestCheckpoint", "RngState", "TimedProgressBar", "TransformWriter"]
+__all__ = ["LatestCheckpoint", "RngState", "TimedProgressBar", "TrainingClock", "TransformWriter"]
 
 
 class LatestCheckpoint(Checkpoint):
@@ -180,6 +180,40 @@ class RngState(Callback):
         random.setstate((version, tuple(internal), gauss))
         if "cuda" in state and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class TrainingClock(Callback):
+    """Wall-clock seconds of a run's training, carried through its checkpoints into resumed segments.
+
+    A run cut off and resumed from ``last.ckpt`` trains in segments; each segment alone times only itself. The clock
+    saves the time trained so far in every checkpoint and a resumed ``fit`` starts from it, so :meth:`seconds` is
+    the time of all the training the run kept: the segments up to the checkpoint each one resumed from, plus the
+    current one (time after a segment's last checkpoint was lost with its steps and is not counted).
+
+    Args:
+        clock: Clock in seconds (monotonic; a fake one in tests).
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+        self._clock = clock
+        self._before = 0.0
+        self._start: float | None = None
+
+    def seconds(self) -> float:
+        """Seconds trained: the checkpoint's earlier segments plus the current one since its ``fit`` started."""
+        return self._before + (0.0 if self._start is None else self._clock() - self._start)
+
+    def on_fit_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Start this segment's time."""
+        self._start = self._clock()
+
+    def state_dict(self) -> dict[str, Any]:
+        """The seconds trained up to the checkpoint being written."""
+        return {"seconds": self.seconds()}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Continue from the checkpoint's seconds."""
+        self._before = float(state_dict.get("seconds", 0.0))
 
 
 class TransformWriter(BasePredictionWriter):

@@ -34,8 +34,9 @@ Resuming a run: ``lcreg fit --config X --ckpt_path last`` continues the latest r
 one (:mod:`lcreg.resume`), and the run keeps logging in that folder (the earlier ``metrics.csv`` is kept as
 ``metrics.segment<n>.csv``). ``last.ckpt`` is the latest state, written every 50 optimiser steps, after every
 validation and every epoch (:class:`lcreg.callbacks.LatestCheckpoint`; list one in ``trainer.callbacks`` to change the
-cadence) with the RNG states (:class:`lcreg.callbacks.RngState`) and the position in the training stream, so the
-resumed run computes what the uninterrupted one would have. An explicit ``--ckpt_path FILE`` works for every
+cadence) with the RNG states (:class:`lcreg.callbacks.RngState`), the training time so far
+(:class:`lcreg.callbacks.TrainingClock`) and the position in the training stream, so the resumed run computes what
+the uninterrupted one would have. An explicit ``--ckpt_path FILE`` works for every
 subcommand; ``last`` with nothing to resume is an error. ``validate``/``test``/``predict --ckpt_path best`` take the
 checkpoint that same run chose on validation (recorded in its ``last.ckpt``). ``fit`` prints its run folder.
 
@@ -228,8 +229,9 @@ class LcregCLI(LightningCLI):
     Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg")`` (the best),
     :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a
     :class:`~lcreg.callbacks.TimedProgressBar` (a TQDM bar redrawn at most every 0.5 s, at every step on a CPU); always
-    adds :class:`~lcreg.callbacks.RngState`. ``lcreg predict`` writes ``predictions.npz``
-    (:class:`lcreg.callbacks.TransformWriter`) to the run's log directory. ``--ckpt_path`` is resolved (``last``,
+    adds :class:`~lcreg.callbacks.RngState` and :class:`~lcreg.callbacks.TrainingClock` (training seconds carried
+    through checkpoints). ``lcreg predict`` writes ``predictions.npz`` (:class:`lcreg.callbacks.TransformWriter`) to
+    the run's log directory. ``--ckpt_path`` is resolved (``last``,
     ``best``) and checked before anything is built (see the module docstring).
     """
 
@@ -455,7 +457,7 @@ class LcregCLI(LightningCLI):
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list[Any]) -> Any:
         from lightning.pytorch.callbacks import ModelCheckpoint, TQDMProgressBar
 
-        from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar
+        from lcreg.callbacks import LatestCheckpoint, RngState, TimedProgressBar, TrainingClock
 
         listed = config.get("callbacks") or []
         # A listed LatestCheckpoint goes after every ModelCheckpoint (below), so last.ckpt records their update.
@@ -475,7 +477,7 @@ class LcregCLI(LightningCLI):
         for checkpoint in (c for c in listed if isinstance(c, ModelCheckpoint) and c.save_last):
             rank_zero_info("lcreg: a listed ModelCheckpoint's save_last is off: LatestCheckpoint writes last.ckpt")
             checkpoint.save_last = False
-        callbacks.append(RngState())
+        callbacks.extend([RngState(), TrainingClock()])
         if self.subcommand == "predict":
             from lcreg.callbacks import TransformWriter
 

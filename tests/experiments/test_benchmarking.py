@@ -268,9 +268,14 @@ def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path:
     first = converge(2)
     log_dir = Path(first.trainer.log_dir or "")
     assert first.trainer.global_step == 2 and last_checkpoint(log_dir) is not None
+    last = torch.load(log_dir / "checkpoints" / "last.ckpt", weights_only=False)
+    first_clock = last["callbacks"]["TrainingClock"]["seconds"]
     second = converge(4)  # the same run, continued: steps 3 and 4 only
     assert second.trainer.global_step == 4 and Path(second.trainer.log_dir or "") == log_dir
     assert (log_dir / "metrics.segment1.csv").is_file()
+    # The training clock rides in the checkpoint: the second segment's time adds to the first's.
+    assert 0 < first_clock <= first.seconds
+    assert second.seconds > first_clock and second.seconds - first_clock <= second.segment_seconds + 0.5
     curve = read_metrics(log_dir / "metrics.csv")["val/rre_clip5_deg"]
     # Untrained (step 0) and after 2 steps (logged at step 1) from the first segment, after 4 steps from the second.
     assert list(curve.steps) == [0, 1, 3]

@@ -159,13 +159,18 @@ def _quiet_run(run_dir: str | Path, name: str) -> Values:
 
 @dataclass
 class FitResult:
-    """A finished ``fit``: the trained objects, the best checkpoint on :data:`SELECTION_METRIC` and the time."""
+    """A finished ``fit``: the trained objects, the best checkpoint on :data:`SELECTION_METRIC` and the time.
+
+    ``seconds`` is the training time of the whole run, a resumed one's earlier segments included
+    (:class:`lcreg.callbacks.TrainingClock`); ``segment_seconds`` that of this call alone.
+    """
 
     model: RegistrationModule
     datamodule: LightningDataModule
     trainer: Trainer
     best_checkpoint: Path
     seconds: float
+    segment_seconds: float
 
 
 def fit(
@@ -197,6 +202,7 @@ def fit(
         RuntimeError: If training wrote no best checkpoint.
         SystemExit: Code :data:`TERMINATED_EXIT_CODE` when the run was stopped by SIGTERM (resumable).
     """
+    from lcreg.callbacks import TrainingClock
     from lcreg.models.base import RegistrationModule
     from lcreg.resume import keep_previous_metrics
 
@@ -213,6 +219,7 @@ def fit(
         keep_previous_metrics(log_dir)
     elif validate_first:
         cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
+    clock = next(c for c in getattr(cli.trainer, "callbacks", []) if isinstance(c, TrainingClock))  # LcregCLI's
     run = partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule, ckpt_path=start)
     try:
         _, seconds = timed(run)
@@ -223,4 +230,4 @@ def fit(
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")
-    return FitResult(cli.model, cli.datamodule, cli.trainer, Path(best), seconds)
+    return FitResult(cli.model, cli.datamodule, cli.trainer, Path(best), clock.seconds(), seconds)

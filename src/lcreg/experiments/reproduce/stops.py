@@ -30,7 +30,7 @@ STOPS_HEADER = [
     "why",
     "selected checkpoint",
     "best validation",
-    "train s (last segment of a resumed run)",
+    "train s (a resumed run: the segments it kept; rows before session 12: the last one)",
     "peak MiB (GPU: allocated; CPU: resident increase)",
 ]
 
