@@ -36,6 +36,11 @@ def test_variant_values_build_their_models() -> None:
     scheduler = lever.model.configure_optimizers()["lr_scheduler"]
     assert isinstance(scheduler, torch.optim.lr_scheduler.StepLR) and (scheduler.step_size, scheduler.gamma) == (5, 0.5)
     assert scheduler.optimizer.param_groups[0]["lr"] == 0.0001
+    for name, lr in (("prnet", 1e-3), ("prnet_lr2.2e-4", 2.2e-4)):  # as `lcreg reproduce lc`: DCP-family pairs
+        prnet = cli(name)
+        assert type(prnet.model).__name__ == "PRNet" and prnet.datamodule.hparams.noise_sigma == 0.01
+        optimizer = prnet.model.configure_optimizers()["optimizer"]
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(lr)
 
 
 def test_recipe_levers_change_only_their_self_motion_argument() -> None:
