@@ -213,3 +213,22 @@ def test_every_experiment_has_a_converge_budget() -> None:
     for name, experiment in EXPERIMENTS.items():
         assert "converge" in experiment.budgets, name
     assert {b.patience for b in LC.budgets["converge"].values()} == {12, 8}
+
+
+def test_the_other_table_gives_the_mean_rte_over_the_rows_that_recorded_it(tmp_path: Path) -> None:
+    """Rows written before the mean RTE was kept lack it: the cell says over how many runs its mean is."""
+    rows = lc_rows()
+    rows["dcp/X"][0] = {k: v for k, v in rows["dcp/X"][0].items() if k != "rte_mean"}
+    for run, rte in zip(rows["dcp/LC"], (0.001, 0.002, 0.003), strict=True):
+        run["rte_mean"] = rte
+    rows["idam/X"] = [{k: v for k, v in r.items() if k != "rte_mean"} for r in rows["idam/X"]]
+    text = render(sweep(LC, tmp_path, "converge"), rows, "lcreg reproduce lc --budget converge")
+    header = next(line for line in text.splitlines() if line.startswith("|  | row | series |"))
+    column = header.split(" | ").index("mean RTE")
+    cells = {
+        tuple(cells[1:3]): cells[column]
+        for line in text.splitlines()
+        if line.startswith("| hosts |") and len(cells := line.split(" | ")) > column
+    }
+    assert cells[("DCP-v2", "LC + X")] == "0.002 ± 0.001"
+    assert cells[("DCP-v2", "X")].endswith(" (2 of 3)") and cells[("IDAM", "X")] == "–"

@@ -31,12 +31,13 @@ METRIC_TITLES = {
     "mae_t": "MAE(t)",
     "rre_mean_deg": "mean RRE °",
     "rre_median_deg": "median RRE °",
+    "rte_mean": "mean RTE",
     "recall_r2_t0p01": "recall (2°, 0.01)",
     "recall_r5_t0p05": "recall (5°, 0.05)",
 }
 CLAIM_METRICS = ("rmse_r_deg", "mae_r_deg")
 """The claims are about rotation errors (the paper's headline numbers); each is judged on both."""
-OTHER_METRICS = ("rre_mean_deg", "rre_median_deg", "recall_r2_t0p01", "recall_r5_t0p05")
+OTHER_METRICS = ("rre_mean_deg", "rre_median_deg", "rte_mean", "recall_r2_t0p01", "recall_r5_t0p05")
 SPREAD_RULE = (
     "beyond the seed spread: the difference of the seed means is larger than the larger of the two seed standard "
     "deviations; `within spread` otherwise; `one seed`: no spread to compare with"
@@ -49,11 +50,16 @@ def values(rows: Rows, metric: str) -> dict[str, list[float]]:
 
 
 def _ours(runs: Sequence[Mapping[str, Any]], metric: str) -> str:
+    """Mean ± std of ``metric`` over ``runs``; over the runs that recorded it (``k of n``) when older rows lack it."""
     if not runs:
         return "not run"
+    recorded = [r[metric] for r in runs if r.get(metric) is not None]
+    if not recorded:
+        return "–"
+    part = "" if len(recorded) == len(runs) else f" ({len(recorded)} of {len(runs)})"
     if metric.startswith("recall"):
-        return format_mean_std([r[metric] for r in runs], ".1f", ".1f", scale=100.0) + " %"
-    return format_mean_std([r[metric] for r in runs])
+        return format_mean_std(recorded, ".1f", ".1f", scale=100.0) + " %" + part
+    return format_mean_std(recorded) + part
 
 
 def _ratio(runs: Sequence[Mapping[str, Any]], metric: str, paper: float | None) -> str:

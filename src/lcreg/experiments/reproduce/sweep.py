@@ -53,8 +53,9 @@ __all__ = [
     "train_and_test",
 ]
 
-METRICS = tuple(key for key, _ in REPORT_COLUMNS)
-"""Test metrics kept in every row (RMSE/MAE of R and t, RRE mean and median, the two recalls)."""
+METRICS = (*(key for key, _ in REPORT_COLUMNS), "rte_mean")
+"""Test metrics kept in every row (RMSE/MAE of R and t, RRE mean and median, the two recalls, the mean RTE: DeepGMR's
+translation figure). Rows written before session 13 lack ``rte_mean``."""
 KEY_FIELDS = ("experiment", "variant", "seed", "budget", "data")
 """Fields that identify a run in the JSONL: a row with the same values is a finished run, skipped on a rerun."""
 
