@@ -4,10 +4,11 @@
 # Installs the carried wheels; restores the carried data (`device_payload.py --unpack`: every file, SHA-256 checked)
 # where `--root ../shared/data/<name>` resolves to the same path as on the developer machine (the rows' keys hold the
 # resolved path; the device's checkout is /work/main too); runs `train_queue.py run --only <job> --max-minutes
-# <minutes> --jobs <n>` (an `lcreg reproduce` job trains n runs at once, each in its own process: one run of 256
-# points x 8 leaves an H100 mostly idle) with its runs in .gpu-runs/ (git-ignored, so a second call on the still-warm
-# machine resumes a cut-off run from its last.ckpt); then packs the job's small result files (`sync`: JSONL rows,
-# metrics.csv, hparams, reports, `best/` weights; no checkpoints) into $OUT/results.tgz and the log into $OUT/log.txt.
+# <minutes> --jobs <n>` (an `lcreg reproduce` or `learning_curves.py` job trains n runs at once, each in its own
+# process: one run of 256 points x 8 leaves an H100 mostly idle) with its runs in .gpu-runs/ (git-ignored, so a
+# second call on the still-warm machine resumes a cut-off run from its last.ckpt); then packs the job's small result
+# files (`sync`: JSONL rows, metrics.csv, hparams, reports, `best/` weights; no checkpoints) into $OUT/results.tgz and
+# the log into $OUT/log.txt.
 # Merge here with: tar xzf <files_at>/results.tgz -C docs/results/converge
 set -u
 job=${1:?job id}; minutes=${2:?minutes}; jobs=${3:-6}

@@ -22,6 +22,9 @@ val/pose_clip_r2_t0p01`` stops and selects on the translation-aware error instea
 min(max(RRE / 2°, RTE / 0.01), 2.5), :class:`lcreg.metrics.registration.PoseErrorClippedMean`: below 1 exactly for the
 pairs within recall (2°, 0.01)); such runs are keyed apart (``converge p<P> v<K> m<metric>``).
 
+``--jobs N`` trains N runs at once, each (variant, seed) in its own process of this script (a lent GPU: one run of
+256 points x 8 leaves an H100 mostly idle; the training queue's ``--jobs`` passes it on, as to ``lcreg reproduce``).
+
 ``--out x.md`` writes the summary table of every finished run of the chosen variants
 (:func:`lcreg.experiments.benchmarking.summary_table`) and the PNGs beside it (``x_validation.png``,
 ``x_jacobian.png``, ... by :func:`lcreg.experiments.benchmarking.plot_curves`, as
@@ -52,6 +55,7 @@ at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -78,6 +82,7 @@ from lcreg.experiments.benchmarking import (
     synthetic_overrides,
     write_text,
 )
+from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
 
 
 class Variant(NamedTuple):
@@ -203,12 +208,41 @@ def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> Va
     )
 
 
+def run_key(args: argparse.Namespace, name: str, seed: int) -> dict[str, Any]:
+    """The identity of run (``name``, ``seed``) in ``runs.jsonl`` (:data:`KEY`)."""
+    return {"variant": name, "seed": seed, "points": args.points, "steps": args.steps, "budget": budget_key(args)}
+
+
+def worker_runs(args: argparse.Namespace, log: ResultLog) -> list[WorkerRun]:
+    """``--jobs``: one process of this script per unfinished (variant, seed), with this call's budget and run folder.
+
+    Each appends its row to the shared ``runs.jsonl`` and logs to ``<run folder>/seed<k>/worker.log``; an empty
+    ``--root`` is the embedded shapes (``--smoke``), as any ``--root`` that is not a folder.
+    """
+    options = [
+        *("--root", args.root or "", "--points", str(args.points), "--batch", str(args.batch)),
+        *("--steps", str(args.steps), "--val-every", str(args.val_every), "--val-pairs", str(args.val_pairs)),
+        *("--monitor", args.monitor, "--run-dir", str(args.run_dir)),
+        *(() if args.patience is None else ("--patience", str(args.patience))),
+    ]
+    return [
+        WorkerRun(
+            f"{name} seed {seed}",
+            (sys.executable, str(Path(__file__).resolve()), *options, "--variants", name, "--seeds", str(seed)),
+            Path(args.run_dir) / run_folder(args, name) / f"seed{seed}" / "worker.log",
+        )
+        for name in args.variants
+        for seed in args.seeds
+        if not log.done(**run_key(args, name, seed))
+    ]
+
+
 def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
     """Train ``name`` from seed ``seed`` unless ``log`` lists it as finished; append its row when done.
 
     A converge run that was cut off resumes from its ``last.ckpt``.
     """
-    key = {"variant": name, "seed": seed, "points": args.points, "steps": args.steps, "budget": budget_key(args)}
+    key = run_key(args, name, seed)
     if log.done(**key):
         print(f"{name} seed {seed}: done before, skipped", flush=True)
         return
@@ -263,8 +297,16 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         metavar="DIR",
         help="more run folders whose finished runs join the report (e.g. another queue job's committed runs)",
     )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="runs trained at once, each in its own process of this script (a GPU takes several; default 1)",
+    )
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
         args.run_dir = tempfile.mkdtemp(prefix="lcreg-smoke-")
     return args
@@ -275,12 +317,22 @@ def main(argv: Sequence[str] | None = None) -> None:
     log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=KEY)
     budget = budget_key(args) or "fixed budget"
     print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine_line()}", flush=True)
-    for name in args.variants if not args.report_only else ():
+    failure = None
+    if args.jobs > 1 and not args.report_only:
+        try:
+            run_workers(worker_runs(args, log), args.jobs, lambda line: print(line, flush=True))
+        except WorkersFailedError as err:  # the finished runs are reported first
+            failure = err
+        log = ResultLog(log.path, key=KEY)  # the workers' rows
+    for name in args.variants if args.jobs == 1 and not args.report_only else ():
         for seed in args.seeds:
             run(args, name, seed, log)
     out = output_path(args.out, "learning_curves.md", args.smoke)
     if out:
         report(args, log, out)
+    if failure is not None:
+        print(failure, file=sys.stderr, flush=True)
+        raise SystemExit(failure.exit_code)
 
 
 def stops_table(rows: Sequence[dict[str, Any]]) -> str:

@@ -75,11 +75,16 @@ class Job:
     def executable(self, runs: Path, results: Path, jobs: int = 1) -> list[str]:
         """:meth:`argv` run by this interpreter: ``python`` is it, ``lcreg`` is ``python -c <lcreg.__main__.main>``, so
         the code imported is that of the interpreter's path (the worktree's ``src`` with ``PYTHONPATH``). ``jobs`` > 1
-        adds ``--jobs`` to an ``lcreg reproduce`` sweep (runs at once, e.g. on a GPU)."""
+        adds ``--jobs`` to an ``lcreg reproduce`` sweep or a ``learning_curves.py`` job (runs at once, e.g. on a
+        GPU)."""
         words = self.argv(runs, results)
         head = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}.get(words[0], words[:1])
-        parallel = ["--jobs", str(jobs)] if jobs > 1 and words[:2] == ["lcreg", "reproduce"] else []
+        parallel = ["--jobs", str(jobs)] if jobs > 1 and words[:2] in PARALLEL_COMMANDS else []
         return [*head, *words[1:], *parallel]
+
+
+PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_curves.py"])
+"""Commands that take ``--jobs`` (the first two words of a job's command)."""
 
 
 def load_jobs(path: Path) -> list[Job]:
@@ -195,7 +200,8 @@ def status_line(job: Job, results: Path) -> str:
 def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs: int = 1) -> bool:
     """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done.
 
-    ``jobs``: runs at once of an ``lcreg reproduce`` job (:meth:`Job.executable`), each on one thread.
+    ``jobs``: runs at once of an ``lcreg reproduce`` or ``learning_curves.py`` job (:meth:`Job.executable`), each on
+    one thread.
     """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     argv = ["nice", "-n", "5", *job.executable(runs, results, jobs)]
@@ -240,7 +246,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "converge")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop a command after this long (resumes)")
     parser.add_argument(
-        "--jobs", type=int, default=1, help="runs at once of an `lcreg reproduce` job (a GPU; default 1: one thread)"
+        "--jobs",
+        type=int,
+        default=1,
+        help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; default 1: one thread)",
     )
     add_smoke_argument(parser)
     return parser.parse_args(argv)

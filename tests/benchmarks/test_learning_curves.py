@@ -123,3 +123,30 @@ def test_a_converge_run_on_the_pose_monitor_selects_on_it_and_is_keyed_apart(tmp
     rows = [json.loads(line) for line in (tmp_path / "runs.jsonl").read_text().splitlines()]
     assert [r["budget"] for r in rows[2:]] == ["converge p2 v1"] * 2
     assert all("val_rre_clip5_deg" in Path(r["best_checkpoint"]).name for r in rows[2:])
+
+
+def test_jobs_train_each_run_in_its_own_process_as_the_sequential_loop_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--jobs 2``: one worker process per unfinished (variant, seed), rows in the shared ``runs.jsonl``; a run's
+    validation curve equals the one the in-process loop trains from the same seed; a rerun starts nothing."""
+    module = load("learning_curves")
+    common = ["--root", "", "--points", "64", "--batch", "2", "--steps", "2", "--val-every", "1", "--seeds", "0"]
+    parallel, sequential = tmp_path / "parallel", tmp_path / "sequential"
+    module.main([*common, "--variants", "model_D", "selfsup", "--jobs", "2", "--run-dir", str(parallel)])
+    started = [line for line in capsys.readouterr().out.splitlines() if ": started (" in line]
+    assert sorted(line.split(":")[0] for line in started) == ["model_D seed 0", "selfsup seed 0"]
+    rows = {r["variant"]: r for r in map(json.loads, (parallel / "runs.jsonl").read_text().splitlines())}
+    assert sorted(rows) == ["model_D", "selfsup"] and all(r["stopped_step"] == 2 for r in rows.values())
+    assert (parallel / "selfsup" / "seed0" / "worker.log").is_file()
+    module.main([*common, "--variants", "selfsup", "--run-dir", str(sequential)])
+    (twin,) = map(json.loads, (sequential / "runs.jsonl").read_text().splitlines())
+
+    def curve(row: dict[str, object]) -> list[str]:
+        lines = Path(str(row["metrics_csv"])).read_text().splitlines()
+        column = lines[0].split(",").index("val/rre_mean_deg")
+        return [cells[column] for cells in (line.split(",") for line in lines[1:]) if cells[column]]
+
+    assert len(curve(twin)) == 3 and curve(rows["selfsup"]) == curve(twin)  # steps 0, 1, 2
+    module.main([*common, "--variants", "model_D", "selfsup", "--jobs", "2", "--run-dir", str(parallel)])
+    assert ": started (" not in capsys.readouterr().out

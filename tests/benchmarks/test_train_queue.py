@@ -98,8 +98,10 @@ def test_an_lcreg_job_runs_the_interpreters_lcreg_and_its_results_are_copied(tmp
     (job,) = queue.load_jobs(file)
     assert job.executable(tmp_path, tmp_path)[:2] == [sys.executable, "-c"]
     assert job.executable(tmp_path, tmp_path, jobs=4)[-2:] == ["--jobs", "4"]  # several runs at once (a GPU)
-    (other,) = queue.load_jobs(_queue(tmp_path, "python benchmarks/learning_curves.py --smoke"))
-    assert "--jobs" not in other.executable(tmp_path, tmp_path, jobs=4)  # only lcreg reproduce sweeps take it
+    (curves,) = queue.load_jobs(_queue(tmp_path, "python benchmarks/learning_curves.py --smoke"))
+    assert curves.executable(tmp_path, tmp_path, jobs=4)[-2:] == ["--jobs", "4"]
+    (other,) = queue.load_jobs(_queue(tmp_path, "python benchmarks/lc_gradient_share.py --smoke"))
+    assert "--jobs" not in other.executable(tmp_path, tmp_path, jobs=4)  # only the sweeps and learning curves
     queue.main(["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")])
     copied = tmp_path / "res" / "abl" / "runs"
     assert (copied / "ablation.jsonl").is_file() and (copied / "ablation.md").is_file()
