@@ -180,6 +180,11 @@ def data_overrides(args: argparse.Namespace) -> Values:
     return cli_args("data", values)
 
 
+def other_monitor(args: argparse.Namespace) -> str | None:
+    """The ``--monitor`` of a converge run when it is not :data:`CONVERGE_METRIC` (such runs are keyed apart)."""
+    return None if args.patience is None or args.monitor == CONVERGE_METRIC else args.monitor
+
+
 def budget_key(args: argparse.Namespace) -> str | None:
     """``None`` for a fixed step budget, ``"converge p<P> v<K>"`` for a converge run (see :data:`KEY`).
 
@@ -187,16 +192,15 @@ def budget_key(args: argparse.Namespace) -> str | None:
     """
     if args.patience is None:
         return None
-    metric = "" if args.monitor == CONVERGE_METRIC else f" m{args.monitor}"
+    metric = "" if (monitor := other_monitor(args)) is None else f" m{monitor}"
     return f"converge p{args.patience} v{args.val_pairs}{metric}"
 
 
 def run_folder(args: argparse.Namespace, name: str) -> str:
     """The folder of variant ``name``'s runs under ``--run-dir``: ``name``, or ``name@<metric>`` on another
     ``--monitor`` (a converge run resumes from its folder's ``last.ckpt``: runs on two monitors must not share one)."""
-    if args.patience is None or args.monitor == CONVERGE_METRIC:
-        return name
-    return f"{name}@{args.monitor.rsplit('/', 1)[-1]}"
+    monitor = other_monitor(args)
+    return name if monitor is None else f"{name}@{monitor.rsplit('/', 1)[-1]}"
 
 
 def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> Values:
