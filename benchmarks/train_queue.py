@@ -8,7 +8,8 @@
 
 Every job is one resumable command (``{runs}``: its run folder under ``--runs``, ``{results}``: its folder under
 ``--results``). ``run`` starts the pending jobs of a section one at a time with ``OMP_NUM_THREADS=1`` under ``nice``
-(on a GPU, with ``--max-minutes`` the command is stopped at that limit and resumes on the next call). When a command
+(on a GPU, ``--max-minutes`` is the time of the whole call: the jobs run in order, the one running at the limit is
+stopped and resumes on the next call, so one chunk can finish a short job and go on with the next). When a command
 exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json`` (the last call's wall time) is
 written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
 of a long job can be committed as they land. Run folders need not outlive a session: before a job starts, the
@@ -215,7 +216,7 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs
             argv, cwd=REPO, env=env, timeout=None if max_minutes is None else max_minutes * 60
         ).returncode
     except subprocess.TimeoutExpired:
-        print(f"queue: {job.id}: stopped after {max_minutes} min; it resumes on the next call", flush=True)
+        print(f"queue: {job.id}: stopped at the time limit ({max_minutes:.2g} min); resumes next call", flush=True)
         sync(job, runs, results)
         return False
     copied = sync(job, runs, results, done=code == 0)
@@ -236,15 +237,36 @@ def selected(job: Job, args: argparse.Namespace) -> bool:
     return job.id in args.only if args.only is not None else job.section == args.section
 
 
+def chosen_jobs(jobs: Sequence[Job], only: Sequence[str] | None) -> list[Job]:
+    """All ``jobs`` in the queue's order, or the jobs named by ``only`` in the order it names them.
+
+    Raises:
+        SystemExit: If ``only`` names a job the queue does not have (a typo would otherwise run nothing).
+    """
+    if only is None:
+        return list(jobs)
+    by_id = {job.id: job for job in jobs}
+    if unknown := [name for name in only if name not in by_id]:
+        raise SystemExit(f"--only: no job {', '.join(map(repr, unknown))} in the queue (ids: {', '.join(by_id)})")
+    return [by_id[name] for name in dict.fromkeys(only)]
+
+
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("action", nargs="?", choices=("status", "run", "sync"), default="status")
     parser.add_argument("--queue", type=Path, default=REPO / "benchmarks" / "train_queue.toml")
     parser.add_argument("--section", choices=("cpu", "gpu"), default="cpu")
-    parser.add_argument("--only", nargs="+", default=None, help="job ids (run: these, whatever their section)")
+    parser.add_argument(
+        "--only", nargs="+", default=None, help="job ids, in the order to run them (run: whatever their section)"
+    )
     parser.add_argument("--runs", type=Path, default=REPO / "runs" / "queue", help="run folders (checkpoints)")
     parser.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "converge")
-    parser.add_argument("--max-minutes", type=float, default=None, help="stop a command after this long (resumes)")
+    parser.add_argument(
+        "--max-minutes",
+        type=float,
+        default=None,
+        help="the time of the whole call: the jobs run in order, the one running at the limit stops (it resumes)",
+    )
     parser.add_argument(
         "--jobs",
         type=int,
@@ -262,16 +284,21 @@ def main(argv: Sequence[str] | None = None) -> None:
         (scratch / "train_queue.toml").write_text(SMOKE_QUEUE, encoding="utf-8")
         args.queue, args.runs, args.results = scratch / "train_queue.toml", scratch / "runs", scratch
         args.action = "run"
-    jobs = [job for job in load_jobs(args.queue) if args.only is None or job.id in args.only]
+    jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "status":
         for job in jobs:
             print(status_line(job, args.results))
         return
+    deadline = None if args.max_minutes is None else time.monotonic() + 60 * args.max_minutes
     for job in jobs:
         if args.action == "sync":
             print(f"queue: {job.id}: {sync(job, args.runs, args.results)} result files copied")
         elif selected(job, args) and not (args.results / job.id / "DONE.json").is_file():
-            if not run_job(job, args.runs, args.results, args.max_minutes, args.jobs):
+            minutes = None if deadline is None else (deadline - time.monotonic()) / 60
+            if minutes is not None and minutes <= 0:
+                print(f"queue: {job.id}: no time left of --max-minutes; it runs on the next call", flush=True)
+                sys.exit(1)
+            if not run_job(job, args.runs, args.results, minutes, args.jobs):
                 sys.exit(1)
     if args.smoke:
         print(status_line(jobs[0], args.results))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shlex
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -76,6 +77,32 @@ def test_a_section_runs_its_jobs_and_only_names_jobs_of_any_section(tmp_path: Pa
     assert done() == {"g"}
     queue.main(["run", "--section", "gpu", "--only", "c", *args])  # a GPU session takes over a CPU job
     assert done() == {"c", "g"}
+    jobs = queue.load_jobs(file)
+    assert [job.id for job in queue.chosen_jobs(jobs, ["g", "c"])] == ["g", "c"]  # the order --only names them
+    with pytest.raises(SystemExit, match="no job 'typo'"):
+        queue.main(["run", "--only", "c", "typo", *args])
+
+
+def test_max_minutes_is_the_time_of_the_whole_call(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A job that ends early leaves the rest of ``--max-minutes`` to the next one, which is stopped at the call's
+    limit (not a full limit of its own); a job left without time is not started."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    job = (
+        '[[job]]\nid = "{id}"\nsection = "gpu"\nwhat = "x"\ncommand = "python -c \\"import time; time.sleep({s})\\""\n'
+    )
+    file.write_text(job.format(id="short", s=3) + job.format(id="long", s=30) + job.format(id="third", s=0))
+    args = ["--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+    start = time.monotonic()
+    with pytest.raises(SystemExit):
+        queue.main(["run", "--section", "gpu", "--max-minutes", "0.1", *args])
+    assert time.monotonic() - start < 8  # 6 s in all; a limit per job would stop "long" after 3 + 6 s
+    assert (tmp_path / "res" / "short" / "DONE.json").is_file()
+    assert "queue: long: stopped at the time limit" in capsys.readouterr().out
+    assert not (tmp_path / "res" / "long" / "DONE.json").exists() and not (tmp_path / "res" / "third").exists()
+    with pytest.raises(SystemExit):
+        queue.main(["run", "--section", "gpu", "--max-minutes", "0", "--only", "third", *args])
+    assert "queue: third: no time left" in capsys.readouterr().out
 
 
 def test_smoke_runs_a_converge_learning_curve_through_the_queue(capsys: pytest.CaptureFixture[str]) -> None:
