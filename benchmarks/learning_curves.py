@@ -1,4 +1,4 @@
-"""Learning curves of LK training variants on ModelNet40 validation pairs (never test), several seeds each.
+"""Learning curves of training variants on ModelNet40 validation pairs (never test), several seeds each.
 
     python benchmarks/learning_curves.py --root ../shared/data/modelnet40_mini --points 1024 --steps 500 \
         --val-every 50 --seeds 0 1 2 --run-dir runs/learning_curves --out docs/results/learning_curves.md
@@ -322,15 +322,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     budget = budget_key(args) or "fixed budget"
     print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine_line()}", flush=True)
     failure = None
-    if args.jobs > 1 and not args.report_only:
+    if args.report_only:
+        pass
+    elif args.jobs > 1:
         try:
             run_workers(worker_runs(args, log), args.jobs, lambda line: print(line, flush=True))
         except WorkersFailedError as err:  # the finished runs are reported first
             failure = err
         log = ResultLog(log.path, key=KEY)  # the workers' rows
-    for name in args.variants if args.jobs == 1 and not args.report_only else ():
-        for seed in args.seeds:
-            run(args, name, seed, log)
+    else:
+        for name in args.variants:
+            for seed in args.seeds:
+                run(args, name, seed, log)
     out = output_path(args.out, "learning_curves.md", args.smoke)
     if out:
         report(args, log, out)
