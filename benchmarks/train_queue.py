@@ -43,7 +43,9 @@ REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
 """Small files copied from a job's run folder (checkpoints only as :func:`keep_resume` and :func:`keep_best` do)."""
 RESUME_MAX_BYTES = 8 * 2**20
-"""Largest checkpoint folder :func:`keep_resume` keeps (IDAM's is 2.4 MB; DVDs' 40 MB runs finish within a session)."""
+"""Largest checkpoint folder :func:`keep_resume` keeps: IDAM's (2.4 MB) is kept; DeepGMR's (about 35 MB: 1.5 M
+parameters with Adam's state, in ``last.ckpt`` and the selected checkpoint) and DVDs' (40 MB) are not, as every sync
+commit would add them to the history; their runs resume only on a machine that kept the run folder."""
 LCREG_MAIN = "import sys; from lcreg.__main__ import main; sys.argv[0] = 'lcreg'; main()"
 """``lcreg`` as a ``python -c`` program (the console script of whichever lcreg the interpreter imports)."""
 SMOKE_QUEUE = """
@@ -120,9 +122,28 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
             destination.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(path, destination)
             count += 1
+    drop_set_aside(source, target)
     done = (results / job.id / "DONE.json").is_file() if done is None else done
     count += len(keep_resume(source, results / job.id / "resume", done=done))
     return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
+
+
+def drop_set_aside(source: Path, target: Path) -> list[Path]:
+    """Delete from ``target`` the metrics files that a run started again moved aside in ``source``.
+
+    A run whose checkpoints were lost starts from scratch and moves its folder's old metrics files to
+    ``abandoned/<n>/`` (:func:`lcreg.resume.set_aside_metrics`); their copies beside the new ``metrics.csv`` in the
+    committed results would otherwise be read as earlier segments of the new curve, and come back on the next
+    machine. The moved copies are synced like any result file. Returns the files deleted.
+    """
+    dropped = []
+    for moved in source.rglob("abandoned/*/metrics*.csv") if source.is_dir() else ():
+        run_dir = moved.parent.parent.parent
+        stale = target / (run_dir / moved.name).relative_to(source)
+        if not (run_dir / moved.name).exists() and stale.is_file():
+            stale.unlink()
+            dropped.append(stale)
+    return dropped
 
 
 def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:

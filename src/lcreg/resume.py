@@ -24,6 +24,7 @@ __all__ = [
     "best_checkpoint_of",
     "find_last_checkpoint",
     "keep_previous_metrics",
+    "set_aside_metrics",
 ]
 
 LAST = "last.ckpt"
@@ -150,4 +151,26 @@ def keep_previous_metrics(log_dir: Path) -> Path | None:
     while (target := log_dir / f"metrics.segment{n}.csv").exists():
         n += 1
     metrics.rename(target)
+    return target
+
+
+def set_aside_metrics(log_dir: Path) -> Path | None:
+    """Move a lost run's ``metrics.csv`` and ``metrics.segment<n>.csv`` to ``log_dir/abandoned/<n>/`` (first free n).
+
+    For a run that starts from scratch in a used folder, e.g. on a new machine that restored the committed logs of a
+    run whose checkpoints were lost: left in place, those files would be read as earlier segments of the new curve
+    (:func:`lcreg.experiments.benchmarking.curves.segments`). Moved, they keep the lost run's record.
+
+    Returns:
+        The new folder, or ``None`` when there was nothing to move.
+    """
+    stale = sorted(log_dir.glob("metrics.segment*.csv")) + [p for p in [log_dir / "metrics.csv"] if p.is_file()]
+    if not stale:
+        return None
+    n = 1
+    while (target := log_dir / "abandoned" / str(n)).exists():
+        n += 1
+    target.mkdir(parents=True)
+    for path in stale:
+        path.rename(target / path.name)
     return target

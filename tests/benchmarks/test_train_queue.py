@@ -237,3 +237,33 @@ def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
     (res / "j" / "DONE.json").write_text("{}\n")
     queue.sync(job, runs, res)
     assert not kept.exists()
+
+
+def test_sync_drops_the_committed_copies_of_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
+    """A run whose checkpoints were lost starts again and moves its old metrics to ``abandoned/1/``; the committed
+    copies of the moved files go too, else the next report (or machine) reads them as segments of the new curve."""
+    from lcreg.resume import set_aside_metrics
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    run_dir = runs / "j" / "a" / "seed2"
+    run_dir.mkdir(parents=True)
+    for name in ("metrics.segment1.csv", "metrics.csv"):
+        (run_dir / name).write_text(f"old {name}\n")
+    queue.sync(job, runs, res)  # the committed state of the lost run
+    committed = res / "j" / "runs" / "a" / "seed2"
+    assert (committed / "metrics.segment1.csv").is_file()
+    assert set_aside_metrics(run_dir) == run_dir / "abandoned" / "1"
+    (run_dir / "metrics.csv").write_text("new\n")  # the run started again
+    queue.sync(job, runs, res)
+    assert sorted(p.relative_to(committed).as_posix() for p in committed.rglob("*.csv")) == [
+        "abandoned/1/metrics.csv",
+        "abandoned/1/metrics.segment1.csv",
+        "metrics.csv",
+    ]
+    assert (committed / "metrics.csv").read_text() == "new\n"
+    assert (committed / "abandoned" / "1" / "metrics.segment1.csv").read_text() == "old metrics.segment1.csv\n"
+    assert set_aside_metrics(tmp_path / "empty") is None

@@ -282,6 +282,24 @@ def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path:
     assert last_checkpoint(tmp_path / "nothing") is None
 
 
+def test_a_run_started_again_sets_aside_the_curve_of_a_lost_run(tmp_path: Path) -> None:
+    # A new machine restores a run's committed metrics files but not its checkpoints: the run starts from scratch,
+    # and the lost run's rows must not be read as earlier segments of the new curve.
+    data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
+    run = converge_overrides(max_steps=2, val_every=2, patience=50, run_dir=tmp_path, name="r")
+    first = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    log_dir = Path(first.trainer.log_dir or "")
+    lost = "epoch,step,val/rre_clip5_deg\n0,0,4.0\n0,9,3.0\n0,19,2.0\n"
+    (log_dir / "metrics.segment1.csv").write_text(lost, encoding="utf-8")
+    for path in (log_dir / "checkpoints").glob("*.ckpt"):
+        path.unlink()
+    again = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    assert again.trainer.global_step == 2
+    assert list(read_metrics(log_dir / "metrics.csv")["val/rre_clip5_deg"].steps) == [0, 1]
+    kept = log_dir / "abandoned" / "1"
+    assert (kept / "metrics.segment1.csv").read_text(encoding="utf-8") == lost and (kept / "metrics.csv").is_file()
+
+
 # --- timing --------------------------------------------------------------------------------------------------------
 def test_timed_reads_the_clock_around_the_call() -> None:
     out, seconds = timed(lambda: "done", clock=FakeClock([10.0, 2.5]))

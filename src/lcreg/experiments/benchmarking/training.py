@@ -194,7 +194,8 @@ def fit(
             :func:`converge_overrides`).
         resume: Continue from the run folder's ``last.ckpt`` when there is one (model, optimiser, scheduler,
             loops, early-stopping state, position in the training stream); the earlier ``metrics.csv`` is kept as
-            ``metrics.segment<n>.csv``. Without one the run starts from scratch.
+            ``metrics.segment<n>.csv``. Without one the run starts from scratch, and the metrics files of a lost run
+            in the folder move to ``abandoned/<n>/`` (:func:`lcreg.resume.set_aside_metrics`).
 
     Raises:
         ValueError: If the config's checkpoint callback does not select on ``monitor``.
@@ -204,7 +205,7 @@ def fit(
     """
     from lcreg.callbacks import TrainingClock
     from lcreg.models.base import RegistrationModule
-    from lcreg.resume import keep_previous_metrics
+    from lcreg.resume import keep_previous_metrics, set_aside_metrics
 
     cli = build_cli_for(name, configs, values)
     callback = cli.trainer.checkpoint_callback
@@ -217,8 +218,10 @@ def fit(
     start = last_checkpoint(log_dir) if resume else None
     if start is not None:
         keep_previous_metrics(log_dir)
-    elif validate_first:
-        cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
+    else:  # from scratch: a lost run's curve in this folder is not an earlier segment of this one
+        set_aside_metrics(log_dir)
+        if validate_first:
+            cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
     clock = next(c for c in getattr(cli.trainer, "callbacks", []) if isinstance(c, TrainingClock))  # LcregCLI's
     run = partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule, ckpt_path=start)
     try:
