@@ -33,6 +33,7 @@ RUNS = {
     "kitti_full_pair": [],
     "lc_gradient_share": [],
     "lc_plus_x": [],
+    "overfit": [],
     "learning_curves": [],
     "pilot_dvds_variants": [],
     "plot_learning_curves": [],

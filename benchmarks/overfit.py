@@ -1,0 +1,167 @@
+"""Overfit probe: can a learned method fit a few fixed pairs? A defect check for a reimplementation far off its paper.
+
+    python benchmarks/overfit.py --root ../shared/data/modelnet40_mini --methods dcp --pairs 8 --points 256 \
+        --steps 300 --val-every 25 --run-dir runs/overfit --out docs/results/converge/overfit/overfit.md
+    python benchmarks/overfit.py --smoke      # seconds, embedded shapes, 2 steps
+
+Each method trains, exactly as ``lcreg fit`` trains it (its registry configs: for the LC hosts the DCP-family pairs of
+``configs/data/dcp_protocol.yaml``; its own loss, optimiser, learning rate and gradient clipping), on the first
+``--pairs`` **validation** pairs of ModelNet40, the same fixed batches every step (motions, samplings and noise drawn
+once), and is validated on those same pairs every ``--val-every`` steps. A correct implementation drives the error of
+pairs it trains on far below what it reaches on unseen pairs; one that cannot, at a step count where its converge runs
+already plateau on unseen pairs, has a defect in its forward pass, loss or gradient path (or an optimiser setting
+that cannot fit even these). Nothing here measures generalisation, and test pairs are never read.
+
+The report gives, per method, the fitted pairs' mean and median RRE and mean RTE before training, at their best and at
+the last validation, with the step of each, and draws the curves (``<out stem>_validation.png``, ``_training.png``; with several seeds the mean and min-max). Each
+run's ``metrics.csv`` is kept under ``--run-dir/<method>/seed<k>``; a finished run is listed in
+``--run-dir/runs.jsonl`` and skipped on a rerun (``--report-only`` writes the report from those).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from torch.utils.data import DataLoader
+
+from lcreg.experiments.benchmarking import (
+    ResultLog,
+    Values,
+    add_smoke_argument,
+    apply_smoke,
+    build_cli_for,
+    cli_args,
+    fit_overrides,
+    load_runs,
+    machine_line,
+    markdown_table,
+    output_path,
+    plot_curves,
+    read_metrics,
+    split_batches,
+    synthetic_overrides,
+    write_text,
+)
+
+SMOKE = {"steps": 2, "val_every": 1, "pairs": 2, "batch": 2, "methods": ["dcp"], "seeds": [0]}
+KEY = ("method", "seed", "pairs", "points", "steps")
+CURVE_KEYS = ("val/rre_mean_deg", "val/rre_median_deg", "val/rte_mean")
+
+
+def data_overrides(args: argparse.Namespace) -> Values:
+    """The pairs' source: ModelNet40 validation pairs at ``--points`` and ``--batch``, or embedded shapes (smoke)."""
+    if args.root is None:
+        return synthetic_overrides(pairs=args.pairs, num_points=64, batch_size=args.batch)
+    values = {"root": args.root, "num_points": args.points, "batch_size": args.batch, "num_workers": 0}
+    return cli_args("data", values)
+
+
+def fixed_loader(batches: Sequence[Any], pairs: int) -> DataLoader[Any]:
+    """The first batches holding ``pairs`` pairs, served as they are (already collated), in the same order each epoch.
+
+    Raises:
+        ValueError: If the split has fewer pairs.
+    """
+    count = math.ceil(pairs / max(len(batches[0]), 1)) if batches else 0
+    chosen = list(batches[:count])
+    if sum(len(b) for b in chosen) < pairs:
+        raise ValueError(f"--pairs {pairs}: the validation split has only {sum(len(b) for b in batches)} pairs")
+    return DataLoader(chosen, batch_size=None, shuffle=False, collate_fn=lambda batch: batch)  # type: ignore[arg-type]
+
+
+def run(args: argparse.Namespace, method: str, seed: int, log: ResultLog) -> None:
+    """Train ``method`` on the fixed pairs from seed ``seed`` unless ``log`` lists the run; append its row."""
+    key = {"method": method, "seed": seed, "pairs": args.pairs, "points": args.points, "steps": args.steps}
+    if log.done(**key):
+        print(f"{method} seed {seed}: done before, skipped", flush=True)
+        return
+    values = {
+        **data_overrides(args),
+        **fit_overrides(args.steps, args.val_every, Path(args.run_dir) / method, seed=seed),
+        "trainer.logger.init_args.version": f"seed{seed}",
+    }
+    cli = build_cli_for(method, values=values)
+    loader = fixed_loader(split_batches(cli.datamodule, "val"), args.pairs)
+    cli.trainer.validate(cli.model, dataloaders=loader, verbose=False)  # step 0: the untrained model
+    cli.trainer.fit(cli.model, train_dataloaders=loader, val_dataloaders=loader)
+    metrics = Path(cli.trainer.log_dir or args.run_dir) / "metrics.csv"
+    log.append({**key, "metrics_csv": str(metrics), "stopped_step": cli.trainer.global_step})
+    print(f"{method} seed {seed}: stopped at step {cli.trainer.global_step}, {metrics}", flush=True)
+
+
+def summary_rows(rows: Sequence[dict[str, Any]]) -> list[list[object]]:
+    """Per run: the fitted pairs' errors at step 0, at the best mean RRE and at the last validation."""
+    table = []
+    for row in rows:
+        curves = read_metrics(row["metrics_csv"])
+        rre = curves["val/rre_mean_deg"]
+        points = {"start": 0, "best": int(rre.values.argmin()), "last": len(rre.steps) - 1}
+        cells: list[object] = [row["method"], row["seed"], row["pairs"], row["points"]]
+        for at in points.values():
+            step = int(rre.steps[at])
+            found = [curves[k].values[list(curves[k].steps).index(step)] for k in CURVE_KEYS if step in curves[k].steps]
+            cells.append(f"{step}: " + " / ".join(f"{v:.3g}" for v in found))
+        table.append(cells)
+    return table
+
+
+def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
+    """Write the summary table of the chosen methods' finished runs and their validation curves."""
+    rows = [r for r in log.rows if r.get("method") in args.methods and r.get("steps") == args.steps]
+    header = ["method", "seed", "pairs", "points"]
+    header += [f"{at}: step: mean RRE (°) / median RRE (°) / mean RTE" for at in ("start", "best", "last")]
+    lines = [
+        "# Overfit probe: the error on the pairs each run trains on",
+        "",
+        f"`benchmarks/overfit.py`, {args.steps} steps at most, validated every {args.val_every} steps on the same "
+        f"pairs; {machine_line()}. Best: the validation with the lowest mean RRE.",
+        "",
+        markdown_table(header, summary_rows(rows)),
+        "",
+    ]
+    write_text(out, "\n".join(lines))
+    by_method: dict[str, list[str]] = {}
+    for row in rows:
+        by_method.setdefault(row["method"], []).append(row["metrics_csv"])
+    plot_curves(load_runs(by_method), out.parent, prefix=f"{out.stem}_")
+    print(f"wrote {out}", flush=True)
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--root", default="../shared/data/modelnet40_mini")
+    parser.add_argument("--methods", nargs="+", default=["dcp"], help="registry names of learned methods")
+    parser.add_argument("--pairs", type=int, default=8, help="fixed validation pairs trained and validated on")
+    parser.add_argument("--points", type=int, default=256)
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--val-every", type=int, default=25)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--run-dir", default="runs/overfit")
+    parser.add_argument("--out", default=None, help="the report (Markdown); its PNG is written beside it")
+    parser.add_argument("--report-only", action="store_true", help="write the report from --run-dir, train nothing")
+    add_smoke_argument(parser)
+    args = apply_smoke(parser.parse_args(argv), SMOKE)
+    if min(args.pairs, args.batch, args.steps, args.val_every) < 1:
+        parser.error("--pairs, --batch, --steps and --val-every must be >= 1")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=KEY)
+    if not args.report_only:
+        for method in args.methods:
+            for seed in args.seeds:
+                run(args, method, seed, log)
+    out = output_path(args.out, "overfit.md", args.smoke)
+    if out is not None:
+        report(args, log, out)
+
+
+if __name__ == "__main__":
+    main()
