@@ -13,9 +13,10 @@ already plateau on unseen pairs, has a defect in its forward pass, loss or gradi
 that cannot fit even these). Nothing here measures generalisation, and test pairs are never read.
 
 The report gives, per method, the fitted pairs' mean and median RRE and mean RTE before training, at their best and at
-the last validation, with the step of each, and draws the curves (``<out stem>_validation.png``, ``_training.png``; with several seeds the mean and min-max). Each
-run's ``metrics.csv`` is kept under ``--run-dir/<method>/seed<k>``; a finished run is listed in
-``--run-dir/runs.jsonl`` and skipped on a rerun (``--report-only`` writes the report from those).
+the last validation, with the step of each, and draws the curves (``<out stem>_validation.png``, ``_training.png``;
+with several seeds the mean and min-max). Each run's ``metrics.csv`` is kept under ``--run-dir/<method>/seed<k>``; a
+finished run is listed in ``--run-dir/runs.jsonl`` and skipped on a rerun (``--report-only`` writes the report from
+those).
 """
 
 from __future__ import annotations
