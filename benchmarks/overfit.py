@@ -10,7 +10,10 @@ Each method trains, exactly as ``lcreg fit`` trains it (its registry configs: fo
 once), and is validated on those same pairs every ``--val-every`` steps. A correct implementation drives the error of
 pairs it trains on far below what it reaches on unseen pairs; one that cannot, at a step count where its converge runs
 already plateau on unseen pairs, has a defect in its forward pass, loss or gradient path (or an optimiser setting
-that cannot fit even these). Nothing here measures generalisation, and test pairs are never read.
+that cannot fit even these). ``--model-args NAME=VALUE`` changes constructor arguments (the run is named
+``method[NAME=VALUE]``), e.g. ``batch_norm=false`` for DCP. The report sets the last training loss (training mode)
+beside the last validation loss (eval mode) on the same pairs: far apart, the network evaluated is not the one
+trained (BatchNorm's batch statistics, dropout). Nothing here measures generalisation, and test pairs are never read.
 
 The report gives, per method, the fitted pairs' mean and median RRE and mean RTE before training, at their best and at
 the last validation, with the step of each, and draws the curves (``<out stem>_validation.png``, ``_training.png``;
@@ -27,16 +30,19 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from torch.utils.data import DataLoader
 
 from lcreg.experiments.benchmarking import (
     ResultLog,
+    Series,
     Values,
     add_smoke_argument,
     apply_smoke,
     build_cli_for,
     cli_args,
     fit_overrides,
+    key_values,
     load_runs,
     machine_line,
     markdown_table,
@@ -49,7 +55,7 @@ from lcreg.experiments.benchmarking import (
 )
 
 SMOKE = {"steps": 2, "val_every": 1, "pairs": 2, "batch": 2, "methods": ["dcp"], "seeds": [0]}
-KEY = ("method", "seed", "pairs", "points", "steps")
+KEY = ("label", "seed", "pairs", "points", "steps")
 CURVE_KEYS = ("val/rre_mean_deg", "val/rre_median_deg", "val/rte_mean")
 
 
@@ -74,47 +80,63 @@ def fixed_loader(batches: Sequence[Any], pairs: int) -> DataLoader[Any]:
     return DataLoader(chosen, batch_size=None, shuffle=False, collate_fn=lambda batch: batch)  # type: ignore[arg-type]
 
 
+def label(method: str, model_args: dict[str, str]) -> str:
+    """A run's name and folder: ``method``, or ``method[name=value,...]`` with ``--model-args``."""
+    return method + (f"[{','.join(f'{k}={v}' for k, v in model_args.items())}]" if model_args else "")
+
+
 def run(args: argparse.Namespace, method: str, seed: int, log: ResultLog) -> None:
     """Train ``method`` on the fixed pairs from seed ``seed`` unless ``log`` lists the run; append its row."""
-    key = {"method": method, "seed": seed, "pairs": args.pairs, "points": args.points, "steps": args.steps}
+    name = label(method, args.model_args)
+    key = {"label": name, "seed": seed, "pairs": args.pairs, "points": args.points, "steps": args.steps}
     if log.done(**key):
-        print(f"{method} seed {seed}: done before, skipped", flush=True)
+        print(f"{name} seed {seed}: done before, skipped", flush=True)
         return
     values = {
         **data_overrides(args),
-        **fit_overrides(args.steps, args.val_every, Path(args.run_dir) / method, seed=seed),
+        **fit_overrides(args.steps, args.val_every, Path(args.run_dir) / name, seed=seed),
         "trainer.logger.init_args.version": f"seed{seed}",
+        **cli_args("model", args.model_args),
     }
     cli = build_cli_for(method, values=values)
     loader = fixed_loader(split_batches(cli.datamodule, "val"), args.pairs)
     cli.trainer.validate(cli.model, dataloaders=loader, verbose=False)  # step 0: the untrained model
     cli.trainer.fit(cli.model, train_dataloaders=loader, val_dataloaders=loader)
     metrics = Path(cli.trainer.log_dir or args.run_dir) / "metrics.csv"
-    log.append({**key, "metrics_csv": str(metrics), "stopped_step": cli.trainer.global_step})
-    print(f"{method} seed {seed}: stopped at step {cli.trainer.global_step}, {metrics}", flush=True)
+    log.append({**key, "method": method, "metrics_csv": str(metrics), "stopped_step": cli.trainer.global_step})
+    print(f"{name} seed {seed}: stopped at step {cli.trainer.global_step}, {metrics}", flush=True)
 
 
 def summary_rows(rows: Sequence[dict[str, Any]]) -> list[list[object]]:
-    """Per run: the fitted pairs' errors at step 0, at the best mean RRE and at the last validation."""
+    """Per run: the fitted pairs' errors at step 0, at the best mean RRE and at the last validation, and the loss of
+    the last validation (eval mode) against the training loss logged last (training mode, the same pairs)."""
     table = []
     for row in rows:
         curves = read_metrics(row["metrics_csv"])
         rre = curves["val/rre_mean_deg"]
-        points = {"start": 0, "best": int(rre.values.argmin()), "last": len(rre.steps) - 1}
-        cells: list[object] = [row["method"], row["seed"], row["pairs"], row["points"]]
-        for at in points.values():
+        cells: list[object] = [row["label"], row["seed"], row["pairs"], row["points"]]
+        for at in (0, int(rre.values.argmin()), len(rre.steps) - 1):
             step = int(rre.steps[at])
-            found = [curves[k].values[list(curves[k].steps).index(step)] for k in CURVE_KEYS if step in curves[k].steps]
-            cells.append(f"{step}: " + " / ".join(f"{v:.3g}" for v in found))
+            found = [value_at(curves[k], step) for k in CURVE_KEYS if k in curves]
+            cells.append(f"{step}: " + " / ".join(f"{v:.3g}" for v in found if v is not None))
+        train, val = curves.get("train/loss"), curves.get("val/loss")
+        cells.append(f"{train.values[-1]:.3g} / {val.values[-1]:.3g}" if train and val else "–")
         table.append(cells)
     return table
+
+
+def value_at(series: Series, step: int) -> float | None:
+    """The value logged at ``step``, or ``None``."""
+    hits = np.flatnonzero(series.steps == step)
+    return float(series.values[hits[0]]) if len(hits) else None
 
 
 def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     """Write the summary table of the chosen methods' finished runs and their validation curves."""
     rows = [r for r in log.rows if r.get("method") in args.methods and r.get("steps") == args.steps]
-    header = ["method", "seed", "pairs", "points"]
+    header = ["run", "seed", "pairs", "points"]
     header += [f"{at}: step: mean RRE (°) / median RRE (°) / mean RTE" for at in ("start", "best", "last")]
+    header += ["loss: training (train mode) / validation (eval mode), last"]
     lines = [
         "# Overfit probe: the error on the pairs each run trains on",
         "",
@@ -127,7 +149,7 @@ def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     write_text(out, "\n".join(lines))
     by_method: dict[str, list[str]] = {}
     for row in rows:
-        by_method.setdefault(row["method"], []).append(row["metrics_csv"])
+        by_method.setdefault(row["label"], []).append(row["metrics_csv"])
     plot_curves(load_runs(by_method), out.parent, prefix=f"{out.stem}_")
     print(f"wrote {out}", flush=True)
 
@@ -136,6 +158,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--root", default="../shared/data/modelnet40_mini")
     parser.add_argument("--methods", nargs="+", default=["dcp"], help="registry names of learned methods")
+    parser.add_argument(
+        "--model-args",
+        nargs="*",
+        default=[],
+        help="NAME=VALUE constructor arguments (YAML text), e.g. batch_norm=false",
+    )
     parser.add_argument("--pairs", type=int, default=8, help="fixed validation pairs trained and validated on")
     parser.add_argument("--points", type=int, default=256)
     parser.add_argument("--batch", type=int, default=8)
@@ -147,6 +175,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--report-only", action="store_true", help="write the report from --run-dir, train nothing")
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
+    args.model_args = key_values(args.model_args, "--model-args")
     if min(args.pairs, args.batch, args.steps, args.val_every) < 1:
         parser.error("--pairs, --batch, --steps and --val-every must be >= 1")
     return args

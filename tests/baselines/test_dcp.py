@@ -72,6 +72,20 @@ def test_training_lowers_loss(batch: RegistrationBatch) -> None:
     check_training_lowers_loss(lambda: _model(), batch, steps=12)
 
 
+def test_without_batch_norm_the_trained_network_is_the_evaluated_one(batch: RegistrationBatch) -> None:
+    """With BatchNorm (the original) a training-mode pass normalises the reference batch by its own statistics, which
+    carry the batch's mean translation, and differs from the eval pass; ``batch_norm=False`` has no such layer."""
+    for batch_norm in (True, False):
+        model = _model(batch_norm=batch_norm)
+        assert any(isinstance(m, torch.nn.BatchNorm1d) for m in model.modules()) is batch_norm
+        with torch.no_grad():
+            trained = model.train()(batch.points_src, batch.points_ref).transform_ref_src
+            evaluated = model.eval()(batch.points_src, batch.points_ref).transform_ref_src
+        gap = float((trained - evaluated).abs().max())
+        assert gap > 1e-2 if batch_norm else gap < 1e-4, (batch_norm, gap)  # without: float32 rounding only
+    check_training_lowers_loss(lambda: _model(batch_norm=False), batch, steps=12)
+
+
 def test_local_consistency_reaches_the_dgcnn_encoder(batch: RegistrationBatch) -> None:
     check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
     model = _model(loss_terms=lc_terms(num_local_points=16, weight=0.5))

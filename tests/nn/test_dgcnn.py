@@ -113,6 +113,17 @@ def test_dynamic_graph_matches_a_per_point_loop(act: str, slope: float) -> None:
     torch.testing.assert_close(out, _dynamic_reference(net, points, slope))
 
 
+@pytest.mark.parametrize("graph", ["static", "dynamic"])
+def test_without_batch_norm_every_layer_is_linear_with_a_bias_then_the_activation(graph: str) -> None:
+    net = DGCNN(EMB, K, graph, channels=CHANNELS, batch_norm=False).double()  # type: ignore[arg-type]
+    mlps = [*net.edge_layers, net.head]
+    assert not any(isinstance(m, nn.BatchNorm1d) for m in net.modules())
+    assert all(m.linears[0].bias is not None for m in mlps)  # type: ignore[union-attr,index]
+    points = _points(n=16)
+    with torch.no_grad():
+        torch.testing.assert_close(net.train()(points), net.eval()(points))  # the same function in both modes
+
+
 def test_static_and_dynamic_layer_widths() -> None:
     static, dynamic = DGCNN(EMB, K, "static", channels=CHANNELS), DGCNN(EMB, K, "dynamic", channels=CHANNELS)
     widths_s = [m.linears[0].in_features for m in static.edge_layers]  # type: ignore[index,union-attr]

@@ -63,6 +63,10 @@ class DCP(RegistrationModule):
         cycle: Add the reverse head pass and the cycle-consistency term (weight :data:`CYCLE_WEIGHT`).
         edge_channels: Widths of the DGCNN edge layers (64, 64, 128, 256); smaller only for tests.
         return_probabilities: Keep the ``(B, N, M)`` matching probabilities in ``result.aux``.
+        batch_norm: BatchNorm in the DGCNN embedding (the original). ``False`` is a deviation, for the question of
+            what BatchNorm does at small batches: in training each cloud batch is normalised by its own statistics
+            (the reference batch's carry the batch's mean translation), in eval mode by running averages, so the
+            network evaluated is not the one trained (``benchmarks/overfit.py``).
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (original: Adam, lr
             1e-3, weight decay 1e-4), ``lr_scheduler`` (original: MultiStepLR [75, 150, 200], gamma 0.1),
             ``loss_terms`` (e.g. local consistency), ``refiner``.
@@ -81,12 +85,13 @@ class DCP(RegistrationModule):
         cycle: bool = False,
         edge_channels: Sequence[int] = (64, 64, 128, 256),
         return_probabilities: bool = False,
+        batch_norm: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
         if pointer not in ("transformer", "identity"):
             raise ValueError(f"`pointer` must be 'transformer' or 'identity', got {pointer!r}")
-        self.encoder = DGCNN(emb_dims, k, "static", channels=tuple(edge_channels), act="relu")
+        self.encoder = DGCNN(emb_dims, k, "static", channels=tuple(edge_channels), act="relu", batch_norm=batch_norm)
         self.pointer = PointerTransformer(emb_dims, heads, ff_dims, "relu") if pointer == "transformer" else None
         self.cycle = cycle
         self.return_probabilities = return_probabilities

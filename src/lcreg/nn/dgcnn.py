@@ -80,6 +80,7 @@ class DGCNN(nn.Module):
         graph: ``"static"`` (DCP) or ``"dynamic"`` (PRNet), see the module docstring.
         channels: Widths of the edge layers (default 64, 64, 128, 256).
         act: ``"relu"`` (DCP) or ``"leaky_relu"`` (PRNet, slope 0.2).
+        batch_norm: BatchNorm after every layer (the originals); ``False``: plain layers with a bias.
     """
 
     def __init__(
@@ -89,6 +90,7 @@ class DGCNN(nn.Module):
         graph: Graph = "static",
         channels: Sequence[int] = (64, 64, 128, 256),
         act: Activation = "relu",
+        batch_norm: bool = True,
     ) -> None:
         super().__init__()
         if graph not in ("static", "dynamic"):
@@ -102,10 +104,10 @@ class DGCNN(nn.Module):
         for i, c_out in enumerate(channels):
             # Static: layer i > 0 consumes the previous layer's edge tensor; dynamic: edge features of the last output.
             width = 2 * c_in if graph == "dynamic" or i == 0 else c_in
-            layers.append(PointwiseMLP([width, c_out], bias=False, act=act))
+            layers.append(PointwiseMLP([width, c_out], bias=False, batch_norm=batch_norm, act=act))
             c_in = c_out
         self.edge_layers = nn.ModuleList(layers)
-        self.head = PointwiseMLP([sum(channels), emb_dims], bias=False, act=act)
+        self.head = PointwiseMLP([sum(channels), emb_dims], bias=False, batch_norm=batch_norm, act=act)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Per-point embeddings ``(B, N, emb_dims)`` of ``points (B, N, 3)``."""
