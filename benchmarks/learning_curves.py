@@ -49,10 +49,10 @@ ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`
 with their own configs (``configs/models/``), at the batch and points given here. ``prnet`` is PRNet as in ``lcreg
 reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr
 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36):
-at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in
-``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained on 8 fixed pairs
-(``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where BatchNorm's running
-statistics replace the batch's own.
+at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is
+DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained
+on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where
+BatchNorm's running statistics replace the batch's own.
 """
 
 from __future__ import annotations

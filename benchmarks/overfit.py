@@ -53,6 +53,7 @@ from lcreg.experiments.benchmarking import (
     synthetic_overrides,
     write_text,
 )
+from lcreg.experiments.reproduce.stops import metrics_file
 
 SMOKE = {"steps": 2, "val_every": 1, "pairs": 2, "batch": 2, "methods": ["dcp"], "seeds": [0]}
 KEY = ("label", "seed", "pairs", "points", "steps")
@@ -103,7 +104,8 @@ def run(args: argparse.Namespace, method: str, seed: int, log: ResultLog) -> Non
     cli.trainer.validate(cli.model, dataloaders=loader, verbose=False)  # step 0: the untrained model
     cli.trainer.fit(cli.model, train_dataloaders=loader, val_dataloaders=loader)
     metrics = Path(cli.trainer.log_dir or args.run_dir) / "metrics.csv"
-    log.append({**key, "method": method, "metrics_csv": str(metrics), "stopped_step": cli.trainer.global_step})
+    row = {**key, "method": method, "metrics_csv": str(metrics), "stopped_step": cli.trainer.global_step}
+    log.append({**row, "machine": machine_line()})
     print(f"{name} seed {seed}: stopped at step {cli.trainer.global_step}, {metrics}", flush=True)
 
 
@@ -133,7 +135,9 @@ def value_at(series: Series, step: int) -> float | None:
 
 def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
     """Write the summary table of the chosen methods' finished runs and their validation curves."""
-    rows = [r for r in log.rows if r.get("method") in args.methods and r.get("steps") == args.steps]
+    chosen = [r for r in log.rows if r.get("method") in args.methods and r.get("steps") == args.steps]
+    # The recorded path, or the same run under --run-dir (a copied folder, e.g. the committed results).
+    rows = [{**r, "metrics_csv": str(path)} for r in chosen if (path := metrics_file(r, args.run_dir)) is not None]
     header = ["run", "seed", "pairs", "points"]
     header += [f"{at}: step: mean RRE (°) / median RRE (°) / mean RTE" for at in ("start", "best", "last")]
     header += ["loss: training (train mode) / validation (eval mode), last"]
@@ -141,7 +145,8 @@ def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
         "# Overfit probe: the error on the pairs each run trains on",
         "",
         f"`benchmarks/overfit.py`, {args.steps} steps at most, validated every {args.val_every} steps on the same "
-        f"pairs; {machine_line()}. Best: the validation with the lowest mean RRE.",
+        f"pairs; trained on {'; '.join(sorted({str(r.get('machine', '?')) for r in rows}))}. Best: the validation "
+        "with the lowest mean RRE.",
         "",
         markdown_table(header, summary_rows(rows)),
         "",
