@@ -124,14 +124,17 @@ class TemperatureNet(nn.Module):
         emb_dims: Embedding width ``d``.
         hidden: Hidden width (128).
         temp_factor: Output clamped to ``[1 / temp_factor, temp_factor]`` (100).
+        batch_norm: BatchNorm in the hidden layers (upstream), over the pairs of the batch.
     """
 
-    def __init__(self, emb_dims: int = 512, hidden: int = 128, temp_factor: float = 100.0) -> None:
+    def __init__(
+        self, emb_dims: int = 512, hidden: int = 128, temp_factor: float = 100.0, batch_norm: bool = True
+    ) -> None:
         super().__init__()
         if temp_factor < 1:
             raise ValueError(f"`temp_factor` must be >= 1, got {temp_factor}")
         self.temp_factor = temp_factor
-        self.mlp = PointwiseMLP([emb_dims, hidden, hidden, hidden], batch_norm=True, bias=True, act="relu")
+        self.mlp = PointwiseMLP([emb_dims, hidden, hidden, hidden], batch_norm=batch_norm, bias=True, act="relu")
         self.out = nn.Sequential(nn.Linear(hidden, 1), nn.ReLU())
 
     def forward(self, feat_src: torch.Tensor, feat_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,6 +168,9 @@ class PRNet(RegistrationModule):
         feature_alignment_weight: Weight of the feature-disparity term (0.1).
         cycle_weight: Weight of the cycle-consistency term (0.1).
         temp_factor: Temperature range ``[1/temp_factor, temp_factor]`` (100).
+        batch_norm: BatchNorm in the DGCNN and the TemperatureNet (upstream). ``False`` is a deviation, for the
+            question of what BatchNorm does at small batches (training mode normalises by the batch's statistics, eval
+            mode by running averages; see :class:`lcreg.baselines.dcp.DCP`).
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (upstream: Adam lr
             1e-3, weight decay 1e-4), ``lr_scheduler`` (upstream: MultiStepLR at 30/60/80 % of the epochs, gamma
             0.1), ``loss_terms`` (e.g. local consistency), ``refiner``.
@@ -184,6 +190,7 @@ class PRNet(RegistrationModule):
         feature_alignment_weight: float = 0.1,
         cycle_weight: float = 0.1,
         temp_factor: float = 100.0,
+        batch_norm: bool = True,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
@@ -193,9 +200,9 @@ class PRNet(RegistrationModule):
             raise ValueError(f"`num_keypoints` must be >= 3 (a rigid fit needs 3 points), got {num_keypoints}")
         if num_iterations < 1:
             raise ValueError(f"`num_iterations` must be >= 1, got {num_iterations}")
-        self.encoder = DGCNN(emb_dims, k, "dynamic", act="leaky_relu")
+        self.encoder = DGCNN(emb_dims, k, "dynamic", act="leaky_relu", batch_norm=batch_norm)
         self.pointer = PointerTransformer(emb_dims, num_heads, ff_dims, "leaky_relu")
-        self.temperature_net = TemperatureNet(emb_dims, temp_factor=temp_factor)
+        self.temperature_net = TemperatureNet(emb_dims, temp_factor=temp_factor, batch_norm=batch_norm)
         self.num_keypoints = num_keypoints
         self.num_iterations = num_iterations
         self.sampler: Sampler = sampler
