@@ -152,7 +152,8 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     A job runs one run at a time, so the newest ``last.ckpt`` is the run in progress (or the last one finished, which
     costs a copy and nothing else). Its folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state
     names) replaces ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
-    the next machine (:func:`restore`) instead of starting again. A done job keeps nothing; a run folder without any
+    the next machine (:func:`restore`) instead of starting again; a larger one removes ``target`` (its copy is of an
+    earlier run of the job, finished since). A done job keeps nothing; a run folder without any
     ``last.ckpt`` (a new machine, before :func:`restore`) leaves the kept copy alone. Returns the files copied.
     """
     if done:
@@ -164,6 +165,7 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     folder = lasts[-1].parent
     if sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
         print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
+        shutil.rmtree(target, ignore_errors=True)  # the kept copy is of an earlier run, finished since
         return []
     shutil.rmtree(target, ignore_errors=True)
     copied = []
