@@ -68,7 +68,7 @@ def data_overrides(args: argparse.Namespace) -> Values:
 
 
 def fixed_loader(batches: Sequence[Any], pairs: int) -> DataLoader[Any]:
-    """The first batches holding ``pairs`` pairs, served as they are (already collated), in the same order each epoch.
+    """The first ``pairs / batch size`` batches, served as they are (already collated), in the same order each epoch.
 
     Raises:
         ValueError: If the split has fewer pairs.
@@ -205,6 +205,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args.model_args = key_values(args.model_args, "--model-args")
     if min(args.pairs, args.batch, args.steps, args.val_every) < 1:
         parser.error("--pairs, --batch, --steps and --val-every must be >= 1")
+    if args.pairs % args.batch:
+        parser.error(f"--pairs ({args.pairs}) must be a multiple of --batch ({args.batch}): whole batches are trained")
     return args
 
 
