@@ -76,6 +76,9 @@ def test_without_batch_norm_the_trained_network_is_the_evaluated_one(batch: Regi
         gap = float((trained - evaluated).abs().max())
         assert gap > 1e-2 if batch_norm else gap < 1e-9, (batch_norm, gap)
     check_training_lowers_loss(lambda: _tiny(num_iterations=2, batch_norm=False), batch, steps=6)
+    encoder_only = _tiny(batch_norm=False, temperature_batch_norm=True)
+    assert not any(isinstance(m, torch.nn.BatchNorm1d) for m in encoder_only.encoder.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm1d) for m in encoder_only.temperature_net.modules())
 
 
 def test_local_consistency_gradient_reaches_the_dgcnn(batch: RegistrationBatch) -> None:

@@ -171,6 +171,9 @@ class PRNet(RegistrationModule):
         batch_norm: BatchNorm in the DGCNN and the TemperatureNet (upstream). ``False`` is a deviation, for the
             question of what BatchNorm does at small batches (training mode normalises by the batch's statistics, eval
             mode by running averages; see :class:`lcreg.baselines.dcp.DCP`).
+        temperature_batch_norm: BatchNorm in the TemperatureNet alone (``None``: as ``batch_norm``). Without it the
+            TemperatureNet's output ReLU can start dead, holding the temperature at its floor (``benchmarks/
+            overfit.py``: PRNet without any BatchNorm did not fit 8 fixed pairs).
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components: ``optimizer`` (upstream: Adam lr
             1e-3, weight decay 1e-4), ``lr_scheduler`` (upstream: MultiStepLR at 30/60/80 % of the epochs, gamma
             0.1), ``loss_terms`` (e.g. local consistency), ``refiner``.
@@ -191,6 +194,7 @@ class PRNet(RegistrationModule):
         cycle_weight: float = 0.1,
         temp_factor: float = 100.0,
         batch_norm: bool = True,
+        temperature_batch_norm: bool | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
@@ -202,7 +206,8 @@ class PRNet(RegistrationModule):
             raise ValueError(f"`num_iterations` must be >= 1, got {num_iterations}")
         self.encoder = DGCNN(emb_dims, k, "dynamic", act="leaky_relu", batch_norm=batch_norm)
         self.pointer = PointerTransformer(emb_dims, num_heads, ff_dims, "leaky_relu")
-        self.temperature_net = TemperatureNet(emb_dims, temp_factor=temp_factor, batch_norm=batch_norm)
+        temperature_bn = batch_norm if temperature_batch_norm is None else temperature_batch_norm
+        self.temperature_net = TemperatureNet(emb_dims, temp_factor=temp_factor, batch_norm=temperature_bn)
         self.num_keypoints = num_keypoints
         self.num_iterations = num_iterations
         self.sampler: Sampler = sampler
