@@ -46,7 +46,11 @@ thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup
 weighted 100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_frac50`` draws its
 two samplings from half the cloud each (they share half their points, as two independent samplings of 1024 of
 ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines
-with their own configs (``configs/models/``), at the batch and points given here. ``prnet`` is PRNet as in ``lcreg
+with their own configs (``configs/models/``), at the batch and points given here; ``pcrnet_idinit`` starts iPCRNet's
+every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``, the reference initialisation's
+Chamfer descent ends at rotations 90-180 deg away, the identity start fits them), ``fmr_semi`` is FMR-Net's
+semi-supervised variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its
+reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs). ``prnet`` is PRNet as in ``lcreg
 reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr
 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36):
 at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is
@@ -153,7 +157,9 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
+    "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),
     "fmr": Variant("fmr"),
+    "fmr_semi": Variant("fmr", overrides={"model.init_args.pose_weight": 1.0}),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
     "pointnetlk_nobn_steplr": Variant(
         "pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK, **HALVE_EVERY_5_EPOCHS}

@@ -41,6 +41,9 @@ def test_variant_values_build_their_models() -> None:
         assert type(prnet.model).__name__ == "PRNet" and prnet.datamodule.hparams.noise_sigma == 0.01
         optimizer = prnet.model.configure_optimizers()["optimizer"]
         assert optimizer.param_groups[0]["lr"] == pytest.approx(lr)
+    assert cli("pcrnet").model.hparams.identity_init is False
+    assert cli("pcrnet_idinit").model.hparams.identity_init is True
+    assert cli("fmr").model.hparams.pose_weight == 0 and cli("fmr_semi").model.hparams.pose_weight == 1.0
 
 
 def test_recipe_levers_change_only_their_self_motion_argument() -> None:
