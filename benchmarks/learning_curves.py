@@ -50,9 +50,10 @@ with their own configs (``configs/models/``), at the batch and points given here
 every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``, the reference initialisation's
 Chamfer descent ends at rotations 90-180 deg away, the identity start fits them), ``fmr_semi`` is FMR-Net's
 semi-supervised variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its
-reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves). ``prnet`` is PRNet as in ``lcreg
-reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr
-1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36):
+reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves).
+``prnet`` is PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
+``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
+rate linearly to a batch of 8 (1e-3 x 8 / 36):
 at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is
 DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained
 on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where
