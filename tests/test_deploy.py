@@ -44,6 +44,7 @@ def test_the_graph_keeps_the_models_starts(tmp_path: Path) -> None:
     model.eval_start_angles_deg, model.eval_iterations = (60.0, 120.0), 5
     src, ref = _pairs()
     ref = ref @ se3.exp(torch.tensor([[0.0, 0.0, 2.2, 0.0, 0.0, 0.0]]))[0, :3, :3].T
+    ref = ref + 0.02 * torch.randn(ref.shape, generator=torch.Generator().manual_seed(0))  # no start fits exactly
     model.solver.tolerance = 0.0
     with torch.no_grad():
         eager = model(src, ref)
@@ -53,6 +54,12 @@ def test_the_graph_keeps_the_models_starts(tmp_path: Path) -> None:
     torch.testing.assert_close(out, eager.transform_ref_src, atol=1e-5, rtol=0)
     path = export_registrar(model, tmp_path / "dvds.ts", "torchscript", points=200)
     torch.testing.assert_close(torch.jit.load(str(path))(src, ref), out, atol=1e-6, rtol=0)
+    model.eval_start_margin = 0.999  # the margin travels: no start beats the identity by that much
+    with torch.no_grad():
+        eager, graph = model(src, ref), DeployedLK(model).eval()
+        assert graph.start_margin == 0.999 and (eager.aux["start"] == 0).all()
+        torch.testing.assert_close(graph(src, ref), eager.transform_ref_src, atol=1e-5, rtol=0)
+        assert (graph(src, ref) - out).abs().max() > 0.1  # not the margin-0 answer
 
 
 def test_cholesky_solve_matches_torch_solve() -> None:

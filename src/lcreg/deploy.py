@@ -12,7 +12,7 @@
 * a fixed number of iterations (the eager solver stops an item early once its update is below ``tolerance``: the one
   documented difference; after convergence further updates are below the tolerance too);
 * the model's starts (``eval_start_angles_deg``) stacked along the batch, each item keeping the start with the lowest
-  final descriptor residual, as the eager solve does.
+  final descriptor residual (or the identity, within ``eval_start_margin``), as the eager solve does.
 
 Input checks stay outside the graph, in :func:`register_exported` and the eager model. The graph maps
 ``points_src (B, N, 3)``, ``points_ref (B, M, 3)`` (float32) to ``transform_ref_src (B, 4, 4)``; ``unit_scale`` is not
@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from lcreg.geometry import se3
-from lcreg.nn.lk import axis_rotation_starts
+from lcreg.nn.lk import axis_rotation_starts, select_start
 
 __all__ = ["DeployedLK", "ExportFormat", "build_parser", "export_registrar", "main"]
 
@@ -47,7 +47,8 @@ class DeployedLK(nn.Module):
         iterations: IC-LK iterations (default: the model's ``eval_iterations``, else its solver's
             ``max_iterations``).
 
-    The model's ``eval_start_angles_deg`` are kept (:func:`~lcreg.nn.lk.axis_rotation_starts`); a model with a
+    The model's ``eval_start_angles_deg`` and ``eval_start_margin`` are kept (:func:`~lcreg.nn.lk.axis_rotation_starts`,
+    :func:`~lcreg.nn.lk.select_start`); a model with a
     ``voxel_grid`` is exported without it (the whole-cloud solve).
 
     Raises:
@@ -82,6 +83,7 @@ class DeployedLK(nn.Module):
         self.starts: torch.Tensor
         self.register_buffer("starts", starts)  # (S, 4, 4), the identity first
         self.num_starts = int(starts.shape[0])
+        self.start_margin = float(getattr(model, "eval_start_margin", 0.0))
 
     def _layer(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         return getattr(self, f"weight{i}"), getattr(self, f"bias{i}")
@@ -150,7 +152,7 @@ class DeployedLK(nn.Module):
             g = se3.exp(dxi) @ g
         if n > 1:
             final = (self.encode(_moved(g, src0)) - feat_ref).norm(dim=-1).reshape(n, b)
-            best = final.argmin(0)  # (B,)
+            best = select_start(final, self.start_margin)  # (B,)
             g = g.reshape(n, b, 16).gather(0, best[None, :, None].expand(1, b, 16))[0].reshape(b, 4, 4)
         rot, trans = g[:, :3, :3], g[:, :3, 3]
         trans = trans + mean_ref - (rot @ mean_src[..., None]).squeeze(-1)

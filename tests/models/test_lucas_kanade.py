@@ -114,6 +114,11 @@ def test_eval_starts_are_used_outside_training_only_and_saved(cls: type[LucasKan
         expected = model.solver(model.encoder, batch.points_src, batch.points_ref, max_iterations=3, starts=starts)
     torch.testing.assert_close(got.transform_ref_src, expected.transform_ref_src)
     assert got.aux["start"].shape == (2,)
+    model.eval_start_margin = 0.999  # no start is that much better: the identity's answer
+    with torch.no_grad():
+        kept = model(batch.points_src, batch.points_ref)
+    assert (kept.aux["start"] == 0).all()
+    assert cls(**SMALL, eval_start_margin=0.2, **extra).hparams["eval_start_margin"] == 0.2  # type: ignore[arg-type]
     model.train()
     assert "start" not in model(batch.points_src, batch.points_ref).aux  # training: the identity start alone
     assert "start" not in cls(**SMALL, **extra).eval()(batch.points_src, batch.points_ref).aux  # type: ignore[arg-type]
@@ -124,6 +129,9 @@ def test_eval_starts_are_checked() -> None:
 
     with pytest.raises(ValueError, match="eval_start_angles_deg"):
         PointNetLK(**SMALL, eval_start_angles_deg=[float("nan")])  # type: ignore[arg-type]
+    for bad in (-0.5, 1.0):
+        with pytest.raises(ValueError, match="eval_start_margin"):
+            PointNetLK(**SMALL, eval_start_margin=bad)  # type: ignore[arg-type]
     model = PointNetLK(**SMALL, eval_start_angles_deg=[60], voxel_grid=VoxelGrid(grid=2))  # type: ignore[arg-type]
     batch = tiny_batch(batch_size=1, num_points=64)
     with pytest.raises(ValueError, match="not with `voxel_grid`"):

@@ -304,6 +304,52 @@ def test_several_starts_keep_the_lowest_final_residual_per_item() -> None:
     assert (batched.aux["start"] == 11).all() and (rotation_error_deg(batched.transform_ref_src, gt) < 1e-3).all()
 
 
+def test_select_start_keeps_the_identity_unless_another_start_is_clearly_lower() -> None:
+    from lcreg.nn.lk import select_start
+
+    final = torch.tensor(  # (S=3 starts, B=4 items); start 0 is the identity
+        [[1.00, 1.00, 1.00, 0.50], [0.95, 0.70, 0.80, 0.60], [0.99, 0.80, 0.74, 0.90]], dtype=torch.float64
+    )
+    assert select_start(final).tolist() == [1, 1, 2, 0]  # margin 0: the lowest residual
+    assert select_start(final, 0.25).tolist() == [0, 1, 2, 0]  # 0.95 and 0.70 / 0.74: only clear wins move
+    assert select_start(final, 0.29).tolist() == [0, 1, 0, 0]
+    assert select_start(final, 0.99).tolist() == [0, 0, 0, 0]
+
+
+def test_start_margin_picks_per_item_as_select_start_on_one_start_solves() -> None:
+    """Against a per-item loop of one-start solves: with a margin the kept start is ``select_start`` of their final
+    residuals. Items 0-1 are turned 126 deg (another start fits far better), item 2 is not (the starts land on the
+    identity's pose with almost the same residual): a small margin keeps item 2 on the identity, a large one all."""
+    from lcreg.nn.lk import axis_rotation_starts, select_start
+
+    src, ref, _ = _problem(b=3)
+    turn = so3.exp(torch.tensor([[0.0, 0.0, 2.2]], dtype=torch.float64))[0]
+    noise = 0.02 * torch.randn(ref.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ref = torch.cat([ref[:2] @ turn.T, ref[2:]]) + noise  # noise: no start fits exactly
+    enc, solver = _encoder(), InverseCompositionalLK(max_iterations=8)
+    starts = axis_rotation_starts([60.0, 120.0], dtype=torch.float64)
+    finals = torch.stack(
+        [
+            torch.cat(
+                [solver(enc, src[i : i + 1], ref[i : i + 1], starts=s[None]).aux["final_residual"] for s in starts]
+            )
+            for i in range(len(src))
+        ],
+        dim=1,
+    )  # (S, B)
+    gain = 1 - finals.min(0).values / finals[0]  # the best start's relative gain over the identity
+    assert gain[:2].min() > 0.5 and 0 < gain[2] < 0.1
+    identity = solver(enc, src, ref, starts=starts[:1])
+    for margin, moved in ((0.0, [1, 1, 1]), (0.1, [1, 1, 0]), (float(gain.max()) + 0.01, [0, 0, 0])):
+        batched = solver(enc, src, ref, starts=starts, start_margin=margin)
+        assert torch.equal(batched.aux["start"], select_start(finals, margin))
+        assert (batched.aux["start"] != 0).long().tolist() == moved
+    torch.testing.assert_close(batched.transform_ref_src, identity.transform_ref_src)  # the largest margin
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="start_margin"):
+            solver(enc, src, ref, starts=starts, start_margin=bad)
+
+
 def test_starts_are_differentiable_and_checked() -> None:
     src, ref, _ = _problem(b=2)
     enc = _encoder()

@@ -22,7 +22,13 @@ from typing import Any, ClassVar
 import torch
 
 from lcreg.models.base import RegistrationModule
-from lcreg.nn.lk import InverseCompositionalLK, JacobianMode, axis_rotation_starts, jacobian_diagnostics
+from lcreg.nn.lk import (
+    InverseCompositionalLK,
+    JacobianMode,
+    axis_rotation_starts,
+    check_start_margin,
+    jacobian_diagnostics,
+)
 from lcreg.nn.losses import lk_pose_loss
 from lcreg.nn.pointnet import PointNetEncoder
 from lcreg.nn.voxel_lk import VoxelGrid, voxel_lk
@@ -51,11 +57,15 @@ class LucasKanadeModule(RegistrationModule):
             and z axes for each ``a`` (:func:`~lcreg.nn.lk.axis_rotation_starts`; 6 starts per angle, each item
             keeps the one with the lowest final descriptor residual). ``()``: the identity alone. Not with
             ``voxel_grid``.
+        eval_start_margin: With ``eval_start_angles_deg``: another start replaces the identity's answer only if its
+            final residual is below ``(1 - eval_start_margin)`` times the identity's
+            (:func:`~lcreg.nn.lk.select_start`; 0: the lowest residual wins).
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``optimizer``, ``lr_scheduler``,
             ``loss_terms``, ``refiner``).
 
     Raises:
-        ValueError: If ``eval_iterations < 1`` or an angle of ``eval_start_angles_deg`` is not finite.
+        ValueError: If ``eval_iterations < 1``, an angle of ``eval_start_angles_deg`` is not finite or
+            ``eval_start_margin`` is outside ``[0, 1)``.
         TypeError: If ``voxel_grid`` is not a ``VoxelGrid``.
     """
 
@@ -72,9 +82,11 @@ class LucasKanadeModule(RegistrationModule):
         differentiable: bool = False,
         voxel_grid: VoxelGrid | None = None,
         eval_start_angles_deg: Sequence[float] = (),
+        eval_start_margin: float = 0.0,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        self.eval_start_margin = check_start_margin(eval_start_margin, "eval_start_margin")
         if not all(math.isfinite(a) for a in eval_start_angles_deg):
             raise ValueError(f"`eval_start_angles_deg` must be finite angles in degrees, got {eval_start_angles_deg}")
         self.voxel_grid = voxel_grid  # a plain attribute, checked (_set_voxel_grid): not a submodule, not saved
@@ -120,7 +132,14 @@ class LucasKanadeModule(RegistrationModule):
         starts = None
         if self.eval_start_angles_deg:
             starts = axis_rotation_starts(self.eval_start_angles_deg, points_src.dtype, points_src.device)
-        return self.solver(self.encoder, points_src, points_ref, max_iterations=self.eval_iterations, starts=starts)
+        return self.solver(
+            self.encoder,
+            points_src,
+            points_ref,
+            max_iterations=self.eval_iterations,
+            starts=starts,
+            start_margin=self.eval_start_margin,
+        )
 
     def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """The training-mode solve with the graph kept through it, whatever ``differentiable`` says."""

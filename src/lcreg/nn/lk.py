@@ -11,8 +11,9 @@ Given an encoder ``psi`` and clouds ``X`` (source) and ``Y`` (reference), find `
 
 Several starts (``starts``, e.g. :func:`axis_rotation_starts`): the loop runs from each initial ``G`` at once (the
 starts stacked along the batch) and each item keeps the start whose final residual ``||psi(G X0) - psi(Y0)||`` is
-lowest. A descriptor's IC-LK converges to the nearest minimum of the residual; a failed pair often has a lower
-minimum farther away, which a rotated start reaches.
+lowest (:func:`select_start`; with ``start_margin`` the identity's answer stays unless another start's residual is
+lower by that fraction). A descriptor's IC-LK converges to the nearest minimum of the residual; a failed pair often
+has a lower minimum farther away, which a rotated start reaches.
 
 The damping ``lambda = damping * mean(diag(J^T J)) + tiny`` keeps a singular ``J^T J`` (e.g. dead ReLUs)
 from producing NaN: a zero Jacobian gives ``dxi = 0``. The 6x6 systems are solved in float64.
@@ -42,6 +43,7 @@ __all__ = [
     "JacobianMode",
     "axis_rotation_starts",
     "jacobian_diagnostics",
+    "select_start",
     "twist_jacobian",
 ]
 
@@ -141,6 +143,39 @@ def axis_rotation_starts(
     return se3.exp(twists).to(dtype=dtype or torch.get_default_dtype(), device=device)
 
 
+def select_start(final_residual: torch.Tensor, margin: float = 0.0) -> torch.Tensor:
+    """The start each item keeps, from the final residuals ``||psi(G X0) - psi(Y0)||`` of every start ``(S, B)``.
+
+    Start 0 is the identity. An item keeps the start with the lowest residual if that residual is below
+    ``(1 - margin)`` times the identity's, else the identity: ``margin = 0`` keeps the lowest residual; a positive
+    margin moves only pairs that another start fits clearly better (a wrong pose of almost equal residual, e.g. on a
+    symmetric object, does not replace the identity's answer).
+
+    Args:
+        final_residual: ``(S, B)`` residual norms, the identity's first.
+        margin: Fraction in ``[0, 1)``.
+
+    Returns:
+        ``(B,)`` int64 start indices.
+    """
+    best = final_residual.argmin(0)
+    if margin <= 0:
+        return best
+    lowest = final_residual.gather(0, best[None])[0]
+    return torch.where(lowest < (1 - margin) * final_residual[0], best, torch.zeros_like(best))
+
+
+def check_start_margin(margin: float, name: str = "start_margin") -> float:
+    """``margin`` as a float after checking it is in ``[0, 1)``.
+
+    Raises:
+        ValueError: Not a finite fraction in ``[0, 1)``.
+    """
+    if not (math.isfinite(margin) and 0.0 <= margin < 1.0):
+        raise ValueError(f"`{name}` must be in [0, 1), got {margin}")
+    return float(margin)
+
+
 class InverseCompositionalLK(nn.Module):
     """IC-LK solver; holds hyper-parameters only, the encoder is passed at call time.
 
@@ -199,6 +234,7 @@ class InverseCompositionalLK(nn.Module):
         max_iterations: int | None = None,
         differentiable: bool | None = None,
         starts: torch.Tensor | None = None,
+        start_margin: float = 0.0,
     ) -> RegistrationResult:
         """Estimate ``transform_ref_src`` for ``points_src (B, N, 3)`` and ``points_ref (B, M, 3)``.
 
@@ -212,6 +248,8 @@ class InverseCompositionalLK(nn.Module):
                 through the solve of a model whose own loss holds the estimate fixed).
             starts: Initial transforms of the centred source ``(S, 4, 4)`` (``None``: the identity alone); each item
                 keeps the start with the lowest final residual (see the module docstring).
+            start_margin: With ``starts``: another start replaces the identity only if its final residual is below
+                ``(1 - start_margin)`` times the identity's (:func:`select_start`; 0: the lowest residual).
 
         Returns:
             :class:`RegistrationResult` with ``residual_history (B, iterations)`` (``||r||`` before each update),
@@ -221,8 +259,10 @@ class InverseCompositionalLK(nn.Module):
             ``aux["final_residual"] (B,)``, its ``||r||`` after the last update.
 
         Raises:
-            ValueError: ``max_iterations < 1`` or ``starts`` not ``(S, 4, 4)`` with ``S >= 1``.
+            ValueError: ``max_iterations < 1``, ``starts`` not ``(S, 4, 4)`` with ``S >= 1`` or ``start_margin``
+                outside ``[0, 1)``.
         """
+        check_start_margin(start_margin)
         if max_iterations is not None and max_iterations < 1:
             raise ValueError(f"`max_iterations` must be >= 1, got {max_iterations}")
         check_points(points_src, "points_src")
@@ -239,7 +279,8 @@ class InverseCompositionalLK(nn.Module):
         try:
             grad = self.differentiable if differentiable is None else differentiable
             with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
-                result = self._solve(encoder, points_src, points_ref, max_iterations or self.max_iterations, starts)
+                iterations = max_iterations or self.max_iterations
+                result = self._solve(encoder, points_src, points_ref, iterations, starts, start_margin)
             result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
             return result
         finally:
@@ -253,6 +294,7 @@ class InverseCompositionalLK(nn.Module):
         points_ref: torch.Tensor,
         max_iterations: int,
         starts: torch.Tensor | None = None,
+        start_margin: float = 0.0,
     ) -> RegistrationResult:
         b = points_src.shape[0]
         mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
@@ -281,7 +323,7 @@ class InverseCompositionalLK(nn.Module):
         aux = {"feature_ref": feat_ref, "jacobian": jac}
         if starts is not None:
             final = (encoder(se3.transform_points(g, src_n)) - feat_n).norm(dim=-1).reshape(n, b)
-            best = final.argmin(0)  # (B,)
+            best = select_start(final, start_margin)  # (B,)
             pick = best * b + torch.arange(b, device=best.device)  # rows of the kept starts
             g, active, iters, resid = g[pick], active[pick], iters[pick], resid[pick]
             history = [h[pick] for h in history]
