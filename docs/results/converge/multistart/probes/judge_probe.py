@@ -1,6 +1,7 @@
 # Ad-hoc probe of session 16 (goal (b)): which of several IC-LK starts to keep. Collect, then judge:
 #   PYTHONPATH=src python docs/results/converge/multistart/probes/judge_probe.py collect NAME SPLIT OUT.pt [P A]
 #   PYTHONPATH=src python docs/results/converge/multistart/probes/judge_probe.py judge OUT.pt [OUT.pt ...]
+#   PYTHONPATH=src python docs/results/converge/multistart/probes/judge_probe.py compare TRAINED.pt UNTRAINED.pt ...
 # (P: validation pairs per object, 4 as the converge budget; A: comma-separated start angles, default 30,60)
 """Per-start IC-LK solves of a shipped LK file on the ModelNet40 pairs, and start-selection judges on them.
 
@@ -25,15 +26,25 @@ from lcreg.data.datamodule import ModelNet40DataModule
 from lcreg.experiments.benchmarking import split_batches
 from lcreg.metrics.functional import registration_recall, rotation_error_deg, translation_error
 from lcreg.nn.lk import axis_rotation_starts, select_start
+from lcreg.weights import read_weights, resolve_class
 
 ROOT = "../shared/data/modelnet40_mini"
 SYMMETRIC = {"bowl", "flower_pot", "vase", "cup", "bottle", "cone"}  # an axis of rotational symmetry
 
 
 def collect(name: str, split: str, out: str, pairs: int = 4, angles: tuple[float, ...] = (30, 60)) -> None:
-    """Save every start's final transform and residual, the ground truth and the classes of ``split``'s pairs."""
+    """Save every start's final transform and residual, the ground truth and the classes of ``split``'s pairs.
+
+    ``NAME@untrainedK``: the file's network untrained, initialised with seed K (as the shipped-weights test does).
+    """
     torch.set_num_threads(1)
-    model = pretrained(name)
+    if "@untrained" in name:
+        file, seed = name.split("@untrained")
+        weights = read_weights(file)
+        torch.manual_seed(int(seed))
+        model = resolve_class(weights.class_path)(**weights.init_args).eval()
+    else:
+        model = pretrained(name)
     dm = ModelNet40DataModule(ROOT, num_points=1024, batch_size=52, val_pairs_per_object=pairs)
     batches = split_batches(dm, split)  # type: ignore[arg-type]
     starts = axis_rotation_starts(angles)
@@ -104,8 +115,35 @@ def judge(paths: list[str]) -> None:
                 )
 
 
+def summary(data: dict, judge_name: str) -> dict[str, float]:  # type: ignore[type-arg]
+    """Mean and median RRE (deg) and recall (2 deg, 0.01) of ``judge_name``'s kept starts on the ±30 deg starts."""
+    t, r = data["transform"][:, :7], data["residual"][:, :7]
+    k = pick(t, r, judge_name)
+    chosen = t[torch.arange(len(k)), k]
+    rre, rte = rotation_error_deg(chosen, data["gt"]), translation_error(chosen, data["gt"])
+    recall = float(registration_recall(rre, rte, 2.0, 0.01))
+    return {"mean RRE": float(rre.mean()), "median RRE": float(rre.median()), "recall (2°, 0.01)": recall}
+
+
+def compare(trained: str, untrained: list[str]) -> None:
+    """The shipped-weights test's comparison (trained against untrained seeds, beyond mean +- std) per judge."""
+    mine, seeds = torch.load(trained), [torch.load(u) for u in untrained]
+    print(f"{mine['name']} {mine['split']}: {len(mine['classes'])} pairs, {len(seeds)} untrained seeds")
+    for j in ("identity", "residual", "margin 0.1", "margin 0.25"):
+        cells, fails = [], []
+        for stat, value in summary(mine, j).items():
+            values = torch.tensor([summary(u, j)[stat] for u in seeds], dtype=torch.float64)
+            mean, std = float(values.mean()), float(values.std())
+            better = value > mean + std if stat.startswith("recall") else value < mean - std
+            cells.append(f"{stat} {value:.4g} vs {mean:.4g} ± {std:.4g}")
+            fails += [] if better else [stat]
+        print(f"  {j:12s} | " + " | ".join(cells) + f" | not beyond: {fails or 'none'}")
+
+
 if __name__ == "__main__":
-    if sys.argv[1] == "collect":
+    if sys.argv[1] == "compare":
+        compare(sys.argv[2], sys.argv[3:])
+    elif sys.argv[1] == "collect":
         extra = sys.argv[5:]
         angles = tuple(float(a) for a in extra[1].split(",")) if len(extra) > 1 else (30.0, 60.0)
         collect(sys.argv[2], sys.argv[3], sys.argv[4], int(extra[0]) if extra else 4, angles)
