@@ -48,8 +48,7 @@ class DeployedLK(nn.Module):
             ``max_iterations``).
 
     The model's ``eval_start_angles_deg`` and ``eval_start_margin`` are kept (:func:`~lcreg.nn.lk.axis_rotation_starts`,
-    :func:`~lcreg.nn.lk.select_start`); a model with a
-    ``voxel_grid`` is exported without it (the whole-cloud solve).
+    :func:`~lcreg.nn.lk.select_start`); a model with a ``voxel_grid`` is exported without it (the whole-cloud solve).
 
     Raises:
         TypeError: ``model`` is not an IC-LK model.
@@ -83,7 +82,7 @@ class DeployedLK(nn.Module):
         self.starts: torch.Tensor
         self.register_buffer("starts", starts)  # (S, 4, 4), the identity first
         self.num_starts = int(starts.shape[0])
-        self.start_margin = float(getattr(model, "eval_start_margin", 0.0))
+        self.start_margin = float(model.eval_start_margin)
 
     def _layer(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         return getattr(self, f"weight{i}"), getattr(self, f"bias{i}")
