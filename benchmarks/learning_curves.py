@@ -88,6 +88,7 @@ from lcreg.experiments.benchmarking import (
     plot_curves,
     summary_table,
     synthetic_overrides,
+    training_device,
     write_text,
 )
 from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
@@ -332,7 +333,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parse(argv)
     log = ResultLog(Path(args.run_dir) / "runs.jsonl", key=KEY)
     budget = budget_key(args) or "fixed budget"
-    print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine_line()}", flush=True)
+    machine = machine_line(training_device())
+    print(f"{args.points} points, {args.steps} steps ({budget}), seeds {args.seeds}; {machine}", flush=True)
     failure = None
     if args.report_only:
         pass
@@ -394,7 +396,7 @@ def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
                 finished.append(row)
     runs = load_runs({variant: files[variant] for variant in args.variants if variant in files})
     budget = budget_key(args) or "fixed budget"
-    head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line()}"
+    head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line(training_device())}"
     head += f"; runs: {', '.join(str(d) for d, _ in sources)}"
     write_text(out, "\n".join([head, "", summary_table(runs), "", stops_table(finished), ""]))
     for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):

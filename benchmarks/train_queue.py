@@ -37,7 +37,7 @@ from pathlib import Path
 
 import tomllib
 
-from lcreg.experiments.benchmarking import ResultLog, add_smoke_argument, machine_line
+from lcreg.experiments.benchmarking import ResultLog, add_smoke_argument, machine_line, training_device
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
@@ -191,7 +191,7 @@ def keep_best(source: Path, target: Path) -> list[Path]:
         name = f"{row.get('variant')}-seed{row.get('seed')}".lower()
         if "variant" not in row or (target / f"{name}.pt").exists() or not checkpoint.is_file():
             continue
-        metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line()}
+        metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line(training_device())}
         written.append(export_weights(checkpoint, name, target, metadata=metadata))
     return written
 
@@ -247,7 +247,8 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
         return False
     # The wall time of this last call only (earlier calls of a resumed job are in its rows' own training times).
-    done = {"last_call_s": round(time.monotonic() - start, 1), "machine": machine_line(), "files": copied}
+    machine = machine_line(training_device())
+    done = {"last_call_s": round(time.monotonic() - start, 1), "machine": machine, "files": copied}
     (results / job.id / "DONE.json").write_text(json.dumps(done) + "\n", encoding="utf-8")
     print(f"queue: {job.id}: done, last call {done['last_call_s']:.0f} s", flush=True)
     return True

@@ -63,6 +63,18 @@ def test_run_marks_only_a_successful_job_done(tmp_path: Path) -> None:
     queue.main(["run", "--only", "ok", *args])  # a done job is not run again (its folder exists: mkdir would fail)
 
 
+def test_done_names_the_gpu_that_trained_on_a_gpu_machine(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Session 17: a job trained on a lent H100 wrote "x86_64 (cpu)" into DONE.json (the default device of the header).
+    queue = load("train_queue")
+    monkeypatch.setattr("torch.cuda.is_available", lambda: True)
+    monkeypatch.setattr("torch.cuda.get_device_name", lambda device=None: "Test GPU 80GB")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "g"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"pass\\""\n')
+    queue.main(["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")])
+    done = json.loads((tmp_path / "res" / "g" / "DONE.json").read_text())
+    assert done["machine"].startswith("Test GPU 80GB (cuda)")
+
+
 def test_a_section_runs_its_jobs_and_only_names_jobs_of_any_section(tmp_path: Path) -> None:
     queue = load("train_queue")
     file = tmp_path / "q.toml"

@@ -83,6 +83,7 @@ from lcreg.experiments.benchmarking.writers import (
     mean_std_row,
     output_path,
     report_table,
+    training_device,
     write_text,
 )
 
@@ -150,6 +151,7 @@ __all__ = [
     "time_call",
     "time_calls",
     "timed",
+    "training_device",
     "training_loss",
     "voxelize_overrides",
     "write_synthetic_metrics",

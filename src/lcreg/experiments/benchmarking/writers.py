@@ -119,8 +119,16 @@ class ResultLog:
         return row
 
 
+def training_device() -> torch.device:
+    """Where a run with Lightning's ``accelerator="auto"`` trains: the GPU when CUDA is available, else the CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
 def machine_line(device: str | torch.device = "cpu") -> str:
-    """``"<processor or GPU>, torch <version>, <n> threads"`` for table headers."""
+    """``"<processor or GPU>, torch <version>, <n> threads"`` for table headers.
+
+    A header of runs Lightning trained names :func:`training_device`, not the default CPU.
+    """
     device = torch.device(device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine()
     return f"{name} ({device.type}), torch {torch.__version__}, {torch.get_num_threads()} threads"

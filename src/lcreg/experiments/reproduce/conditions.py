@@ -34,6 +34,7 @@ from lcreg.experiments.benchmarking import (
     pair_batches,
     split_batches,
     synthetic_overrides,
+    training_device,
 )
 from lcreg.experiments.evaluation import evaluate
 from lcreg.experiments.reproduce.budgets import PAIR_SEED, DataChoice, Preset, RunBudget
@@ -365,7 +366,7 @@ def report_header(run: EvalRun, command: str) -> list[str]:
         "so there is no paper column or ratio here: compare the shapes of the curves.",
         "",
         f"- Command: `{command}`",
-        f"- Machine: {machine_line()}",
+        f"- Machine: {machine_line(training_device())}",
         f"- Preset `{run.preset}`: {budget.describe()}; seeds {', '.join(map(str, run.seeds))} (learned methods; "
         "classical methods have no weights and run once); cells are mean ± sample std over seeds.",
         f"- Data: {run.data.describe()}; pair seed {PAIR_SEED} (every method registers the same pairs).",

@@ -32,6 +32,7 @@ from lcreg.experiments.benchmarking import (
     method,
     peak_memory_mib,
     timed,
+    training_device,
 )
 from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
@@ -165,7 +166,7 @@ def train_and_test(
     """
     recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
     values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(recorded)}
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")  # where Lightning's "auto" trains
+    device = training_device()
     result, peak_mib = peak_memory_mib(
         lambda: fit(name, values, monitor=budget.monitor, resume=budget.converge), device
     )
