@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 
 import lcreg.experiments.reproduce.sweep
 from _reproduce_outputs import assert_png_drawn, count_calls, read_jsonl  # type: ignore[import-not-found]
@@ -208,6 +209,34 @@ def test_partial_crops_every_cloud_of_a_sweep_and_keys_its_runs_apart_from_full_
     calls: list[tuple[str, int]] = []
     run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
     assert calls == [("idam", 0)]  # the full-cloud run is another run
+
+
+def test_a_budget_lr_trains_at_that_lr_and_keys_its_runs_apart(tmp_path: Path) -> None:
+    """``RunBudget.lr`` (PRNet's ``converge``: upstream's lr scaled to batch 8); budgets without it keep their keys."""
+    from dataclasses import replace
+
+    from lcreg.experiments.reproduce.budgets import LR_KEY
+
+    with pytest.raises(ValueError, match="lr"):
+        RunBudget(steps=2, lr=0.0)
+    with pytest.raises(ValueError, match="lr"):
+        RunBudget(steps=2, lr=float("nan"))
+    budget = RunBudget(steps=1, points=64, batch=2, checks=1, lr=3e-4)
+    assert budget.fit_overrides(tmp_path, seed=0)[LR_KEY] == 3e-4
+    assert LR_KEY not in RunBudget(steps=1).fit_overrides(tmp_path, seed=0)
+    experiment = replace(LC.select(["idam/X"]), budgets={"smoke": {"idam": budget}})
+    run_sweep(Sweep(experiment, "smoke", (0,), DataChoice(None), tmp_path))
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert row["budget"].endswith(", lr 0.0003")
+    config = yaml.safe_load((Path(row["metrics_csv"]).parent / "config.yaml").read_text())
+    assert config["model"]["init_args"]["optimizer"]["init_args"]["lr"] == 3e-4  # idam.yaml says 1e-4
+    # The committed DCP-v2 rows of the queue stay finished (their key has no lr); PRNet's runs are new runs.
+    converge = LC.budgets["converge"]
+    assert converge["dcp"].describe() == (
+        "3000 steps × 8 pairs × 256 points, validated every 50 steps, until 12 validations bring no gain in "
+        "`val/rre_median_deg` (4 pairs per validation object)"
+    )
+    assert converge["prnet"].describe() == converge["dcp"].describe() + ", lr 0.00022"
 
 
 def test_jobs_trains_runs_in_worker_processes_with_the_rows_of_a_serial_sweep(tmp_path: Path) -> None:

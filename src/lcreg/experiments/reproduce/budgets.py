@@ -30,8 +30,10 @@ from lcreg.experiments.benchmarking import (
 __all__ = [
     "CONVERGE_EPOCHS_OF_8",
     "CONVERGE_LK",
+    "CONVERGE_PRNET",
     "CONVERGE_SMALL_BATCH",
     "DEFAULT_ROOT",
+    "LR_KEY",
     "PAIR_SEED",
     "PRESETS",
     "SMOKE_PAIRS",
@@ -48,6 +50,8 @@ PAIR_SEED = 1234
 """Seed of the validation carve-out and of the deterministic validation and test pairs (every run, every seed)."""
 SMOKE_PAIRS = 2
 """Validation and test pairs of a ``smoke`` run (embedded synthetic shapes)."""
+LR_KEY = "model.init_args.optimizer.init_args.lr"
+"""The config value :attr:`RunBudget.lr` sets."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,8 @@ class RunBudget:
         val_pairs: Validation pairs per validation object (``val_pairs_per_object`` of the DataModule).
         metric: Converge budget: the validation metric it stops and selects on (``None``:
             :data:`~lcreg.experiments.benchmarking.CONVERGE_METRIC`).
+        lr: The optimiser's learning rate (``model.init_args.optimizer.init_args.lr``; ``None``: the config's), for
+            a budget whose batch is far below the method's own (e.g. the linear scaling rule, lr × batch / its batch).
     """
 
     steps: int | None = None
@@ -76,6 +82,7 @@ class RunBudget:
     patience: int | None = None
     val_pairs: int = 1
     metric: str | None = None
+    lr: float | None = None
 
     def __post_init__(self) -> None:
         if (self.steps is None) == (self.epochs is None):
@@ -87,6 +94,8 @@ class RunBudget:
             raise ValueError(f"a converge RunBudget (patience) needs a step cap, got {self}")
         if self.metric is not None and (self.patience is None or not self.metric.startswith("val/")):
             raise ValueError(f"`metric` is a validation metric (val/...) of a converge RunBudget, got {self}")
+        if self.lr is not None and not (isinstance(self.lr, float) and 0 < self.lr < float("inf")):
+            raise ValueError(f"`lr` is a positive finite float, got {self}")
 
     @property
     def converge(self) -> bool:
@@ -106,14 +115,17 @@ class RunBudget:
         return None if self.steps is None else max(1, self.steps // self.checks)
 
     def fit_overrides(self, run_dir: str | Path, seed: int) -> Values:
-        """The ``lcreg fit`` values of this budget: steps or epochs, validation, logs under ``run_dir``."""
+        """The ``lcreg fit`` values of this budget: steps or epochs, validation, logs under ``run_dir``, lr."""
+        lr = {} if self.lr is None else {LR_KEY: self.lr}
         if self.steps is not None and self.patience is not None:
-            return converge_overrides(
+            values = converge_overrides(
                 self.steps, self.val_every or 1, self.patience, run_dir, seed=seed, monitor=self.monitor
             )
-        if self.steps is not None:
-            return fit_overrides(self.steps, self.val_every or 1, run_dir, seed=seed)
-        return epoch_overrides(self.epochs or 1, run_dir, seed=seed)
+        elif self.steps is not None:
+            values = fit_overrides(self.steps, self.val_every or 1, run_dir, seed=seed)
+        else:
+            values = epoch_overrides(self.epochs or 1, run_dir, seed=seed)
+        return {**values, **lr}
 
     def describe(self) -> str:
         """E.g. ``"80 steps × 16 pairs × 512 points, validated every 20 steps"``."""
@@ -125,7 +137,7 @@ class RunBudget:
         if self.converge:
             gain = f"no gain in `{self.metric}`" if self.metric else "no gain"  # the default keeps older rows' keys
             text += f", until {self.patience} validations bring {gain} ({self.val_pairs} pairs per validation object)"
-        return text
+        return text if self.lr is None else f"{text}, lr {self.lr:g}"  # without lr: the older rows' keys
 
 
 CONVERGE_LK = RunBudget(steps=3000, points=512, batch=16, checks=60, patience=6, val_pairs=4)
@@ -142,6 +154,14 @@ CONVERGE_SMALL_BATCH = RunBudget(
 patience of 6, all six DCP-v2 runs of the first GPU session stopped at 450-1,250 steps while their validation
 median RRE and recall (5°, 0.05) were still improving (``docs/results/converge/lc_dcp_prnet_converge/
 stop_rule_clip5/``)."""
+CONVERGE_PRNET = RunBudget(
+    steps=3000, points=256, batch=8, checks=60, patience=12, val_pairs=4, metric="val/rre_median_deg", lr=2.2e-4
+)
+"""``converge`` for PRNet: :data:`CONVERGE_SMALL_BATCH` with upstream's Adam lr scaled linearly to the batch (1e-3 ×
+8 / 36 = 2.2e-4). At lr 1e-3 and batch 8 every PRNet run got worse after step 100-300 (one diverged); at 2.2e-4 three
+seeds reached validation median RRE 1.68-1.91° by step 399 against 2.30-3.73° at 1e-3, on the same script and
+validation pairs (``docs/results/converge/gpu_prnet_lr_256/``, H100; ``prnet_lr_256``, CPU). Decided on validation,
+before any PRNet test number at this lr; X and LC + X alike."""
 CONVERGE_EPOCHS_OF_8 = RunBudget(steps=5016, points=512, batch=8, checks=57, patience=8, val_pairs=4)
 """``converge`` for IDAM and DeepGMR (about 1 s per step at 512 × 8): validated once per epoch (88 steps of 8 pairs,
 so epoch-stepped schedulers such as DeepGMR's ``ReduceLROnPlateau`` always see a validation loss), at most 57

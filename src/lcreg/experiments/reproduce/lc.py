@@ -18,7 +18,13 @@ import yaml
 
 from lcreg.config import configs_root
 from lcreg.experiments.benchmarking import METHODS, read_metrics
-from lcreg.experiments.reproduce.budgets import CONVERGE_EPOCHS_OF_8, CONVERGE_SMALL_BATCH, Preset, RunBudget
+from lcreg.experiments.reproduce.budgets import (
+    CONVERGE_EPOCHS_OF_8,
+    CONVERGE_PRNET,
+    CONVERGE_SMALL_BATCH,
+    Preset,
+    RunBudget,
+)
 from lcreg.experiments.reproduce.claims import Claim, Comparison
 from lcreg.experiments.reproduce.paper import LC_PLUS_X as PAPER
 from lcreg.experiments.reproduce.spec import Cell, Experiment, Rows, Variant
@@ -40,7 +46,7 @@ BUDGETS: dict[Preset, dict[str, RunBudget]] = {
     },
     "converge": {
         "dcp": CONVERGE_SMALL_BATCH,
-        "prnet": CONVERGE_SMALL_BATCH,
+        "prnet": CONVERGE_PRNET,
         "idam": CONVERGE_EPOCHS_OF_8,
         "deepgmr": CONVERGE_EPOCHS_OF_8,
     },
@@ -134,7 +140,9 @@ NOTES = (
     "Data: `--root` (default `../shared/data/modelnet40_mini`, a real subset of ModelNet40) instead of the full "
     "ModelNet40. Budget: `cpu` trains 20 (PRNet) to 220 (IDAM, DeepGMR) steps of 8 pairs per run, 0.2 to 2.5 "
     "passes over the 705 training objects of modelnet40_mini; `paper` trains 200 epochs (the paper's protocol) "
-    "at the hosts' original batch sizes.",
+    "at the hosts' original batch sizes. `converge` trains PRNet at lr 2.2e-4, upstream's 1e-3 scaled linearly to "
+    "batch 8 of its 36 (at 1e-3 every PRNet run got worse after step 100-300: `docs/results/converge/"
+    "gpu_prnet_lr_256/`), X and LC + X alike.",
 )
 
 LC = Experiment(
