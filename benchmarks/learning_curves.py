@@ -83,8 +83,10 @@ from lcreg.experiments.benchmarking import (
     fit_overrides,
     load_runs,
     machine_line,
+    machines_of,
     markdown_table,
     output_path,
+    peak_memory_mib,
     plot_curves,
     summary_table,
     synthetic_overrides,
@@ -273,12 +275,23 @@ def run(args: argparse.Namespace, name: str, seed: int, log: ResultLog) -> None:
     }
     converge = args.patience is not None
     monitor = args.monitor if converge else SELECTION_METRIC
-    result = fit(variant.method, values, variant.configs, validate_first=True, monitor=monitor, resume=converge)
+    result, peak_mib = peak_memory_mib(
+        lambda: fit(variant.method, values, variant.configs, validate_first=True, monitor=monitor, resume=converge),
+        training_device(),
+    )
     metrics = Path(result.trainer.log_dir or run_dir) / "metrics.csv"
     stopped = result.trainer.global_step
     row = {**key, "metrics_csv": str(metrics), "best_checkpoint": str(result.best_checkpoint)}
+    # The machine and peak memory of this call (a resumed run: of its last segment), as the sweeps' rows record them.
+    machine = {"machine": machine_line(result.trainer.strategy.root_device), "peak_mib": peak_mib}
     log.append(
-        {**row, "seconds": round(result.seconds, 1), "stopped_step": stopped, "early_stopped": stopped < args.steps}
+        {
+            **row,
+            "seconds": round(result.seconds, 1),
+            "stopped_step": stopped,
+            "early_stopped": stopped < args.steps,
+            **machine,
+        }
     )
     print(f"{name} seed {seed}: {result.seconds:.0f} s, stopped at step {stopped}, {metrics}", flush=True)
 
@@ -357,8 +370,12 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def stops_table(rows: Sequence[dict[str, Any]]) -> str:
-    """Where every run stopped (early stop or the step cap), its selected checkpoint and its training time."""
-    header = ["variant", "seed", "stopped at step", "why", "selected checkpoint", "train s"]
+    """Where every run stopped (early stop or the step cap), its selected checkpoint, training time and peak memory.
+
+    Time and memory are of the run's last call (a resumed run: its last segment); rows written before rows recorded
+    memory show ``-``.
+    """
+    header = ["variant", "seed", "stopped at step", "why", "selected checkpoint", "train s", "peak MiB", "machine"]
     body = [
         [
             row["variant"],
@@ -367,6 +384,8 @@ def stops_table(rows: Sequence[dict[str, Any]]) -> str:
             "early stop" if row.get("early_stopped") else "step cap",
             Path(row["best_checkpoint"]).name,
             f"{row['seconds']:.0f}",
+            "-" if row.get("peak_mib") is None else f"{row['peak_mib']:.0f}",
+            row.get("machine", "-"),
         ]
         for row in rows
     ]
@@ -396,7 +415,7 @@ def report(args: argparse.Namespace, log: ResultLog, out: Path) -> None:
                 finished.append(row)
     runs = load_runs({variant: files[variant] for variant in args.variants if variant in files})
     budget = budget_key(args) or "fixed budget"
-    head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machine_line(training_device())}"
+    head = f"{args.points} points, {args.steps} steps ({budget}), batch {args.batch}; {machines_of(finished)}"
     head += f"; runs: {', '.join(str(d) for d, _ in sources)}"
     write_text(out, "\n".join([head, "", summary_table(runs), "", stops_table(finished), ""]))
     for path in plot_curves(runs, out.parent, prefix=f"{out.stem}_"):

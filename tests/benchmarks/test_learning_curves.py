@@ -11,7 +11,7 @@ import torch
 from tests.benchmarks.test_smoke import load
 
 from lcreg.cli import LcregCLI
-from lcreg.experiments.benchmarking import build_cli_for, synthetic_overrides
+from lcreg.experiments.benchmarking import build_cli_for, machine_line, synthetic_overrides
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -104,6 +104,8 @@ def test_report_joins_the_finished_runs_of_other_run_folders(tmp_path: Path) -> 
     module.main([*report, "--run-dir", str(first), "--also-runs", str(other), "--out", str(out)])
     text = out.read_text()
     assert str(other) in text.splitlines()[0]
+    # The header names the machine that trained the rows (a GPU's, for rows a lent GPU wrote), not the one writing it.
+    assert f"; {machine_line('cpu')}: 2 runs; runs: " in text.splitlines()[0]
     assert text.index("| val/rre_mean_deg | selfsup |") < text.index(
         "| val/rre_mean_deg | model_D |"
     )  # --variants order
@@ -141,6 +143,9 @@ def test_jobs_train_each_run_in_its_own_process_as_the_sequential_loop_does(
     assert sorted(line.split(":")[0] for line in started) == ["model_D seed 0", "selfsup seed 0"]
     rows = {r["variant"]: r for r in map(json.loads, (parallel / "runs.jsonl").read_text().splitlines())}
     assert sorted(rows) == ["model_D", "selfsup"] and all(r["stopped_step"] == 2 for r in rows.values())
+    # Each worker records the device that trained it and its own peak memory (the GPU queue's step costs and memory).
+    assert all(r["machine"] == machine_line("cpu") for r in rows.values())
+    assert all(r["peak_mib"] is None or r["peak_mib"] > 0 for r in rows.values())
     assert (parallel / "selfsup" / "seed0" / "worker.log").is_file()
     module.main([*common, "--variants", "selfsup", "--run-dir", str(sequential)])
     (twin,) = map(json.loads, (sequential / "runs.jsonl").read_text().splitlines())

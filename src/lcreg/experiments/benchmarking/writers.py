@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import platform
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -132,6 +133,19 @@ def machine_line(device: str | torch.device = "cpu") -> str:
     device = torch.device(device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine()
     return f"{name} ({device.type}), torch {torch.__version__}, {torch.get_num_threads()} threads"
+
+
+def machines_of(rows: Iterable[Mapping[str, Any]]) -> str:
+    """The machines that trained ``rows`` (their ``"machine"`` field), with run counts; no rows: this machine.
+
+    The rows of one queue job may come from a CPU and a lent GPU; rows written before rows recorded it count as not
+    recorded. With no rows the header names where this machine would train (:func:`training_device`).
+    """
+    counts = Counter(r.get("machine") for r in rows)
+    if not counts:
+        return machine_line(training_device())
+    named = sorted(counts.items(), key=lambda item: (item[0] is None, str(item[0])))
+    return "; ".join(f"{name or 'not recorded (rows written before lcreg recorded it)'}: {n} runs" for name, n in named)
 
 
 def write_text(path: str | Path, text: str) -> Path:

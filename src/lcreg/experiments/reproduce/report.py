@@ -10,12 +10,11 @@ finished; the claims section says for each of the paper's claims whether it hold
 from __future__ import annotations
 
 import statistics
-from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from lcreg.experiments.benchmarking import format_mean_std, machine_line, markdown_table
+from lcreg.experiments.benchmarking import format_mean_std, machines_of, markdown_table
 from lcreg.experiments.reproduce.claims import ClaimResult, Comparison, judge
 from lcreg.experiments.reproduce.paper import PAPER_METRICS
 from lcreg.experiments.reproduce.spec import Cell, Experiment, Rows
@@ -192,16 +191,8 @@ def _pairs(rows: Rows, field: str) -> str:
 
 
 def machines(rows: Rows) -> str:
-    """The machines that trained the rows, with their run counts; no rows: the machine writing the report.
-
-    The rows of one queue job may come from a CPU and a lent GPU; rows written before rows recorded it count as not
-    recorded.
-    """
-    counts = Counter(r.get("machine") for runs in rows.values() for r in runs)
-    if not counts:
-        return machine_line()
-    named = sorted(counts.items(), key=lambda item: (item[0] is None, str(item[0])))
-    return "; ".join(f"{name or 'not recorded (rows written before lcreg recorded it)'}: {n} runs" for name, n in named)
+    """The machines that trained the rows of every variant (:func:`~lcreg.experiments.benchmarking.machines_of`)."""
+    return machines_of(r for runs in rows.values() for r in runs)
 
 
 def header(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = ()) -> list[str]:
