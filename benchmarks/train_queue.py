@@ -31,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -111,6 +112,8 @@ def load_jobs(path: Path) -> list[Job]:
 def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many.
 
+    A JSONL log already in the results keeps the rows this run folder lacks (:func:`merged_rows`).
+
     Also keeps the resume state of the run in progress unless the job is ``done`` (default: its ``DONE.json``
     exists; :func:`keep_resume`), and for a ``keep_best`` job the slim weights of every finished run's selected
     checkpoint (:func:`keep_best`).
@@ -120,7 +123,10 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
         for path in source.rglob(pattern) if source.is_dir() else ():
             destination = target / path.relative_to(source)
             destination.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(path, destination)
+            if path.suffix == ".jsonl" and destination.is_file():  # rows another machine added stay (a GPU chunk)
+                destination.write_text(merged_rows(path, destination), encoding="utf-8")
+            else:
+                shutil.copy2(path, destination)
             count += 1
     drop_set_aside(source, target)
     done = (results / job.id / "DONE.json").is_file() if done is None else done
@@ -196,15 +202,39 @@ def keep_best(source: Path, target: Path) -> list[Path]:
     return written
 
 
+def merged_rows(first: Path, second: Path) -> str:
+    """The lines of JSONL ``first``, then those of ``second`` that ``first`` lacks (as a multiset), in their order.
+
+    A job may run on this machine and, in chunks, on a lent GPU whose rows come back into the results folder: each
+    copy keeps the other's finished runs instead of replacing them. The rows of ``first`` come first, so where both
+    machines finished the same run, the newest row (the one that counts) is ``second``'s.
+    """
+    lines = first.read_text(encoding="utf-8").splitlines()
+    missing = Counter(second.read_text(encoding="utf-8").splitlines()) - Counter(lines)
+    extra = []
+    for line in second.read_text(encoding="utf-8").splitlines():
+        if missing[line] > 0 and line.strip():
+            extra.append(line)
+            missing[line] -= 1
+    rows = lines + extra
+    return "\n".join(rows) + "\n" if rows else ""
+
+
 def restore(job: Job, runs: Path, results: Path) -> int:
     """Copy the committed result files of ``job`` back into its run folder where that folder lacks them (a new
-    machine); the scripts then skip the runs these logs list as finished, and the run in progress resumes from its
-    kept checkpoints (:func:`keep_resume`). Returns how many files were copied."""
+    machine), and add to its JSONL logs the rows they lack (another machine's: :func:`merged_rows`); the scripts
+    then skip the runs these logs list as finished, and the run in progress resumes from its kept checkpoints
+    (:func:`keep_resume`). Returns how many files were copied or extended."""
     target, count = runs / job.id, 0
     for source in (results / job.id / "runs", results / job.id / "resume"):
         for path in source.rglob("*") if source.is_dir() else ():
             destination = target / path.relative_to(source)
-            if path.is_file() and not destination.exists():
+            if path.is_file() and path.suffix == ".jsonl" and destination.is_file():
+                rows = merged_rows(destination, path)  # runs another machine finished are not trained again
+                if rows != destination.read_text(encoding="utf-8"):
+                    destination.write_text(rows, encoding="utf-8")
+                    count += 1
+            elif path.is_file() and not destination.exists():
                 destination.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(path, destination)
                 count += 1

@@ -181,6 +181,29 @@ def test_a_new_machine_restores_finished_runs_from_the_committed_results(tmp_pat
     assert (tmp_path / "res" / "long" / "runs" / "runs.jsonl").read_text() == "row\nrow\n"
 
 
+def test_a_job_on_two_machines_keeps_the_rows_of_both(tmp_path: Path) -> None:
+    """A job running here and, in chunks, on a lent GPU: the GPU's rows, unpacked into the results, survive this
+    machine's next sync, and come back into this run folder when the job restarts (not trained again)."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    here, committed = runs / "j" / "lc.jsonl", res / "j" / "runs" / "lc.jsonl"
+    here.parent.mkdir(parents=True)
+    here.write_text('{"run": "cpu 0"}\n{"run": "both"}\n')
+    committed.parent.mkdir(parents=True)
+    committed.write_text('{"run": "both"}\n{"run": "gpu 0"}\n{"run": "gpu 1"}\n')  # the GPU chunk's, unpacked
+    queue.sync(job, runs, res)
+    rows = '{"run": "cpu 0"}\n{"run": "both"}\n{"run": "gpu 0"}\n{"run": "gpu 1"}\n'
+    assert committed.read_text() == rows
+    here.write_text('{"run": "cpu 0"}\n')  # e.g. the run folder of a session that began before the GPU's rows
+    assert queue.restore(job, runs, res) == 1
+    assert here.read_text() == '{"run": "cpu 0"}\n{"run": "both"}\n{"run": "gpu 0"}\n{"run": "gpu 1"}\n'
+    assert queue.restore(job, runs, res) == 0  # nothing new: the file is left alone
+    assert queue.merged_rows(here, here) == here.read_text()
+
+
 def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_path: Path) -> None:
     """Run folders need not outlive a session: ``keep_best`` exports each finished run's selected checkpoint beside
     the committed logs, once, loadable by ``lcreg.pretrained`` with the checkpoint's weights."""
