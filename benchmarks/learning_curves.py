@@ -57,7 +57,9 @@ rate linearly to a batch of 8 (1e-3 x 8 / 36):
 at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is
 DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained
 on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where
-BatchNorm's running statistics replace the batch's own.
+BatchNorm's running statistics replace the batch's own. ``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without
+BatchNorm in its DGCNN and TemperatureNet): evaluated with each batch's own statistics, its lr-2.2e-4 checkpoint
+registers the validation pairs better than in eval mode (``docs/results/converge/prnet_lr_256/probes/``).
 """
 
 from __future__ import annotations
@@ -170,6 +172,9 @@ VARIANTS: dict[str, Variant] = {
     ),
     "prnet": Variant("prnet"),
     "prnet_lr2.2e-4": Variant("prnet", overrides={"model.init_args.optimizer.init_args.lr": 2.2e-4}),
+    "prnet_lr2.2e-4_nobn": Variant(
+        "prnet", overrides={"model.init_args.optimizer.init_args.lr": 2.2e-4, "model.init_args.batch_norm": False}
+    ),
     "dcp": Variant("dcp"),
     "dcp_nobn": Variant("dcp", overrides={"model.init_args.batch_norm": False}),
 }
