@@ -209,10 +209,10 @@ def merged_rows(first: Path, second: Path) -> str:
     copy keeps the other's finished runs instead of replacing them. The rows of ``first`` come first, so where both
     machines finished the same run, the newest row (the one that counts) is ``second``'s.
     """
-    lines = first.read_text(encoding="utf-8").splitlines()
-    missing = Counter(second.read_text(encoding="utf-8").splitlines()) - Counter(lines)
+    lines, others = (path.read_text(encoding="utf-8").splitlines() for path in (first, second))
+    missing = Counter(others) - Counter(lines)
     extra = []
-    for line in second.read_text(encoding="utf-8").splitlines():
+    for line in others:
         if missing[line] > 0 and line.strip():
             extra.append(line)
             missing[line] -= 1

@@ -12,7 +12,7 @@ same validation and test pairs in every run), or, for ``smoke``, the tiny embedd
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -154,9 +154,7 @@ CONVERGE_SMALL_BATCH = RunBudget(
 patience of 6, all six DCP-v2 runs of the first GPU session stopped at 450-1,250 steps while their validation
 median RRE and recall (5°, 0.05) were still improving (``docs/results/converge/lc_dcp_prnet_converge/
 stop_rule_clip5/``)."""
-CONVERGE_PRNET = RunBudget(
-    steps=3000, points=256, batch=8, checks=60, patience=12, val_pairs=4, metric="val/rre_median_deg", lr=2.2e-4
-)
+CONVERGE_PRNET = replace(CONVERGE_SMALL_BATCH, lr=2.2e-4)
 """``converge`` for PRNet: :data:`CONVERGE_SMALL_BATCH` with upstream's Adam lr scaled linearly to the batch (1e-3 ×
 8 / 36 = 2.2e-4). At lr 1e-3 and batch 8 every PRNet run got worse after step 100-300 (one diverged); at 2.2e-4 three
 seeds reached validation median RRE 1.68-1.91° by step 399 against 2.30-3.73° at 1e-3, on the same script and
