@@ -2,6 +2,8 @@
 
     python benchmarks/lc_gradient_share.py --hosts idam deepgmr dcp prnet --batches 20 \
         --out docs/results/converge/lc_gradient_share.md
+    python benchmarks/lc_gradient_share.py --hosts idam deepgmr --batches 20 --adam-steps 20 \
+        --out docs/results/converge/lc_adam_share.md
     python benchmarks/lc_gradient_share.py --smoke      # seconds: embedded shapes, 2 batches of DCP-v2
 
 For every host X of ``lcreg reproduce lc`` this builds LC + X (``<host>_lc`` of the registry, seeded with
@@ -14,11 +16,22 @@ and the L2 norm of its gradient on the encoder LC reads (``model.descriptor_enco
 The *matched weight* is median(‖∇ own‖ / ‖∇ LC‖): the LC weight at which LC's encoder gradient equals the host's own
 (the rule fixed in ``docs/results/converge/README.md`` before any test number, as a fairer second test than the
 paper's literal weight 1).
+
+A gradient norm is not what the runs' optimiser (Adam) moves by: Adam scales each coordinate by its own gradient
+history, so a term with a small norm steers the coordinates where it is the larger part. ``--adam-steps T`` adds a
+second table from the same initialisation and the same first ``T`` training batches, per host:
+
+* *LC-led coordinates*: the share of encoder coordinates where ``|weight * d LC|`` exceeds ``|d own|`` (first batch);
+* *LC's change of the trajectory*: ``||theta_LC+X - theta_X|| / ||theta_X - theta_0||`` over the encoder after ``T``
+  steps of the host's configured optimiser, X and LC + X on the same batches (and the same random draws);
+* the *control*: the same ratio for X trained on the same ``T`` batches in reverse order, the change that the order
+  of the data alone makes (what a seed changes is at least that).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import statistics
 import sys
 from collections.abc import Sequence
@@ -29,10 +42,10 @@ from torch import nn
 
 from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, build, machine_line, output_path
 from lcreg.experiments.benchmarking.writers import write_text
-from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, SMOKE_PAIRS, DataChoice
+from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, LR_KEY, SMOKE_PAIRS, DataChoice
 from lcreg.experiments.reproduce.lc import BUDGETS, HOSTS
 
-SMOKE = {"hosts": ["dcp"], "batches": 2}
+SMOKE = {"hosts": ["dcp"], "batches": 2, "adam_steps": 2}
 LC_TERM = "lc"
 """Name of the LC term in ``training_losses`` (``configs/lc.yaml``)."""
 
@@ -77,6 +90,67 @@ def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[S
     return shares
 
 
+def _host_and_lc(host: str, root: str | None, seed: int) -> tuple[nn.Module, nn.Module, list[object]]:
+    """X and LC + X with the same initial weights, and the batches of the shared stream (training mode)."""
+    budget = BUDGETS["smoke" if root is None else "converge"][host]
+    lr = {} if budget.lr is None else {LR_KEY: budget.lr}  # the rate the runs train at (PRNet: 2.2e-4)
+    values = {**DataChoice(root).overrides(budget), **lr, "seed_everything": seed}
+    plain, datamodule = build(host, None, values=values, with_data=True)
+    with_lc = build(f"{host}_lc", None, values=values)
+    datamodule.setup("fit")
+    torch.manual_seed(seed)
+    return plain.train(), with_lc.train(), list(datamodule.train_dataloader())
+
+
+def _encoder_vector(model: nn.Module) -> torch.Tensor:
+    """The encoder LC reads, its trainable parameters as one flat vector (a copy)."""
+    encoder = model.descriptor_encoder()
+    return torch.cat([p.detach().flatten() for p in encoder.parameters() if p.requires_grad]).clone()
+
+
+def _train(model: nn.Module, batches: Sequence[object], seed: int) -> torch.Tensor:
+    """``len(batches)`` steps of the model's own optimiser (its ``configure_optimizers``); the encoder after them."""
+    config = model.configure_optimizers()
+    optimizer = config["optimizer"] if isinstance(config, dict) else config
+    for i, batch in enumerate(batches):
+        torch.manual_seed(seed + i)  # the same random draws (samplers, dropout) in every copy
+        optimizer.zero_grad()
+        model.training_losses(model.training_forward(batch), batch)["loss"].backward()
+        optimizer.step()
+    return _encoder_vector(model)
+
+
+def lc_led_share(model: nn.Module, batch: object, seed: int) -> float:
+    """Share of encoder coordinates where ``|weight * d LC|`` exceeds ``|d own|`` on ``batch``."""
+    params = [p for p in model.descriptor_encoder().parameters() if p.requires_grad]
+    weight = next(t.weight for t in model.injected_terms if t.name == LC_TERM)
+    torch.manual_seed(seed)
+    losses = model.training_losses(model.training_forward(batch), batch)
+    own = losses["loss"] - weight * losses[LC_TERM]
+    grads = {}
+    for name, value in (("own", own), ("lc", weight * losses[LC_TERM])):
+        parts = torch.autograd.grad(value, params, retain_graph=True, allow_unused=True)
+        grads[name] = torch.cat(
+            [(g if g is not None else torch.zeros_like(p)).flatten() for g, p in zip(parts, params)]
+        )
+    return float((grads["lc"].abs() > grads["own"].abs()).double().mean())
+
+
+def adam_row(host: str, root: str | None, steps: int, seed: int) -> str:
+    """One Markdown row of the Adam table (module docstring): LC-led share, trajectory change and its control."""
+    plain, with_lc, batches = _host_and_lc(host, root, seed)
+    start = _encoder_vector(plain)
+    if not torch.equal(start, _encoder_vector(with_lc)):
+        raise RuntimeError(f"{host}: X and LC + X do not start from the same encoder weights")
+    batches = batches[:steps]
+    led = lc_led_share(with_lc, batches[0], seed)
+    reversed_plain = copy.deepcopy(plain)
+    moved = _train(plain, batches, seed)
+    change = float((_train(with_lc, batches, seed) - moved).norm() / (moved - start).norm())
+    control = float((_train(reversed_plain, batches[::-1], seed) - moved).norm() / (moved - start).norm())
+    return f"| LC + {HOSTS[host]} | {len(batches)} | {100 * led:.2g} % | {change:.3g} | {control:.3g} |"
+
+
 def table_row(host: str, shares: list[Share]) -> str:
     """One Markdown row: medians over the batches and the matched weight."""
     med = {f: statistics.median(getattr(s, f) for s in shares) for f in ("own", "lc", "own_grad", "lc_grad")}
@@ -93,6 +167,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--hosts", nargs="+", default=list(HOSTS), choices=list(HOSTS))
     parser.add_argument("--batches", type=int, default=20, help="training batches per host (medians over them)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initialisation and of the batches")
+    parser.add_argument(
+        "--adam-steps", type=int, default=0, help="also the Adam table after this many steps (0: the norms only)"
+    )
     parser.add_argument("--root", default=DEFAULT_ROOT)
     parser.add_argument("--out", default=None, help="Markdown table to write")
     add_smoke_argument(parser)
@@ -116,6 +193,20 @@ def main(argv: Sequence[str] | None = None) -> None:
     for host in args.hosts:
         lines.append(table_row(host, batch_shares(host, args.root, args.batches, args.seed)))
         print(lines[-1], flush=True)
+    if args.adam_steps > 0:
+        lines += [
+            "",
+            f"After {args.adam_steps} steps of each host's optimiser (its config: Adam) from the same initialisation "
+            "on the same batches: LC-led coordinates (first batch), ‖θ(LC + X) − θ(X)‖ / ‖θ(X) − θ₀‖ over the "
+            "encoder, and the control ‖θ(X, batches reversed) − θ(X)‖ / ‖θ(X) − θ₀‖ (module docstring)",
+            "",
+            "| host | steps | encoder coordinates led by LC | LC's change of the trajectory | control: order of "
+            "the batches |",
+            "|---|---|---|---|---|",
+        ]
+        for host in args.hosts:
+            lines.append(adam_row(host, args.root, args.adam_steps, args.seed))
+            print(lines[-1], flush=True)
     if args.out:
         print(f"wrote {write_text(args.out, chr(10).join(lines) + chr(10))}")
 
