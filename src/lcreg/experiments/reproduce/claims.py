@@ -12,6 +12,20 @@ against the seed spread, the larger of the two sample standard deviations (the r
 A claim holds when all of its comparisons hold, does not hold when any of them does not, and is otherwise
 ``within spread`` (or ``one seed``); ``not run`` when a side has no finished run.
 
+"Within spread" decides nothing about the paper. A second judgement (:func:`against_paper`) therefore asks whether
+our difference is as large as the paper's: the paper's relative difference (``paper_better / paper_worse - 1``) is
+scaled to our level (times the mean of our ``worse`` side, since our errors need not be the paper's), and our
+difference is compared with it against the same spread:
+
+* ``smaller than the paper's``: our difference is above the paper's by more than the spread (for a claimed gain: the
+  gain of the size the paper reports is refuted here);
+* ``larger than the paper's``: below it by more than the spread;
+* ``as the paper's``: within the spread of it;
+* ``one seed`` / ``no paper value`` (a side without a paper row, or a paper value of 0).
+
+A claim is ``smaller than the paper's`` when any comparison is, ``as the paper's or larger`` when all are as large
+or larger, and otherwise ``one seed`` or ``no paper value``.
+
 Example:
     >>> claim = Claim("B beats A", (Comparison("B", "A"),))
     >>> judge(claim, {"A": [4.0, 4.2, 4.1], "B": [2.0, 2.1, 2.2]}).verdict
@@ -27,10 +41,29 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["VERDICTS", "Claim", "ClaimResult", "Comparison", "ComparisonResult", "Verdict", "compare", "judge"]
+__all__ = [
+    "VERDICTS",
+    "Claim",
+    "ClaimResult",
+    "Comparison",
+    "ComparisonResult",
+    "SizeVerdict",
+    "Verdict",
+    "against_paper",
+    "compare",
+    "judge",
+]
 
 Verdict = Literal["holds", "does not hold", "within spread", "one seed", "not run"]
 VERDICTS: tuple[Verdict, ...] = ("holds", "does not hold", "within spread", "one seed", "not run")
+SizeVerdict = Literal[
+    "smaller than the paper's",
+    "as the paper's",
+    "larger than the paper's",
+    "as the paper's or larger",
+    "one seed",
+    "no paper value",
+]
 
 
 @dataclass(frozen=True)
@@ -57,6 +90,8 @@ class ComparisonResult:
     difference: float
     spread: float
     verdict: Verdict
+    paper_difference: float | None = None
+    size: SizeVerdict = "no paper value"
 
 
 @dataclass(frozen=True)
@@ -66,6 +101,7 @@ class ClaimResult:
     claim: Claim
     verdict: Verdict
     comparisons: tuple[ComparisonResult, ...]
+    size: SizeVerdict = "no paper value"
 
 
 def _std(values: Sequence[float]) -> float:
@@ -93,11 +129,56 @@ def compare(better: Sequence[float], worse: Sequence[float]) -> tuple[float, flo
     return difference, spread, "holds" if difference < 0 else "does not hold"
 
 
-def judge(claim: Claim, values: Mapping[str, Sequence[float]]) -> ClaimResult:
-    """Judge ``claim`` on per-seed values of one metric by variant key (missing or empty: ``not run``)."""
+def against_paper(
+    better: Sequence[float], worse: Sequence[float], paper_better: float | None, paper_worse: float | None
+) -> tuple[float | None, SizeVerdict]:
+    """The paper's difference scaled to our level, and whether ours is as large (module docstring).
+
+    Args:
+        better: Per-seed errors of the side claimed lower.
+        worse: Per-seed errors of the other side.
+        paper_better: The paper's value of the ``better`` side (``None``: no paper row).
+        paper_worse: The paper's value of the ``worse`` side.
+
+    Returns:
+        ``(paper_better / paper_worse - 1) * mean(worse)`` (``None`` without paper values) and the verdict.
+    """
+    if paper_better is None or paper_worse is None or paper_worse == 0:
+        return None, "no paper value"
+    paper_difference = (paper_better / paper_worse - 1.0) * statistics.fmean(worse)
+    difference, spread, verdict = compare(better, worse)
+    if verdict == "one seed":
+        return paper_difference, "one seed"
+    if abs(difference - paper_difference) <= spread:
+        return paper_difference, "as the paper's"
+    return paper_difference, "smaller than the paper's" if difference > paper_difference else "larger than the paper's"
+
+
+def _claim_size(results: Sequence[ComparisonResult]) -> SizeVerdict:
+    sizes = {r.size for r in results}
+    if "smaller than the paper's" in sizes:
+        return "smaller than the paper's"
+    if sizes and sizes <= {"as the paper's", "larger than the paper's"}:
+        return "as the paper's or larger"
+    return "one seed" if "one seed" in sizes else "no paper value"
+
+
+def judge(claim: Claim, values: Mapping[str, Sequence[float]], paper: Mapping[str, float] | None = None) -> ClaimResult:
+    """Judge ``claim`` on per-seed values of one metric by variant key (missing or empty: ``not run``).
+
+    ``paper``: the paper's value of the same metric by variant key, for :func:`against_paper` (``None``: none).
+    """
     if any(not values.get(key) for c in claim.comparisons for key in (c.better, c.worse)):
         return ClaimResult(claim, "not run", ())
-    results = tuple(ComparisonResult(c, *compare(values[c.better], values[c.worse])) for c in claim.comparisons)
+    paper = paper or {}
+    results = tuple(
+        ComparisonResult(
+            c,
+            *compare(values[c.better], values[c.worse]),
+            *against_paper(values[c.better], values[c.worse], paper.get(c.better), paper.get(c.worse)),
+        )
+        for c in claim.comparisons
+    )
     verdicts = {r.verdict for r in results}
     verdict: Verdict
     if "does not hold" in verdicts:
@@ -108,4 +189,4 @@ def judge(claim: Claim, values: Mapping[str, Sequence[float]]) -> ClaimResult:
         verdict = "one seed"
     else:
         verdict = "within spread"
-    return ClaimResult(claim, verdict, results)
+    return ClaimResult(claim, verdict, results, _claim_size(results))

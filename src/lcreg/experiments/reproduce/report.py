@@ -41,6 +41,13 @@ SPREAD_RULE = (
     "beyond the seed spread: the difference of the seed means is larger than the larger of the two seed standard "
     "deviations; `within spread` otherwise; `one seed`: no spread to compare with"
 )
+PAPER_SIZE_RULE = (
+    "the paper's difference at our level is the paper's relative difference (its better row / its worse row − 1) "
+    "times our mean of the worse side; `smaller than the paper's` when our difference is above it by more than the "
+    "spread (for a claimed gain: a gain of the paper's size is refuted here), `larger than the paper's` when below "
+    "it by more than the spread, `as the paper's` otherwise; a claim is smaller than the paper's when any of its "
+    "comparisons is. Added in session 18 of issue 23, after the IDAM and DCP-v2 LC runs had been seen"
+)
 
 
 def values(rows: Rows, metric: str) -> dict[str, list[float]]:
@@ -140,9 +147,22 @@ def other_table(experiment: Experiment, rows: Rows) -> str:
     return markdown_table(header, lines)
 
 
+def paper_values(experiment: Experiment, metric: str) -> dict[str, float]:
+    """The paper's value of ``metric`` by variant key (a variant in several cells: its first paper row)."""
+    found: dict[str, float] = {}
+    for cell in experiment.cells:
+        if cell.paper is not None and (value := experiment.paper[cell.paper].get(metric)) is not None:
+            found.setdefault(cell.variant, value)
+    return found
+
+
 def claim_results(experiment: Experiment, rows: Rows) -> list[tuple[str, ClaimResult]]:
     """Every claim judged on every metric of :data:`CLAIM_METRICS`: ``(metric, result)`` pairs."""
-    return [(m, judge(claim, values(rows, m))) for claim in experiment.claims for m in CLAIM_METRICS]
+    return [
+        (m, judge(claim, values(rows, m), paper_values(experiment, m)))
+        for claim in experiment.claims
+        for m in CLAIM_METRICS
+    ]
 
 
 def _name(experiment: Experiment, comparison: Comparison) -> tuple[str, str]:
@@ -162,10 +182,20 @@ def claims_table(experiment: Experiment, rows: Rows) -> str:
         details = []
         for r in result.comparisons:
             better, worse = _name(experiment, r.comparison)
-            details.append(f"{better} − {worse} = {r.difference:+.3g} (spread {r.spread:.2g}): {r.verdict}")
+            paper = "" if r.paper_difference is None else f", the paper's {r.paper_difference:+.3g}: {r.size}"
+            details.append(f"{better} − {worse} = {r.difference:+.3g} (spread {r.spread:.2g}): {r.verdict}{paper}")
         verdict = f"**{result.verdict}**" if result.verdict in ("holds", "does not hold") else result.verdict
-        lines.append([result.claim.text, METRIC_TITLES[metric], verdict, "; ".join(details) or "–"])
-    return markdown_table(["claim", "metric", "verdict", "comparisons (mean difference, seed spread)"], lines)
+        size = f"**{result.size}**" if result.size == "smaller than the paper's" else result.size
+        size = "–" if result.verdict == "not run" else size
+        lines.append([result.claim.text, METRIC_TITLES[metric], verdict, size, "; ".join(details) or "–"])
+    header = [
+        "claim",
+        "metric",
+        "verdict",
+        "against the paper's difference",
+        "comparisons (mean difference, seed spread, the paper's difference at our level)",
+    ]
+    return markdown_table(header, lines)
 
 
 def _budget_lines(sweep: Sweep) -> list[str]:
@@ -254,7 +284,8 @@ def render(sweep: Sweep, rows: Rows, command: str, failed: Sequence[str] = (), c
     for metric in PAPER_METRICS:
         parts += ["", f"## {METRIC_TITLES[metric]}", "", metric_table(experiment, rows, metric)]
     parts += ["", "## Other test metrics (not in the paper's table)", "", other_table(experiment, rows)]
-    parts += ["", "## The paper's claims", "", f"Rule: {SPREAD_RULE}.", "", claims_table(experiment, rows)]
+    parts += ["", "## The paper's claims", "", f"Rule: {SPREAD_RULE}.", "", f"Against the paper: {PAPER_SIZE_RULE}."]
+    parts += ["", claims_table(experiment, rows)]
     parts += stops_lines(sweep, rows, curves)
     if experiment.extra is not None and (extra := experiment.extra(rows)):
         parts += ["", *extra]
