@@ -66,16 +66,29 @@ def _grad_norm(value: torch.Tensor, params: list[nn.Parameter]) -> float:
     return float(torch.sqrt(sum((g.pow(2).sum() for g in grads if g is not None), torch.tensor(0.0))))
 
 
+def _values(host: str, root: str | None, seed: int) -> dict[str, object]:
+    """The ``converge`` budget's data, points, batch and learning rate for ``host`` (``smoke`` without ``root``)."""
+    budget = BUDGETS["smoke" if root is None else "converge"][host]
+    lr = {} if budget.lr is None else {LR_KEY: budget.lr}  # the rate the runs train at (PRNet: 2.2e-4)
+    return {**DataChoice(root).overrides(budget), **lr, "seed_everything": seed}
+
+
+def _encoder_params(model: nn.Module) -> list[nn.Parameter]:
+    """The trainable parameters of the encoder LC reads (``model.descriptor_encoder()``)."""
+    encoder = model.descriptor_encoder()
+    if not isinstance(encoder, nn.Module):
+        raise TypeError(f"{type(model).__name__}: the encoder LC reads is not a module")
+    return [p for p in encoder.parameters() if p.requires_grad]
+
+
+def _lc_weight(model: nn.Module) -> float:
+    return float(next(t.weight for t in model.injected_terms if t.name == LC_TERM))
+
+
 def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[Share]:
     """The :class:`Share` of the first ``batches`` training batches of LC + ``host`` at initialisation."""
-    budget = BUDGETS["smoke" if root is None else "converge"][host]
-    values = {**DataChoice(root).overrides(budget), "seed_everything": seed}
-    model, datamodule = build(f"{host}_lc", None, values=values, with_data=True)
-    encoder = model.descriptor_encoder()  # what LC reads
-    if not isinstance(encoder, nn.Module):
-        raise TypeError(f"{host}: the encoder LC reads is not a module")
-    params = [p for p in encoder.parameters() if p.requires_grad]
-    weight = next(t.weight for t in model.injected_terms if t.name == LC_TERM)
+    model, datamodule = build(f"{host}_lc", None, values=_values(host, root, seed), with_data=True)
+    params, weight = _encoder_params(model), _lc_weight(model)
     datamodule.setup("fit")
     model.train()
     torch.manual_seed(seed)
@@ -92,9 +105,7 @@ def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[S
 
 def _host_and_lc(host: str, root: str | None, seed: int) -> tuple[nn.Module, nn.Module, list[object]]:
     """X and LC + X with the same initial weights, and the batches of the shared stream (training mode)."""
-    budget = BUDGETS["smoke" if root is None else "converge"][host]
-    lr = {} if budget.lr is None else {LR_KEY: budget.lr}  # the rate the runs train at (PRNet: 2.2e-4)
-    values = {**DataChoice(root).overrides(budget), **lr, "seed_everything": seed}
+    values = _values(host, root, seed)
     plain, datamodule = build(host, None, values=values, with_data=True)
     with_lc = build(f"{host}_lc", None, values=values)
     datamodule.setup("fit")
@@ -104,8 +115,7 @@ def _host_and_lc(host: str, root: str | None, seed: int) -> tuple[nn.Module, nn.
 
 def _encoder_vector(model: nn.Module) -> torch.Tensor:
     """The encoder LC reads, its trainable parameters as one flat vector (a copy)."""
-    encoder = model.descriptor_encoder()
-    return torch.cat([p.detach().flatten() for p in encoder.parameters() if p.requires_grad]).clone()
+    return torch.cat([p.detach().flatten() for p in _encoder_params(model)]).clone()
 
 
 def _train(model: nn.Module, batches: Sequence[object], seed: int) -> torch.Tensor:
@@ -122,8 +132,7 @@ def _train(model: nn.Module, batches: Sequence[object], seed: int) -> torch.Tens
 
 def lc_led_share(model: nn.Module, batch: object, seed: int) -> float:
     """Share of encoder coordinates where ``|weight * d LC|`` exceeds ``|d own|`` on ``batch``."""
-    params = [p for p in model.descriptor_encoder().parameters() if p.requires_grad]
-    weight = next(t.weight for t in model.injected_terms if t.name == LC_TERM)
+    params, weight = _encoder_params(model), _lc_weight(model)
     torch.manual_seed(seed)
     losses = model.training_losses(model.training_forward(batch), batch)
     own = losses["loss"] - weight * losses[LC_TERM]

@@ -143,10 +143,17 @@ def against_paper(
     Returns:
         ``(paper_better / paper_worse - 1) * mean(worse)`` (``None`` without paper values) and the verdict.
     """
+    return _against_paper(compare(better, worse), statistics.fmean(worse), paper_better, paper_worse)
+
+
+def _against_paper(
+    compared: tuple[float, float, Verdict], worse_mean: float, paper_better: float | None, paper_worse: float | None
+) -> tuple[float | None, SizeVerdict]:
+    """:func:`against_paper` from :func:`compare`'s result and the mean of the ``worse`` side."""
     if paper_better is None or paper_worse is None or paper_worse == 0:
         return None, "no paper value"
-    paper_difference = (paper_better / paper_worse - 1.0) * statistics.fmean(worse)
-    difference, spread, verdict = compare(better, worse)
+    paper_difference = (paper_better / paper_worse - 1.0) * worse_mean
+    difference, spread, verdict = compared
     if verdict == "one seed":
         return paper_difference, "one seed"
     if abs(difference - paper_difference) <= spread:
@@ -171,14 +178,11 @@ def judge(claim: Claim, values: Mapping[str, Sequence[float]], paper: Mapping[st
     if any(not values.get(key) for c in claim.comparisons for key in (c.better, c.worse)):
         return ClaimResult(claim, "not run", ())
     paper = paper or {}
-    results = tuple(
-        ComparisonResult(
-            c,
-            *compare(values[c.better], values[c.worse]),
-            *against_paper(values[c.better], values[c.worse], paper.get(c.better), paper.get(c.worse)),
-        )
-        for c in claim.comparisons
-    )
+    results = []
+    for c in claim.comparisons:
+        compared = compare(values[c.better], values[c.worse])
+        size = _against_paper(compared, statistics.fmean(values[c.worse]), paper.get(c.better), paper.get(c.worse))
+        results.append(ComparisonResult(c, *compared, *size))
     verdicts = {r.verdict for r in results}
     verdict: Verdict
     if "does not hold" in verdicts:
@@ -189,4 +193,4 @@ def judge(claim: Claim, values: Mapping[str, Sequence[float]], paper: Mapping[st
         verdict = "one seed"
     else:
         verdict = "within spread"
-    return ClaimResult(claim, verdict, results, _claim_size(results))
+    return ClaimResult(claim, verdict, tuple(results), _claim_size(results))
