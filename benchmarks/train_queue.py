@@ -112,7 +112,8 @@ def load_jobs(path: Path) -> list[Job]:
 def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     """Copy the job's small result files from its run folder to ``results/<id>/runs/``; returns how many.
 
-    A JSONL log already in the results keeps the rows this run folder lacks (:func:`merged_rows`).
+    A JSONL log already in the results keeps the rows this run folder lacks (:func:`merged_rows`); any other file
+    there that is newer than the run folder's (a report rebuilt with ``--report-only``) is kept.
 
     Also keeps the resume state of the run in progress unless the job is ``done`` (default: its ``DONE.json``
     exists; :func:`keep_resume`), and for a ``keep_best`` job the slim weights of every finished run's selected
@@ -125,13 +126,20 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
             destination.parent.mkdir(parents=True, exist_ok=True)
             if path.suffix == ".jsonl" and destination.is_file():  # rows another machine added stay (a GPU chunk)
                 destination.write_text(merged_rows(path, destination), encoding="utf-8")
+            elif newer(destination, path):  # e.g. a report rebuilt here (--report-only) over the run's older one
+                continue
             else:
-                shutil.copy2(path, destination)
+                shutil.copy2(path, destination)  # keeps the source's mtime, so an unchanged file stays "not newer"
             count += 1
     drop_set_aside(source, target)
     done = (results / job.id / "DONE.json").is_file() if done is None else done
     count += len(keep_resume(source, results / job.id / "resume", done=done))
     return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
+
+
+def newer(destination: Path, source: Path) -> bool:
+    """Whether ``destination`` exists and was written after ``source`` (modification times, ns)."""
+    return destination.is_file() and destination.stat().st_mtime_ns > source.stat().st_mtime_ns
 
 
 def drop_set_aside(source: Path, target: Path) -> list[Path]:

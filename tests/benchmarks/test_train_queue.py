@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import sys
 import time
@@ -303,3 +304,29 @@ def test_sync_drops_the_committed_copies_of_metrics_a_restarted_run_set_aside(tm
     assert (committed / "metrics.csv").read_text() == "new\n"
     assert (committed / "abandoned" / "1" / "metrics.segment1.csv").read_text() == "old metrics.segment1.csv\n"
     assert set_aside_metrics(tmp_path / "empty") is None
+
+
+def test_sync_keeps_a_report_regenerated_here_over_the_run_folders_older_copy(tmp_path: Path) -> None:
+    """A report rebuilt in the results (``--report-only``, with the rows another machine added) is newer than the one
+    the run folder wrote earlier; sync keeps it (session 19 found an 18-run report replaced by a stale 9-run one),
+    and copies the run folder's files again once they change."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    (runs / "j" / "a").mkdir(parents=True)
+    stale, metrics = runs / "j" / "lc.md", runs / "j" / "a" / "metrics.csv"
+    stale.write_text("4 of 9 runs\n")
+    metrics.write_text("step\n1\n")
+    queue.sync(job, runs, res)
+    report = res / "j" / "runs" / "lc.md"
+    report.write_text("18 of 18 runs\n")  # regenerated here, later
+    later = stale.stat().st_mtime_ns + 10**9
+    os.utime(report, ns=(later, later))
+    queue.sync(job, runs, res)
+    assert report.read_text() == "18 of 18 runs\n"
+    metrics.write_text("step\n1\n2\n")  # the run goes on: its newer file is copied
+    os.utime(metrics, ns=(later + 10**9, later + 10**9))
+    queue.sync(job, runs, res)
+    assert (res / "j" / "runs" / "a" / "metrics.csv").read_text() == "step\n1\n2\n"
