@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import lzma
+import os
 import re
 import subprocess
+import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -109,3 +113,47 @@ def test_device_chunk_script_is_valid_bash_and_names_existing_options() -> None:
     assert "train_queue.py run --only" in text and "device_payload.py --unpack .carry --to ../shared/data" in text
     with pytest.raises(SystemExit):
         load("device_payload").main(["--unpack", "/nonexistent", "--to", "x"])
+
+
+STUB_QUEUE = """
+import json, os, sys, time
+from pathlib import Path
+argv = sys.argv[1:]
+start = time.time()
+time.sleep(1.5)
+results = Path(argv[argv.index("--results") + 1])
+only = argv[argv.index("--only") + 1 : argv.index("--max-minutes")]
+for job in only:
+    (results / job / "runs").mkdir(parents=True, exist_ok=True)
+    (results / job / "runs" / "rows.jsonl").write_text("{}\\n")
+    (results / job / "runs" / "last.ckpt").write_text("big")
+with open(os.environ["OUT"] + "/calls.jsonl", "a") as f:
+    f.write(json.dumps({"argv": argv, "start": start, "end": time.time()}) + "\\n")
+"""
+
+
+def test_device_chunk_runs_plus_joined_groups_at_once_and_packs_their_results(tmp_path: Path) -> None:
+    """``a,b@3+c@2``: two queue processes at the same time, each with its jobs in order and its runs at once; the
+    results of every job come back in one archive, without checkpoints (stub queue, no GPU, no wheels)."""
+    repo, out = tmp_path / "repo", tmp_path / "out"
+    (repo / "benchmarks").mkdir(parents=True)
+    out.mkdir()
+    (repo / "benchmarks" / "device_chunk.sh").write_text((BENCHMARKS / "device_chunk.sh").read_text())
+    (repo / "benchmarks" / "train_queue.py").write_text(STUB_QUEUE)
+    (repo / "benchmarks" / "device_payload.py").write_text("")
+    env = {**os.environ, "OUT": str(out), "PYTHON": sys.executable}
+    done = subprocess.run(
+        ["bash", "benchmarks/device_chunk.sh", "a,b@3+c@2", "1"], cwd=repo, env=env, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    calls = sorted((json.loads(line) for line in (out / "calls.jsonl").read_text().splitlines()), key=str)
+    got = {tuple(c["argv"][c["argv"].index("--only") + 1 : c["argv"].index("--max-minutes")]): c for c in calls}
+    assert set(got) == {("a", "b"), ("c",)}
+    assert [got[k]["argv"][got[k]["argv"].index("--jobs") + 1] for k in (("a", "b"), ("c",))] == ["3", "2"]
+    first, second = got[("a", "b")], got[("c",)]
+    assert first["start"] < second["end"] and second["start"] < first["end"], "the groups did not overlap"
+    assert (out / "log-1.txt").is_file() and (out / "log-2.txt").is_file()
+    with tarfile.open(out / "results.tgz") as archive:
+        names = sorted(archive.getnames())
+    assert "a/runs/rows.jsonl" in names and "b/runs/rows.jsonl" in names and "c/runs/rows.jsonl" in names
+    assert not any(name.endswith(".ckpt") for name in names)
