@@ -36,6 +36,7 @@ import statistics
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -85,9 +86,10 @@ def _lc_weight(model: nn.Module) -> float:
     return float(next(t.weight for t in model.injected_terms if t.name == LC_TERM))
 
 
-def batch_shares(host: str, root: str | None, batches: int, seed: int) -> list[Share]:
-    """The :class:`Share` of the first ``batches`` training batches of LC + ``host`` at initialisation."""
-    model, datamodule = build(f"{host}_lc", None, values=_values(host, root, seed), with_data=True)
+def batch_shares(host: str, root: str | None, batches: int, seed: int, checkpoint: str | None = None) -> list[Share]:
+    """The :class:`Share` of the first ``batches`` training batches of LC + ``host``, at initialisation or with the
+    weights of ``checkpoint`` (a ``.ckpt`` of an LC + ``host`` run: how the shares stand after training)."""
+    model, datamodule = build(f"{host}_lc", checkpoint, values=_values(host, root, seed), with_data=True)
     params, weight = _encoder_params(model), _lc_weight(model)
     datamodule.setup("fit")
     model.train()
@@ -160,13 +162,13 @@ def adam_row(host: str, root: str | None, steps: int, seed: int) -> str:
     return f"| LC + {HOSTS[host]} | {len(batches)} | {100 * led:.2g} % | {change:.3g} | {control:.3g} |"
 
 
-def table_row(host: str, shares: list[Share]) -> str:
-    """One Markdown row: medians over the batches and the matched weight."""
+def table_row(host: str, shares: list[Share], weights: str = "initialisation") -> str:
+    """One Markdown row: medians over the batches and the matched weight; ``weights`` names where they come from."""
     med = {f: statistics.median(getattr(s, f) for s in shares) for f in ("own", "lc", "own_grad", "lc_grad")}
     matched = statistics.median(s.own_grad / s.lc_grad for s in shares if s.lc_grad > 0)
     share = 100 * med["lc"] / (med["own"] + med["lc"])
     return (
-        f"| LC + {HOSTS[host]} | {len(shares)} | {med['own']:.4g} | {med['lc']:.4g} | {share:.2g} % | "
+        f"| LC + {HOSTS[host]} | {weights} | {len(shares)} | {med['own']:.4g} | {med['lc']:.4g} | {share:.2g} % | "
         f"{med['own_grad']:.4g} | {med['lc_grad']:.4g} | {matched:.3g} |"
     )
 
@@ -179,10 +181,23 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--adam-steps", type=int, default=0, help="also the Adam table after this many steps (0: the norms only)"
     )
+    parser.add_argument(
+        "--ckpt",
+        nargs="+",
+        default=[],
+        metavar="HOST=PATH",
+        help="also measure the first table with the weights of an LC + HOST run's checkpoint (one row each)",
+    )
     parser.add_argument("--root", default=DEFAULT_ROOT)
     parser.add_argument("--out", default=None, help="Markdown table to write")
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
+    args.checkpoints = []
+    for item in args.ckpt:
+        host, sep, path = item.partition("=")
+        if not sep or host not in HOSTS or not path:
+            parser.error(f"--ckpt: expected HOST=PATH with HOST one of {', '.join(HOSTS)}, got {item!r}")
+        args.checkpoints.append((host, path))
     args.command = " ".join(sys.argv[1:] if argv is None else argv)
     args.out = output_path(args.out, "lc_gradient_share.md", args.smoke)
     return args
@@ -193,14 +208,18 @@ def main(argv: Sequence[str] | None = None) -> None:
     data = DataChoice(args.root).describe() if args.root else f"embedded shapes ({SMOKE_PAIRS} pairs; smoke)"
     lines = [
         f"`python benchmarks/lc_gradient_share.py {args.command}`: {data}, DCP-family pairs, the `converge` budget's "
-        f"points and batch, seed {args.seed}, at initialisation; {machine_line()}",
+        f"points and batch, seed {args.seed} (initialisation and batches); {machine_line()}",
         "",
-        "| host | batches | own loss | LC | LC share of the loss | ‖∇ own‖ on the encoder | ‖∇ LC‖ on the encoder "
-        "| matched LC weight |",
-        "|---|---|---|---|---|---|---|---|",
+        "| host | weights | batches | own loss | LC | LC share of the loss | ‖∇ own‖ on the encoder | ‖∇ LC‖ on the "
+        "encoder | matched LC weight |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for host in args.hosts:
         lines.append(table_row(host, batch_shares(host, args.root, args.batches, args.seed)))
+        print(lines[-1], flush=True)
+    for host, path in args.checkpoints:
+        shares = batch_shares(host, args.root, args.batches, args.seed, checkpoint=path)
+        lines.append(table_row(host, shares, weights=f"`{Path(path).name}`"))
         print(lines[-1], flush=True)
     if args.adam_steps > 0:
         lines += [
