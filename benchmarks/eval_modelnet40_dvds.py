@@ -101,6 +101,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         help="initialisation seeds of the untrained-weights baseline (reported as mean ± std)",
     )
     parser.add_argument("--out", default=None, help="Markdown file to write the table to")
+    parser.add_argument(
+        "--pairs-csv",
+        default=None,
+        help="also write every row's per-pair errors (sigma, row, pair, rre_deg, rte) to this CSV file, e.g. for "
+        "an original's success-conditional means",
+    )
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
     args.pairs = None
@@ -139,8 +145,8 @@ def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[Regis
     )
 
 
-def table(args: argparse.Namespace, sigma: float) -> str:
-    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``."""
+def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport]]:
+    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``, and its rows' reports."""
     batches, source = evaluation_pairs(args, sigma)
     reports: list[EvaluationReport] = []
     groups: list[tuple[list[EvaluationReport], str]] = []
@@ -180,15 +186,29 @@ def table(args: argparse.Namespace, sigma: float) -> str:
         f"batch {args.batch_size}, {machine_line()}\n"
     )
     rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
-    return header + "\n" + rows + "\n"
+    return header + "\n" + rows + "\n", reports
+
+
+def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport]]]) -> Path:
+    """Every report's per-pair rotation (degrees) and translation errors, one line per pair, under ``sigma,row``."""
+    lines = ["sigma,row,pair,rre_deg,rte"]
+    for sigma, reports in tables:
+        for report in reports:
+            name = report.name.replace('"', "'")
+            for i, (r, t) in enumerate(zip(report.rotation_error_deg.tolist(), report.translation_error.tolist())):
+                lines.append(f'{sigma},"{name}",{i},{r:.6g},{t:.6g}')
+    return write_text(path, "\n".join(lines) + "\n")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = parse(argv)
-    text = "\n".join(table(args, sigma) for sigma in args.noise_sigma)
+    tables = {sigma: table(args, sigma) for sigma in args.noise_sigma}
+    text = "\n".join(markdown for markdown, _ in tables.values())
     print(text)
     if args.out:
         write_text(args.out, text)
+    if args.pairs_csv:
+        print(f"wrote {write_pairs_csv(args.pairs_csv, [(s, reports) for s, (_, reports) in tables.items()])}")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@ still start their fresh measurement processes. No figure is checked: only that t
 
 from __future__ import annotations
 
+import csv
 import importlib.util
+import statistics
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -95,3 +97,27 @@ def test_eval_val_pairs_draws_the_converge_budgets_validation_pairs() -> None:
         batches, _ = script.evaluation_pairs(args, 0.0)
         sizes[per_object] = sum(b.points_src.shape[0] for b in batches)
     assert sizes == {1: 78, 4: 312}
+
+
+def test_eval_pairs_csv_holds_each_rows_per_pair_errors_that_make_its_table_values(tmp_path: Path) -> None:
+    """``--pairs-csv``: one line per row and pair; each row's mean of ``rre_deg`` is its table's mean RRE."""
+    script = load("eval_modelnet40_dvds")
+    out, pairs = tmp_path / "t.md", tmp_path / "pairs.csv"
+    script.main(["--smoke", "--out", str(out), "--pairs-csv", str(pairs), "--noise-sigma", "0", "0.01"])
+    errors: dict[tuple[str, str], list[float]] = {}
+    for line in csv.DictReader(pairs.open()):
+        errors.setdefault((line["sigma"], line["row"]), []).append(float(line["rre_deg"]))
+    table, sigma, column = {}, "", 0
+    for line in out.read_text().splitlines():
+        if "noise sigma" in line:
+            sigma = line.split("noise sigma ")[1].split(",")[0]
+        cells = [cell.strip() for cell in line.strip("|").split("|")]
+        if "mean RRE °" in cells:
+            column = cells.index("mean RRE °")
+        elif len(cells) > column > 0 and not cells[0].startswith("---") and "mean ± std" not in cells[0]:
+            table[(sigma, cells[0])] = float(cells[column])
+    assert set(errors) == set(table) and {s for s, _ in table} == {"0.0", "0.01"}
+    assert len(table) == 2 * 7  # per sigma: trained, 2 untrained, each ± ICP refinement; one ICP gate
+    for key, values in errors.items():
+        assert len(values) == 2, key  # the smoke budget's pairs
+        assert statistics.fmean(values) == pytest.approx(table[key], rel=1e-3, abs=1e-3), key
