@@ -15,6 +15,7 @@ iterations) and any ``--classical`` registry method (e.g. ``ransac_icp``: FPFH +
 every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--model-args NAME=VALUE ...`` sets
 constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
 the same table on the validation pairs, to choose such settings before the one test run.
+``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means).
 Pairs: ModelNet40DataModule(protocol) ``--split`` split (default test), seed 1234 (the configs' default), 1024
 points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings; one table per ``--noise-sigma`` (Gaussian, clip 0.05).
 """
