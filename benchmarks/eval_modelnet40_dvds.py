@@ -15,9 +15,11 @@ iterations) and any ``--classical`` registry method (e.g. ``ransac_icp``: FPFH +
 every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--model-args NAME=VALUE ...`` sets
 constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
 the same table on the validation pairs, to choose such settings before the one test run.
+``--same-points`` draws both clouds from one sampling (the originals' PCRNet and PointNetLK protocol).
 ``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means).
 Pairs: ModelNet40DataModule(protocol) ``--split`` split (default test), seed 1234 (the configs' default), 1024
-points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings; one table per ``--noise-sigma`` (Gaussian, clip 0.05).
+points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings (unless ``--same-points``); one table per
+``--noise-sigma`` (Gaussian, clip 0.05).
 """
 
 from __future__ import annotations
@@ -83,6 +85,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         help="constructor arguments of every learned row, e.g. eval_iterations=5 (YAML values)",
     )
     parser.add_argument("--num-points", type=int, default=1024)
+    parser.add_argument(
+        "--same-points",
+        action="store_true",
+        help="both clouds from the same sampling of each shape (as PCRNet's and PointNetLK's originals test); "
+        "default: independent samplings",
+    )
     parser.add_argument("--noise-sigma", type=float, nargs="+", default=[0.0], help="one table per sigma")
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument(
@@ -139,6 +147,8 @@ def learned(
 def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[RegistrationBatch], str]:
     """The deterministic ``--split`` pairs at noise ``sigma`` and a description of their source."""
     options = {"protocol": args.protocol, "noise_sigma": sigma, "seed": args.seed}
+    if args.same_points:
+        options["independent_sampling"] = False
     if args.root is not None:  # the synthetic shapes have no validation objects to draw from
         options["val_pairs_per_object"] = args.val_pairs
     return pair_batches(

@@ -121,3 +121,18 @@ def test_eval_pairs_csv_holds_each_rows_per_pair_errors_that_make_its_table_valu
     for key, values in errors.items():
         assert len(values) == 2, key  # the smoke budget's pairs
         assert statistics.fmean(values) == pytest.approx(table[key], rel=1e-3, abs=1e-3), key
+
+
+def test_eval_same_points_draws_both_clouds_from_one_sampling() -> None:
+    """``--same-points``: the reference is the transformed source point for point set (nearest neighbours at 0);
+    by default the samplings differ."""
+    from lcreg.geometry.chamfer import chamfer_distance
+    from lcreg.geometry.se3 import transform_points
+
+    script = load("eval_modelnet40_dvds")
+    for flags, same in (([], False), (["--same-points"], True)):
+        args = script.parse(["--smoke", *flags])
+        batch = script.evaluation_pairs(args, 0.0)[0][0]
+        moved = transform_points(batch.transform_ref_src, batch.points_src)
+        gap = chamfer_distance(moved, batch.points_ref)
+        assert bool((gap < 1e-5).all()) == same, (flags, gap)
