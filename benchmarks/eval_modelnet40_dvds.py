@@ -25,6 +25,8 @@ points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings (unless ``--same
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -202,13 +204,14 @@ def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationR
 
 def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport]]]) -> Path:
     """Every report's per-pair rotation (degrees) and translation errors, one line per pair, under ``sigma,row``."""
-    lines = ["sigma,row,pair,rre_deg,rte"]
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")
+    writer.writerow(["sigma", "row", "pair", "rre_deg", "rte"])
     for sigma, reports in tables:
         for report in reports:
-            name = report.name.replace('"', "'")
-            for i, (r, t) in enumerate(zip(report.rotation_error_deg.tolist(), report.translation_error.tolist())):
-                lines.append(f'{sigma},"{name}",{i},{r:.6g},{t:.6g}')
-    return write_text(path, "\n".join(lines) + "\n")
+            errors = zip(report.rotation_error_deg.tolist(), report.translation_error.tolist())
+            writer.writerows([sigma, report.name, i, f"{r:.6g}", f"{t:.6g}"] for i, (r, t) in enumerate(errors))
+    return write_text(path, text.getvalue())
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -41,7 +41,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, build, machine_line, output_path
+from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, build, key_values, machine_line, output_path
 from lcreg.experiments.benchmarking.writers import write_text
 from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, LR_KEY, SMOKE_PAIRS, DataChoice
 from lcreg.experiments.reproduce.lc import BUDGETS, HOSTS
@@ -186,18 +186,15 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         nargs="+",
         default=[],
         metavar="HOST=PATH",
-        help="also measure the first table with the weights of an LC + HOST run's checkpoint (one row each)",
+        help="also measure the first table with the weights of an LC + HOST run's checkpoint (one per host)",
     )
     parser.add_argument("--root", default=DEFAULT_ROOT)
     parser.add_argument("--out", default=None, help="Markdown table to write")
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
-    args.checkpoints = []
-    for item in args.ckpt:
-        host, sep, path = item.partition("=")
-        if not sep or host not in HOSTS or not path:
-            parser.error(f"--ckpt: expected HOST=PATH with HOST one of {', '.join(HOSTS)}, got {item!r}")
-        args.checkpoints.append((host, path))
+    args.checkpoints = list(key_values(args.ckpt, "--ckpt").items())
+    if unknown := [host for host, _ in args.checkpoints if host not in HOSTS]:
+        parser.error(f"--ckpt: unknown host(s) {', '.join(unknown)}; one of {', '.join(HOSTS)}")
     args.command = " ".join(sys.argv[1:] if argv is None else argv)
     args.out = output_path(args.out, "lc_gradient_share.md", args.smoke)
     return args
