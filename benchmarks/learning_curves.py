@@ -20,7 +20,10 @@ one failed pair moves the criterion by at most 5° / 312. A run that was cut off
 ``last.ckpt`` on the next call with the same arguments, early-stopping state included. ``--monitor
 val/pose_clip_r2_t0p01`` stops and selects on the translation-aware error instead (the mean of
 min(max(RRE / 2°, RTE / 0.01), 2.5), :class:`lcreg.metrics.registration.PoseErrorClippedMean`: below 1 exactly for the
-pairs within recall (2°, 0.01)); such runs are keyed apart (``converge p<P> v<K> m<metric>``).
+pairs within recall (2°, 0.01)); such runs are keyed apart (``converge p<P> v<K> m<metric>``). ``--min-steps M``
+lets no run stop early before step M (Lightning's ``min_steps``; such runs are keyed ``... min<M>``): for a method
+whose validation error sits on a plateau longer than the patience before it falls (iPCRNet's average-rotation
+plateau); ``--min-steps`` equal to ``--steps`` trains every run to the cap and still selects on ``--monitor``.
 
 ``--jobs N`` trains N runs at once, each (variant, seed) in its own process of this script (a lent GPU: one run of
 256 points x 8 leaves an H100 mostly idle; the training queue's ``--jobs`` passes it on, as to ``lcreg reproduce``).
@@ -208,12 +211,14 @@ def other_monitor(args: argparse.Namespace) -> str | None:
 def budget_key(args: argparse.Namespace) -> str | None:
     """``None`` for a fixed step budget, ``"converge p<P> v<K>"`` for a converge run (see :data:`KEY`).
 
-    A converge run on another ``--monitor`` than :data:`CONVERGE_METRIC` appends ``" m<monitor>"``.
+    A converge run on another ``--monitor`` than :data:`CONVERGE_METRIC` appends ``" m<monitor>"``, one with
+    ``--min-steps`` then ``" min<M>"``.
     """
     if args.patience is None:
         return None
     metric = "" if (monitor := other_monitor(args)) is None else f" m{monitor}"
-    return f"converge p{args.patience} v{args.val_pairs}{metric}"
+    floor = "" if args.min_steps is None else f" min{args.min_steps}"
+    return f"converge p{args.patience} v{args.val_pairs}{metric}{floor}"
 
 
 def run_folder(args: argparse.Namespace, name: str) -> str:
@@ -224,12 +229,14 @@ def run_folder(args: argparse.Namespace, name: str) -> str:
 
 
 def training_overrides(args: argparse.Namespace, run_dir: Path, seed: int) -> Values:
-    """The step budget of every run: fixed, or until ``--patience`` validations bring no improvement."""
+    """The step budget of every run: fixed, or until ``--patience`` validations bring no improvement (not before
+    ``--min-steps``)."""
     if args.patience is None:
         return fit_overrides(args.steps, args.val_every, run_dir, name="", seed=seed)
-    return converge_overrides(
+    values = converge_overrides(
         args.steps, args.val_every, args.patience, run_dir, name="", seed=seed, monitor=args.monitor
     )
+    return values if args.min_steps is None else {**values, "trainer.min_steps": args.min_steps}
 
 
 def run_key(args: argparse.Namespace, name: str, seed: int) -> dict[str, Any]:
@@ -248,6 +255,7 @@ def worker_runs(args: argparse.Namespace, log: ResultLog) -> list[WorkerRun]:
         *("--steps", str(args.steps), "--val-every", str(args.val_every), "--val-pairs", str(args.val_pairs)),
         *("--monitor", args.monitor, "--run-dir", str(args.run_dir)),
         *(() if args.patience is None else ("--patience", str(args.patience))),
+        *(() if args.min_steps is None else ("--min-steps", str(args.min_steps))),
     ]
     return [
         WorkerRun(
@@ -311,6 +319,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--patience", type=int, default=None, help="converge budget: stop after this many validations without gain"
     )
+    parser.add_argument(
+        "--min-steps",
+        type=int,
+        default=None,
+        help="converge budget: no early stop before this step (a plateau longer than the patience); <= --steps",
+    )
     parser.add_argument("--val-pairs", type=int, default=1, help="validation pairs per validation object")
     parser.add_argument(
         "--monitor",
@@ -342,6 +356,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args = apply_smoke(parser.parse_args(argv), SMOKE)
     if args.jobs < 1:
         parser.error(f"--jobs must be >= 1, got {args.jobs}")
+    if args.min_steps is not None and (args.patience is None or not 0 < args.min_steps <= args.steps):
+        parser.error(f"--min-steps needs --patience and 0 < M <= --steps ({args.steps}), got {args.min_steps}")
     if args.smoke and args.run_dir == parser.get_default("run_dir"):
         args.run_dir = tempfile.mkdtemp(prefix="lcreg-smoke-")
     return args

@@ -159,3 +159,26 @@ def test_jobs_train_each_run_in_its_own_process_as_the_sequential_loop_does(
     assert len(curve(twin)) == 3 and curve(rows["selfsup"]) == curve(twin)  # steps 0, 1, 2
     module.main([*common, "--variants", "model_D", "selfsup", "--jobs", "2", "--run-dir", str(parallel)])
     assert ": started (" not in capsys.readouterr().out
+
+
+def test_min_steps_resumes_an_early_stopped_run_to_its_floor_and_is_keyed_apart(tmp_path: Path) -> None:
+    """``--min-steps``: a run that stopped early (patience 1) is not finished under the floor's key; the rerun
+    resumes it from its ``last.ckpt`` (the same trajectory up to the stop) and trains on to the floor; a bad floor is
+    refused."""
+    module = load("learning_curves")
+    common = ["--root", "", "--points", "64", "--batch", "2", "--steps", "8", "--val-every", "1", "--seeds", "0"]
+    common += ["--variants", "model_D", "--run-dir", str(tmp_path), "--patience", "1"]
+    module.main(common)
+    module.main([*common, "--min-steps", "8"])
+    early, floored = map(json.loads, (tmp_path / "runs.jsonl").read_text().splitlines())
+    assert early["budget"] == "converge p1 v1" and early["early_stopped"] and early["stopped_step"] < 8
+    assert floored["budget"] == "converge p1 v1 min8" and floored["stopped_step"] == 8
+    assert not floored["early_stopped"] and floored["metrics_csv"] == early["metrics_csv"]  # one folder, resumed
+    segments = sorted(Path(early["metrics_csv"]).parent.glob("metrics*.csv"))
+    steps = {int(row.split(",")[1]) for path in segments for row in path.read_text().splitlines()[1:]}
+    assert max(steps) >= 7 and len(segments) == 2  # the first run's file kept as a segment of the resumed curve
+    for bad in (["--min-steps", "9"], ["--min-steps", "0"]):
+        with pytest.raises(SystemExit):
+            module.parse([*common, *bad])
+    with pytest.raises(SystemExit):
+        module.parse(["--smoke", "--min-steps", "2"])  # no --patience: a fixed budget has no early stop
