@@ -250,11 +250,11 @@ def restore(job: Job, runs: Path, results: Path) -> int:
 
 
 def status_line(job: Job, results: Path) -> str:
-    """``id  section  done|pending (<k> runs finished)  estimate  what``."""
+    """``id  section  done|pending (<k> result rows: finished runs, earlier rules' included)  estimate  what``."""
     done = (results / job.id / "DONE.json").is_file()
     logs = [p for p in (results / job.id / "runs").glob("*.jsonl") if p.name != "models.jsonl"]
     finished = sum(len(p.read_text(encoding="utf-8").splitlines()) for p in logs)
-    state = "done" if done else f"pending ({finished} runs finished)"
+    state = "done" if done else f"pending ({finished} result rows)"
     hours = f"{job.gpu_hours} GPU-h" if job.section == "gpu" else f"{job.cpu_hours} CPU-h (cap {job.cap_hours})"
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
 
