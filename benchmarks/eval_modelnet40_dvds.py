@@ -16,7 +16,9 @@ every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--m
 constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
 the same table on the validation pairs, to choose such settings before the one test run.
 ``--same-points`` draws both clouds from one sampling (the originals' PCRNet and PointNetLK protocol).
-``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means).
+``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means) and
+each pair's centroid offset (the translation error of aligning the two centroids under the true rotation: what the
+two samplings alone leave; 0 with ``--same-points`` and no noise).
 Pairs: ModelNet40DataModule(protocol) ``--split`` split (default test), seed 1234 (the configs' default), 1024
 points, Euler U[0, 45°], t U[-0.5, 0.5], independent samplings (unless ``--same-points``); one table per
 ``--noise-sigma`` (Gaussian, clip 0.05).
@@ -44,6 +46,7 @@ from lcreg.experiments.benchmarking import (
 )
 from lcreg.experiments.benchmarking.registry import REFINE_CONFIG
 from lcreg.experiments.evaluation import EvaluationReport, evaluate
+from lcreg.geometry.se3 import transform_points
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
 from lcreg.weights.export import save
@@ -158,8 +161,21 @@ def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[Regis
     )
 
 
-def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport]]:
-    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``, and its rows' reports."""
+def centroid_offsets(batches: Sequence[RegistrationBatch]) -> list[float]:
+    """Per pair ``‖c_ref − (R c_src + t)‖`` (cloud units): how far the true transform leaves the source's centroid from
+    the reference's, i.e. the translation error of a solve that aligns centroids under the true rotation."""
+    offsets: list[float] = []
+    for batch in batches:
+        if batch.transform_ref_src is None:
+            raise ValueError("centroid offsets need the pairs' ground-truth transforms")
+        moved = transform_points(batch.transform_ref_src, batch.points_src.mean(dim=1, keepdim=True))  # (B, 1, 3)
+        offsets += (batch.points_ref.mean(dim=1, keepdim=True) - moved).norm(dim=-1)[:, 0].tolist()
+    return offsets
+
+
+def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport], list[float]]:
+    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``, its rows' reports and the pairs' centroid
+    offsets (:func:`centroid_offsets`)."""
     batches, source = evaluation_pairs(args, sigma)
     reports: list[EvaluationReport] = []
     groups: list[tuple[list[EvaluationReport], str]] = []
@@ -199,30 +215,34 @@ def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationR
         f"batch {args.batch_size}, {machine_line()}\n"
     )
     rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
-    return header + "\n" + rows + "\n", reports
+    return header + "\n" + rows + "\n", reports, centroid_offsets(batches)
 
 
-def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport]]]) -> Path:
-    """Every report's per-pair rotation (degrees) and translation errors, one line per pair, under ``sigma,row``."""
+def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport], list[float]]]) -> Path:
+    """Every report's per-pair rotation (degrees) and translation errors and the pair's centroid offset, one line per
+    pair, under ``sigma,row``."""
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(["sigma", "row", "pair", "rre_deg", "rte"])
-    for sigma, reports in tables:
+    writer.writerow(["sigma", "row", "pair", "rre_deg", "rte", "centroid_offset"])
+    for sigma, reports, offsets in tables:
         for report in reports:
-            errors = zip(report.rotation_error_deg.tolist(), report.translation_error.tolist())
-            writer.writerows([sigma, report.name, i, f"{r:.6g}", f"{t:.6g}"] for i, (r, t) in enumerate(errors))
+            errors = zip(report.rotation_error_deg.tolist(), report.translation_error.tolist(), offsets, strict=True)
+            writer.writerows(
+                [sigma, report.name, i, f"{r:.6g}", f"{t:.6g}", f"{c:.6g}"] for i, (r, t, c) in enumerate(errors)
+            )
     return write_text(path, text.getvalue())
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = parse(argv)
     tables = {sigma: table(args, sigma) for sigma in args.noise_sigma}
-    text = "\n".join(markdown for markdown, _ in tables.values())
+    text = "\n".join(markdown for markdown, _, _ in tables.values())
     print(text)
     if args.out:
         write_text(args.out, text)
     if args.pairs_csv:
-        print(f"wrote {write_pairs_csv(args.pairs_csv, [(s, reports) for s, (_, reports) in tables.items()])}")
+        rows = [(sigma, reports, offsets) for sigma, (_, reports, offsets) in tables.items()]
+        print(f"wrote {write_pairs_csv(args.pairs_csv, rows)}")
 
 
 if __name__ == "__main__":

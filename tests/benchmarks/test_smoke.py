@@ -14,6 +14,7 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+import torch
 
 from _shared_data import shared_data  # type: ignore[import-not-found]
 
@@ -105,8 +106,11 @@ def test_eval_pairs_csv_holds_each_rows_per_pair_errors_that_make_its_table_valu
     out, pairs = tmp_path / "t.md", tmp_path / "pairs.csv"
     script.main(["--smoke", "--out", str(out), "--pairs-csv", str(pairs), "--noise-sigma", "0", "0.01"])
     errors: dict[tuple[str, str], list[float]] = {}
+    offsets: dict[str, set[tuple[str, str]]] = {}
     for line in csv.DictReader(pairs.open()):
         errors.setdefault((line["sigma"], line["row"]), []).append(float(line["rre_deg"]))
+        offsets.setdefault(line["sigma"], set()).add((line["pair"], line["centroid_offset"]))
+    assert all(len(pairs_of_sigma) == 2 for pairs_of_sigma in offsets.values())  # one offset per pair, every row
     table, sigma, column = {}, "", 0
     for line in out.read_text().splitlines():
         if "noise sigma" in line:
@@ -136,3 +140,8 @@ def test_eval_same_points_draws_both_clouds_from_one_sampling() -> None:
         moved = transform_points(batch.transform_ref_src, batch.points_src)
         gap = chamfer_distance(moved, batch.points_ref)
         assert bool((gap < 1e-5).all()) == same, (flags, gap)
+        # The pairs CSV's centroid offsets: 0 for one sampling, and the per-pair norm of the centroid gap otherwise.
+        offsets = torch.tensor(script.centroid_offsets([batch]))
+        expected = (moved.mean(dim=1) - batch.points_ref.mean(dim=1)).norm(dim=-1)
+        torch.testing.assert_close(offsets, expected, rtol=1e-4, atol=1e-6)
+        assert bool((offsets < 1e-5).all()) == same, (flags, offsets)
