@@ -16,6 +16,9 @@ every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--m
 constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
 the same table on the validation pairs, to choose such settings before the one test run.
 ``--same-points`` draws both clouds from one sampling (the originals' PCRNet and PointNetLK protocol).
+``--from-truth`` first moves every source by its ground truth (the true pose becomes the identity, which is where
+every solve then starts): a row's errors are then where its objective's minimum lies, not whether the solve finds
+it (a local method's fixed-point bias).
 ``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means) and
 each pair's centroid offset (the translation error of aligning the two centroids under the true rotation: what the
 two samplings alone leave; 0 with ``--same-points`` and no noise).
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -46,7 +50,7 @@ from lcreg.experiments.benchmarking import (
 )
 from lcreg.experiments.benchmarking.registry import REFINE_CONFIG
 from lcreg.experiments.evaluation import EvaluationReport, evaluate
-from lcreg.geometry.se3 import transform_points
+from lcreg.geometry.se3 import identity, transform_normals, transform_points
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
 from lcreg.weights.export import save
@@ -95,6 +99,11 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         action="store_true",
         help="both clouds from the same sampling of each shape (as PCRNet's and PointNetLK's originals test); "
         "default: independent samplings",
+    )
+    parser.add_argument(
+        "--from-truth",
+        action="store_true",
+        help="move each source by its ground truth first: every solve starts at the true pose (its objective's bias)",
     )
     parser.add_argument("--noise-sigma", type=float, nargs="+", default=[0.0], help="one table per sigma")
     parser.add_argument("--batch-size", type=int, default=16)
@@ -156,8 +165,25 @@ def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[Regis
         options["independent_sampling"] = False
     if args.root is not None:  # the synthetic shapes have no validation objects to draw from
         options["val_pairs_per_object"] = args.val_pairs
-    return pair_batches(
+    batches, source = pair_batches(
         args.root, args.split, args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
+    )
+    if args.from_truth:
+        return [at_truth(batch) for batch in batches], f"{source}, each source moved to its true pose"
+    return batches, source
+
+
+def at_truth(batch: RegistrationBatch) -> RegistrationBatch:
+    """``batch`` with every source (and its normals) moved by its ground truth, whose transforms become the identity."""
+    if batch.transform_ref_src is None:
+        raise ValueError("--from-truth needs the pairs' ground-truth transforms")
+    truth = batch.transform_ref_src
+    normals = None if batch.normals_src is None else transform_normals(truth, batch.normals_src)
+    return dataclasses.replace(
+        batch,
+        points_src=transform_points(truth, batch.points_src),
+        normals_src=normals,
+        transform_ref_src=identity(len(batch), truth.device, truth.dtype),
     )
 
 
