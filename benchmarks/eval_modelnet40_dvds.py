@@ -127,8 +127,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--pairs-csv",
         default=None,
-        help="also write every row's per-pair errors (sigma, row, pair, rre_deg, rte) to this CSV file, e.g. for "
-        "an original's success-conditional means",
+        help="also write every row's per-pair errors (sigma, row, pair, rre_deg, rte, centroid_offset) to this CSV "
+        "file, e.g. for an original's success-conditional means",
     )
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
