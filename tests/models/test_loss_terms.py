@@ -202,3 +202,35 @@ def test_self_motion_rejects_bad_settings(kwargs: dict[str, float]) -> None:
 
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         SelfMotionLoss(**kwargs)
+
+
+def test_stationarity_term_is_the_pose_loss_of_one_update_from_the_generated_motion(batch: RegistrationBatch) -> None:
+    """``SelfMotionStationarityLoss``: the same pairs as ``SelfMotionLoss``, scored after one ``step_from`` update
+    started at the generated motion (0 where it is a fixed point: one sampling); it trains the encoder without the
+    dataset pose, and a host without an IC-LK solve is refused when bound."""
+    import dataclasses
+
+    from lcreg.models.dvds import DVDs
+    from lcreg.models.loss_terms import SelfMotionLoss, SelfMotionStationarityLoss
+    from lcreg.nn.losses import weighted_pose_loss
+
+    torch.manual_seed(0)
+    term = SelfMotionStationarityLoss(weight=3.0, translation_weight=100.0)
+    model = DVDs(encoder_channels=(16, 32), lambda_recon=0, lambda_normal=0, lambda_global=0, loss_terms=[term]).train()
+    unlabeled = dataclasses.replace(batch, transform_ref_src=None)
+    torch.manual_seed(1)
+    losses = model.training_losses(model.training_forward(unlabeled), unlabeled)
+    assert set(losses) == {"global", "self_motion_stationarity", "loss"}
+    torch.testing.assert_close(losses["loss"], 3.0 * losses["self_motion_stationarity"])
+    torch.manual_seed(1)
+    src, ref, motion = SelfMotionLoss().make_pairs(batch.points_src)  # the pairs the term drew
+    expected = weighted_pose_loss(model.step_from(src, ref, motion), motion, 100.0)
+    torch.testing.assert_close(losses["self_motion_stationarity"], expected)
+    assert float(expected) > 0  # two samplings: the motion is not a fixed point
+    losses["loss"].backward()
+    assert sum(float(p.grad.abs().sum()) for p in model.encoder.parameters() if p.grad is not None) > 0
+    torch.manual_seed(2)
+    one_sampling = SelfMotionStationarityLoss(sample_fraction=1.0)(model, None, batch)  # type: ignore[arg-type]
+    assert float(one_sampling) < 1e-8
+    with pytest.raises(TypeError, match="step_from"):
+        _tiny_dcp(loss_terms=[SelfMotionStationarityLoss()])

@@ -363,3 +363,25 @@ def test_starts_are_differentiable_and_checked() -> None:
     for bad in (torch.eye(4)[None, :3], torch.eye(4), torch.zeros(0, 4, 4)):
         with pytest.raises(ValueError, match="`starts` must have shape"):
             solver(enc, src, ref, starts=bad)
+
+
+def test_step_from_is_one_update_of_the_solve_zero_at_an_exact_fixed_point() -> None:
+    """``step_from``: from the pose that centres both clouds it is the solve's first update (``max_iterations=1``);
+    at the true pose of one sampling (``psi(G X0) = psi(Y0)``) it does not move; independent samplings move it;
+    the graph reaches the encoder's weights; its mode is restored; bad poses are refused."""
+    src, ref, truth = _problem()
+    enc, solver = _encoder().train(), InverseCompositionalLK(max_iterations=1, tolerance=0.0)
+    centring = se3.make_transform(torch.eye(3, dtype=src.dtype).expand(3, 3, 3), ref.mean(1) - src.mean(1))
+    torch.testing.assert_close(solver.step_from(enc, src, ref, centring), solver(enc, src, ref).transform_ref_src)
+    assert enc.training
+    torch.testing.assert_close(solver.step_from(enc, src, ref, truth), truth, atol=1e-9, rtol=0)
+    resampled, _, _ = _problem(n=160)  # other points of the same shapes: the true pose is not a fixed point
+    moved = solver.step_from(enc, resampled, ref, truth)
+    assert float(translation_error(moved, truth).min()) > 1e-6
+    moved.sum().backward()
+    grads = [p.grad for p in enc.parameters() if p.grad is not None]
+    assert grads and all(bool(torch.isfinite(g).all()) for g in grads) and any(bool(g.abs().sum() > 0) for g in grads)
+    with pytest.raises(TypeError):
+        solver.step_from(enc, src, ref, truth.float())
+    with pytest.raises(ValueError):
+        solver.step_from(enc, src, ref, truth[:, :3])

@@ -141,6 +141,16 @@ class LucasKanadeModule(RegistrationModule):
             start_margin=self.eval_start_margin,
         )
 
+    def step_from(
+        self, points_src: torch.Tensor, points_ref: torch.Tensor, transform_ref_src: torch.Tensor
+    ) -> torch.Tensor:
+        """One update of the training solve from ``transform_ref_src (B, 4, 4)``, with the graph kept.
+
+        :meth:`lcreg.nn.lk.InverseCompositionalLK.step_from`, for
+        :class:`~lcreg.models.loss_terms.SelfMotionStationarityLoss`.
+        """
+        return self.solver.step_from(self.encoder, points_src, points_ref, transform_ref_src)
+
     def differentiable_forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """The training-mode solve with the graph kept through it, whatever ``differentiable`` says."""
         return self.solver(self.encoder, points_src, points_ref, differentiable=True)

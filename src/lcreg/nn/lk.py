@@ -25,14 +25,15 @@ Jacobians: ``"analytic"`` (exact, via the encoder's ``twist_jacobian``; PointNet
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Literal
 
 import torch
 from torch import nn
 
-from lcreg.checks import check_points, check_same_batch
+from lcreg.checks import check_points, check_same_batch, check_transform
 from lcreg.geometry import se3
 from lcreg.nn.dtypes import to_module_dtype
 from lcreg.types import RegistrationResult
@@ -176,6 +177,19 @@ def check_start_margin(margin: float, name: str = "start_margin") -> float:
     return float(margin)
 
 
+@contextlib.contextmanager
+def _eval_mode(encoder: Encoder | nn.Module) -> Iterator[None]:
+    """The encoder in eval mode inside the block (the solve sees the function tested), its mode restored after."""
+    was_training = isinstance(encoder, nn.Module) and encoder.training
+    if isinstance(encoder, nn.Module):
+        encoder.eval()
+    try:
+        yield
+    finally:
+        if was_training and isinstance(encoder, nn.Module):
+            encoder.train()
+
+
 class InverseCompositionalLK(nn.Module):
     """IC-LK solver; holds hyper-parameters only, the encoder is passed at call time.
 
@@ -273,19 +287,59 @@ class InverseCompositionalLK(nn.Module):
         dtype = points_src.dtype
         if isinstance(encoder, nn.Module):  # float64 clouds, float32 encoder (or the reverse): compute in its dtype
             points_src, points_ref = to_module_dtype(encoder, (points_src, points_ref))
-        was_training = isinstance(encoder, nn.Module) and encoder.training
+        grad = self.differentiable if differentiable is None else differentiable
+        with _eval_mode(encoder), torch.set_grad_enabled(grad and torch.is_grad_enabled()):
+            iterations = max_iterations or self.max_iterations
+            result = self._solve(encoder, points_src, points_ref, iterations, starts, start_margin)
+        result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
+        return result
+
+    def step_from(
+        self,
+        encoder: Encoder | nn.Module,
+        points_src: torch.Tensor,
+        points_ref: torch.Tensor,
+        transform_ref_src: torch.Tensor,
+    ) -> torch.Tensor:
+        """The transform one update of the solve moves ``transform_ref_src`` to, with the autograd graph kept.
+
+        At a fixed point of the solve the update is zero: started at the true pose, the distance of the result from
+        it is the bias of the descriptor's residual minimum (two samplings of one surface have different
+        descriptors at the true pose), which a training term can penalise without unrolling the solve.
+
+        Args:
+            encoder: The descriptor ``psi``.
+            points_src: Source clouds ``(B, N, 3)``.
+            points_ref: Reference clouds ``(B, M, 3)``.
+            transform_ref_src: The poses to step from ``(B, 4, 4)`` (uncentred, as the solve returns them).
+
+        Returns:
+            ``(B, 4, 4)`` ``Trans(mean Y) exp(dxi) G0 Trans(-mean X)``, ``G0`` the start in the centred frame and
+            ``dxi`` the update at it, in the dtype of ``points_src``.
+        """
+        check_points(points_src, "points_src")
+        check_points(points_ref, "points_ref")
+        check_transform(transform_ref_src, "transform_ref_src")
+        check_same_batch(points_src=points_src, points_ref=points_ref, transform_ref_src=transform_ref_src)
+        dtype = points_src.dtype
         if isinstance(encoder, nn.Module):
-            encoder.eval()
-        try:
-            grad = self.differentiable if differentiable is None else differentiable
-            with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
-                iterations = max_iterations or self.max_iterations
-                result = self._solve(encoder, points_src, points_ref, iterations, starts, start_margin)
-            result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
-            return result
-        finally:
-            if was_training and isinstance(encoder, nn.Module):
-                encoder.train()
+            points_src, points_ref = to_module_dtype(encoder, (points_src, points_ref))
+        with _eval_mode(encoder):
+            src0, ref0, mean_src, mean_ref = self._centred(points_src, points_ref)
+            start = se3.uncenter(transform_ref_src.to(src0.dtype), -mean_src, -mean_ref)  # into the centred frame
+            feat_ref, jac = twist_jacobian(encoder, ref0, self.jacobian, self.fd_step)
+            resid = encoder(se3.transform_points(start, src0)) - feat_ref  # (B, K)
+            dxi = -(self.pseudo_inverse(jac) @ resid[..., None]).squeeze(-1)  # (B, 6)
+            return se3.uncenter(se3.exp(dxi) @ start, mean_src, mean_ref).to(dtype)
+
+    def _centred(
+        self, points_src: torch.Tensor, points_ref: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(X0, Y0, mean X, mean Y)``: both clouds centred (means ``(B, 3)``; zeros when ``center`` is off)."""
+        b = points_src.shape[0]
+        mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
+        mean_ref = points_ref.mean(1) if self.center else points_ref.new_zeros(b, 3)
+        return points_src - mean_src[:, None], points_ref - mean_ref[:, None], mean_src, mean_ref
 
     def _solve(
         self,
@@ -297,9 +351,7 @@ class InverseCompositionalLK(nn.Module):
         start_margin: float = 0.0,
     ) -> RegistrationResult:
         b = points_src.shape[0]
-        mean_src = points_src.mean(1) if self.center else points_src.new_zeros(b, 3)
-        mean_ref = points_ref.mean(1) if self.center else points_ref.new_zeros(b, 3)
-        src0, ref0 = points_src - mean_src[:, None], points_ref - mean_ref[:, None]
+        src0, ref0, mean_src, mean_ref = self._centred(points_src, points_ref)
         feat_ref, jac = twist_jacobian(encoder, ref0, self.jacobian, self.fd_step)
         pinv = self.pseudo_inverse(jac)
         n = 1 if starts is None else starts.shape[0]  # the starts are stacked along the batch, start-major
