@@ -46,24 +46,26 @@ halved every 5 epochs (its validation mean RRE rose after step 500 at a constant
 ``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall
 thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_tw100_fine`` adds to
 ``selfsup_tw100`` a second self-motion term on small motions (Euler U[0, 2 deg], t U[-0.02, 0.02], translation
-weighted 100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_frac50`` draws its
-two samplings from half the cloud each (they share half their points, as two independent samplings of 1024 of
-ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines
-with their own configs (``configs/models/``), at the batch and points given here; ``pcrnet_idinit`` starts iPCRNet's
-every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``, the reference initialisation's
-Chamfer descent ends at rotations 90-180 deg away, the identity start fits them), ``fmr_semi`` is FMR-Net's
-semi-supervised variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its
-reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves).
-``prnet`` is PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
-``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
-rate linearly to a batch of 8 (1e-3 x 8 / 36):
-at batch 8 and lr 1e-3 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is
-DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained
-on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where
-BatchNorm's running statistics replace the batch's own. ``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without
-BatchNorm in its DGCNN and TemperatureNet): evaluated with each batch's own statistics, its lr-2.2e-4 checkpoint
-registers the validation pairs better than in eval mode (``docs/results/converge/prnet_lr_256/probes/``).
-"""
+weighted 100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_tw100_stat`` adds
+to ``selfsup_tw100`` :class:`~lcreg.models.loss_terms.SelfMotionStationarityLoss` on the same kind of pairs
+(translation weighted 100): one IC-LK update started at the known motion should not move (started at the true test
+pose, the shipped DVDs file ends at the recall it reaches from the identity: the descriptor's minimum is biased);
+``selfsup_frac50`` draws its two samplings from half the cloud each (they share half their points, as two
+independent samplings of 1024 of ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet``
+and ``fmr`` are those baselines with their own configs (``configs/models/``), at the batch and points given here;
+``pcrnet_idinit`` starts iPCRNet's every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``,
+the reference initialisation's Chamfer descent ends at rotations 90-180 deg away, the identity start fits them),
+``fmr_semi`` is FMR-Net's semi-supervised variant (the original's ``--train-type 1``: the pose term beside the
+reconstruction; trained on its reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs, though on
+unseen pairs it improves). ``prnet`` is PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the
+DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4``
+scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the
+converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce lc`` (the same
+pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained on 8 fixed pairs (``benchmarks/overfit.py``),
+DCP-v2 fits them in training mode but not in eval mode, where BatchNorm's running statistics replace the batch's
+own. ``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without BatchNorm in its DGCNN and TemperatureNet): evaluated
+with each batch's own statistics, its lr-2.2e-4 checkpoint registers the validation pairs better than in eval mode
+(``docs/results/converge/prnet_lr_256/probes/``). """
 
 from __future__ import annotations
 
@@ -143,6 +145,19 @@ def recipe_with(*extra_motions: Mapping[str, Any], **self_motion: float) -> Vari
     return Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": terms})
 
 
+STATIONARITY = {
+    "class_path": "lcreg.models.loss_terms.SelfMotionStationarityLoss",
+    "init_args": {**RECIPE_SELF_MOTION, "translation_weight": 100.0},
+}
+"""The fixed-point term on the recipe's self-motion pairs, translation weighted as ``selfsup_tw100``'s."""
+
+
+def plus_terms(variant: Variant, *terms: Mapping[str, Any]) -> Variant:
+    """``variant`` (a :func:`recipe_with` one) with more loss terms appended after its own."""
+    own = variant.overrides["model.init_args.loss_terms"]
+    return variant._replace(overrides={**variant.overrides, "model.init_args.loss_terms": [*own, *map(dict, terms)]})
+
+
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -164,6 +179,7 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100": recipe_with(translation_weight=100.0),
     "selfsup_tw400": recipe_with(translation_weight=400.0),
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
+    "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),

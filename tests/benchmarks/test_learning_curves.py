@@ -23,6 +23,14 @@ def test_variant_values_build_their_models() -> None:
         variant = variants[name]
         return build_cli_for(variant.method, variant.configs, {**synthetic_overrides(), **variant.overrides})
 
+    stat = cli("selfsup_tw100_stat").model
+    assert [type(t).__name__ for t in stat.loss_terms] == [
+        "LocalConsistencyLoss",
+        "SelfMotionLoss",
+        "SelfMotionStationarityLoss",
+    ]
+    assert [t.translation_weight for t in stat.loss_terms[1:]] == [100.0, 100.0]
+    assert cli("selfsup_tw100").config["model"]["init_args"]["loss_terms"][-1]["class_path"].endswith("SelfMotionLoss")
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
