@@ -16,9 +16,11 @@ every learned row again with ICP refinement (``configs/refine/icp.yaml``). ``--m
 constructor arguments of every learned row that are not weights (e.g. ``eval_iterations=2``); ``--split val`` runs
 the same table on the validation pairs, to choose such settings before the one test run.
 ``--same-points`` draws both clouds from one sampling (the originals' PCRNet and PointNetLK protocol).
-``--from-truth`` first moves every source by its ground truth (the true pose becomes the identity, which is where
-every solve then starts): a row's errors are then where its objective's minimum lies, not whether the solve finds
-it (a local method's fixed-point bias).
+``--from-truth`` first moves every source by its ground truth (the true pose becomes the identity, where every solve
+then starts): a row's errors are then where its objective's minimum lies near the truth, not whether the solve
+finds it. ICP starts exactly at the true pose; a centring solve (the IC-LK models, iPCRNet) at the true rotation with
+the two centroids aligned (the pair's centroid offset away); ``benchmarks/lk_fixed_point.py`` starts the IC-LK solve
+at the exact true pose.
 ``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means) and
 each pair's centroid offset (the translation error of aligning the two centroids under the true rotation: what the
 two samplings alone leave; 0 with ``--same-points`` and no noise).
@@ -103,7 +105,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--from-truth",
         action="store_true",
-        help="move each source by its ground truth first: every solve starts at the true pose (its objective's bias)",
+        help="move each source by its ground truth first: every solve starts at the true pose (a centring solve: the "
+        "true rotation, centroids aligned)",
     )
     parser.add_argument("--noise-sigma", type=float, nargs="+", default=[0.0], help="one table per sigma")
     parser.add_argument("--batch-size", type=int, default=16)

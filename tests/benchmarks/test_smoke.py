@@ -36,6 +36,7 @@ RUNS = {
     "kitti_full_pair": [],
     "lc_gradient_share": [],
     "lc_plus_x": [],
+    "lk_fixed_point": [],
     "overfit": [],
     "learning_curves": [],
     "pilot_dvds_variants": [],
@@ -164,3 +165,23 @@ def test_eval_from_truth_starts_every_solve_at_the_true_pose(tmp_path: Path) -> 
     icp = [float(r["rre_deg"]) + float(r["rte"]) for r in rows if r["row"].startswith("Open3D ICP")]
     assert icp and max(icp) < 1e-3, icp
     assert all(float(r["centroid_offset"]) < 1e-5 for r in rows)
+
+
+def test_lk_fixed_point_stays_at_an_exact_fixed_point_and_reports_both_starts(tmp_path: Path) -> None:
+    """``lk_fixed_point.py``: two rows per model (its solve, and updates from the exact truth); started at the true
+    pose of one sampling (a fixed point) the updates do not move; a model without an IC-LK solve is refused."""
+    from lcreg.experiments.benchmarking import build, pair_batches
+
+    script = load("lk_fixed_point")
+    out = tmp_path / "f.md"
+    text = script.main(["--smoke", "--out", str(out)])
+    assert text.count("| untrained, seed 0 |") == 2 and out.read_text() == text
+    model = build("dvds_selfsup", None, values={"seed_everything": 0}).eval()
+    for same, moved in ((True, False), (False, True)):
+        batch = pair_batches(None, "test", 2, num_points=64, independent_sampling=not same)[0][0]
+        with torch.no_grad():
+            pose = script.from_truth(model, batch, 3)
+        gap = float((pose - batch.transform_ref_src).abs().max())
+        assert (gap > 1e-4) == moved, (same, gap)
+    with pytest.raises(TypeError, match="step_from"):
+        script.from_truth(build("icp"), batch, 1)
