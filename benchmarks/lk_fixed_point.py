@@ -27,7 +27,15 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, build, cli_args, machine_line, pair_batches
+from lcreg.experiments.benchmarking import (
+    add_smoke_argument,
+    apply_smoke,
+    build,
+    cli_args,
+    key_values,
+    machine_line,
+    pair_batches,
+)
 from lcreg.experiments.benchmarking.writers import write_text
 from lcreg.metrics.functional import rotation_error_deg, translation_error
 from lcreg.models.base import RegistrationModule
@@ -89,6 +97,14 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--num-points", type=int, default=1024)
     parser.add_argument("--eval-iterations", type=int, default=40, help="the solve's iterations (shipped: 40)")
     parser.add_argument("--iterations", type=int, default=40, help="updates from the exact truth")
+    parser.add_argument(
+        "--model-args",
+        nargs="*",
+        default=[],
+        metavar="NAME=VALUE",
+        help="constructor arguments of --method that are not weights (pointnetlk's file: batch_norm=false "
+        "jacobian=analytic)",
+    )
     parser.add_argument("--out", default=None, help="Markdown file to write the table to")
     add_smoke_argument(parser)
     args = apply_smoke(parser.parse_args(argv), SMOKE)
@@ -98,6 +114,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         parser.error("give --ckpt or --init-seeds")
     if min(args.iterations, args.eval_iterations) < 1:
         parser.error("--iterations and --eval-iterations must be >= 1")
+    args.model_args = key_values(args.model_args, "--model-args")
     return args
 
 
@@ -107,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     if args.root is not None:
         options["val_pairs_per_object"] = args.val_pairs
     batches, source = pair_batches(args.root, args.split, args.pairs, num_points=args.num_points, **options)
-    settings = cli_args("model", {"eval_iterations": args.eval_iterations})
+    settings = cli_args("model", {**args.model_args, "eval_iterations": args.eval_iterations})
     models = [(c.rsplit("/", 1)[-1], build(args.method, c, values=settings)) for c in args.ckpt]
     models += [
         (f"untrained, seed {s}", build(args.method, None, values={**settings, "seed_everything": s}))
