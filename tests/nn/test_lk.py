@@ -385,3 +385,16 @@ def test_step_from_is_one_update_of_the_solve_zero_at_an_exact_fixed_point() -> 
         solver.step_from(enc, src, ref, truth.float())
     with pytest.raises(ValueError):
         solver.step_from(enc, src, ref, truth[:, :3])
+
+
+def test_step_from_gradients_match_finite_differences() -> None:
+    """gradcheck of ``step_from`` (analytic Jacobian, float64) in the source points and the start pose's twist."""
+    src, ref, truth = _problem(b=1, n=24)
+    torch.manual_seed(0)
+    enc = PointNetEncoder((8, 16)).double().eval()
+    solver = InverseCompositionalLK()
+    resampled = src + 0.01 * torch.randn_like(src)  # off the fixed point, so the update is not zero
+    xi = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    points = resampled.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: solver.step_from(enc, p, ref, truth), (points,))
+    assert torch.autograd.gradcheck(lambda x: solver.step_from(enc, resampled, ref, se3.exp(x) @ truth), (xi,))
