@@ -37,6 +37,7 @@ RUNS = {
     "lc_gradient_share": [],
     "lc_plus_x": [],
     "lk_fixed_point": [],
+    "pcrnet_collapse": [],
     "overfit": [],
     "learning_curves": [],
     "pilot_dvds_variants": [],
@@ -185,3 +186,22 @@ def test_lk_fixed_point_stays_at_an_exact_fixed_point_and_reports_both_starts(tm
         assert (gap > 1e-4) == moved, (same, gap)
     with pytest.raises(TypeError, match="step_from"):
         script.from_truth(build("icp"), batch, 1)
+
+
+def test_pcrnet_collapse_sees_dead_units_and_an_input_independent_output() -> None:
+    """``pcrnet_collapse.py``: with a live output layer the first update varies over pairs; with the regressor's last
+    hidden layer killed (every unit below zero) all its units are dead and the update is one constant."""
+    from lcreg.experiments.benchmarking import pair_batches
+
+    script = load("pcrnet_collapse")
+    batch = pair_batches(None, "val", 4, num_points=64, batch_size=4)[0][0]
+    model = script.load(None)
+    torch.manual_seed(1)
+    with torch.no_grad():
+        model.pose.weight.normal_(0.0, 0.1)
+    live = script.collapse(model, batch.points_src, batch.points_ref)
+    assert live["first-update std"] > 1e-6 and live["dead last hidden units"] < 1
+    with torch.no_grad():
+        model.regressor.linears[-1].bias.fill_(-1e4)
+    dead = script.collapse(model, batch.points_src, batch.points_ref)
+    assert dead["dead last hidden units"] == 1.0 and dead["first-update std"] == 0.0
