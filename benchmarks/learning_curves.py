@@ -55,16 +55,18 @@ independent samplings of 1024 of ModelNet40's 2048 points do; the recipe's 0.75 
 and ``fmr`` are those baselines with their own configs (``configs/models/``), at the batch and points given here;
 ``pcrnet_idinit`` starts iPCRNet's every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``,
 the reference initialisation's Chamfer descent ends at rotations 90-180 deg away, the identity start fits them),
-``fmr_semi`` is FMR-Net's semi-supervised variant (the original's ``--train-type 1``: the pose term beside the
-reconstruction; trained on its reconstruction alone, FMR-Net's IC-LK stops registering the fixed pairs, though on
-unseen pairs it improves). ``prnet`` is PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the
-DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4``
-scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the
-converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce lc`` (the same
-pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained on 8 fixed pairs (``benchmarks/overfit.py``),
-DCP-v2 fits them in training mode but not in eval mode, where BatchNorm's running statistics replace the batch's
-own. ``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without BatchNorm in its DGCNN and TemperatureNet): evaluated
-with each batch's own statistics, its lr-2.2e-4 checkpoint registers the validation pairs better than in eval mode
+``pcrnet_idinit_lr1e-4`` the same at the original TensorFlow code's lr 1e-4 (at 1e-3, 2 of 3 runs collapsed to one
+constant update with dead ReLUs, ``benchmarks/pcrnet_collapse.py``), ``fmr_semi`` is FMR-Net's semi-supervised
+variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its reconstruction
+alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves). ``prnet`` is PRNet as
+in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
+``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
+rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the converge budget got
+worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the
+same without BatchNorm in its DGCNN: trained on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in
+training mode but not in eval mode, where BatchNorm's running statistics replace the batch's own.
+``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without BatchNorm in its DGCNN and TemperatureNet): evaluated with
+each batch's own statistics, its lr-2.2e-4 checkpoint registers the validation pairs better than in eval mode
 (``docs/results/converge/prnet_lr_256/probes/``). """
 
 from __future__ import annotations
@@ -183,6 +185,9 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),
+    "pcrnet_idinit_lr1e-4": Variant(
+        "pcrnet", overrides={"model.init_args.identity_init": True, "model.init_args.optimizer.init_args.lr": 1e-4}
+    ),
     "fmr": Variant("fmr"),
     "fmr_semi": Variant("fmr", overrides={"model.init_args.pose_weight": 1.0}),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),

@@ -23,6 +23,8 @@ def test_variant_values_build_their_models() -> None:
         variant = variants[name]
         return build_cli_for(variant.method, variant.configs, {**synthetic_overrides(), **variant.overrides})
 
+    slow = cli("pcrnet_idinit_lr1e-4").model
+    assert slow.hparams.identity_init is True and slow.configure_optimizers().param_groups[0]["lr"] == 1e-4
     stat = cli("selfsup_tw100_stat").model
     assert [type(t).__name__ for t in stat.loss_terms] == [
         "LocalConsistencyLoss",
