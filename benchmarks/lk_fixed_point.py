@@ -34,6 +34,7 @@ from lcreg.experiments.benchmarking import (
     cli_args,
     key_values,
     machine_line,
+    markdown_table,
     pair_batches,
 )
 from lcreg.experiments.benchmarking.writers import write_text
@@ -78,11 +79,11 @@ def errors(model: RegistrationModule, batches: Sequence[RegistrationBatch], iter
     return torch.cat(rows).double().numpy()
 
 
-def row(label: str, start: str, found: np.ndarray) -> str:
-    """One Markdown row: median and mean RRE, median RTE, recall (2°, 0.01)."""
+def row(label: str, start: str, found: np.ndarray) -> list[str]:
+    """One table row: median and mean RRE, median RTE, recall (2°, 0.01)."""
     rre, rte = found[:, 0], found[:, 1]
     recall = 100 * float(((rre <= 2) & (rte <= 0.01)).mean())
-    return f"| {label} | {start} | {np.median(rre):.4g} | {rre.mean():.4g} | {np.median(rte):.4g} | {recall:.1f} % |"
+    return [label, start, f"{np.median(rre):.4g}", f"{rre.mean():.4g}", f"{np.median(rte):.4g}", f"{recall:.1f} %"]
 
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -130,18 +131,15 @@ def main(argv: Sequence[str] | None = None) -> str:
         (f"untrained, seed {s}", build(args.method, None, values={**settings, "seed_everything": s}))
         for s in args.init_seeds
     ]
-    lines = [
-        f"{source}, {sum(len(b) for b in batches)} {args.split} pairs, {args.num_points} points, clean, "
-        f"{machine_line()}",
-        "",
-        "| weights | start | median RRE ° | mean RRE ° | median RTE | recall (2°, 0.01) |",
-        "|---|---|---|---|---|---|",
-    ]
+    rows = []
     for label, model in models:
         model.eval()
-        lines.append(row(label, f"identity ({args.eval_iterations} it. at most)", errors(model, batches, None)))
-        lines.append(row(label, f"exact truth ({args.iterations} updates)", errors(model, batches, args.iterations)))
-    text = "\n".join(lines) + "\n"
+        rows.append(row(label, f"identity ({args.eval_iterations} it. at most)", errors(model, batches, None)))
+        rows.append(row(label, f"exact truth ({args.iterations} updates)", errors(model, batches, args.iterations)))
+    header = ["weights", "start", "median RRE °", "mean RRE °", "median RTE", "recall (2°, 0.01)"]
+    pairs = sum(len(b) for b in batches)
+    head = f"{source}, {pairs} {args.split} pairs, {args.num_points} points, clean, {machine_line()}"
+    text = f"{head}\n\n{markdown_table(header, rows)}\n"
     print(text)
     if args.out:
         write_text(args.out, text)

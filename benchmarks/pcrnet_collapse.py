@@ -21,7 +21,14 @@ from collections.abc import Sequence
 import torch
 
 from lcreg.baselines.pcrnet import PCRNet
-from lcreg.experiments.benchmarking import add_smoke_argument, apply_smoke, key_values, machine_line, pair_batches
+from lcreg.experiments.benchmarking import (
+    add_smoke_argument,
+    apply_smoke,
+    key_values,
+    machine_line,
+    markdown_table,
+    pair_batches,
+)
 from lcreg.experiments.benchmarking.writers import write_text
 
 SMOKE = {"pairs": 4, "num_points": 64}
@@ -82,9 +89,9 @@ def main(argv: Sequence[str] | None = None) -> str:
     lines = [
         f"{source}, {len(batch)} val pairs, {args.num_points} points, {machine_line()}",
         "",
-        "| checkpoint | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
-        *(f"| {label} | " + " | ".join(f"{v:.4g}" for v in row.values()) + " |" for label, row in rows.items()),
+        markdown_table(
+            ["checkpoint", *names], ([label, *(f"{v:.4g}" for v in row.values())] for label, row in rows.items())
+        ),
     ]
     text = "\n".join(lines) + "\n"
     print(text)
