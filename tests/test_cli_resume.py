@@ -233,3 +233,12 @@ def test_lcreg_fit_stopped_by_sigterm_exits_143_and_keeps_its_last_checkpoint(tm
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 143, stderr[-2000:]
     assert "training stopped by SIGTERM; `--ckpt_path last` resumes it" in stderr and last.is_file()
+
+
+def test_a_finished_run_resumed_with_ckpt_path_last_keeps_its_metrics_file(tmp_path: Path) -> None:
+    """Before: the resumed run trained no step and logged nothing, so its metrics.csv was left renamed to a segment."""
+    done = _fit(tmp_path / "done")
+    before = (done / "metrics.csv").read_text(encoding="utf-8")
+    _fit(tmp_path / "done", "--ckpt_path", "last")
+    assert sorted(path.name for path in done.glob("metrics*.csv")) == ["metrics.csv"]
+    assert (done / "metrics.csv").read_text(encoding="utf-8") == before

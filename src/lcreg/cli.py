@@ -238,10 +238,17 @@ class LcregCLI(LightningCLI):
     _checkpoint_keys: list[str] | None = None
     _explicit_model_args: frozenset[str] = frozenset()
     _pretrained: Any = None  # the --weights file read by _configure_from_weights (a PretrainedWeights)
+    _kept_metrics: Path | None = None  # the earlier metrics.csv of a resumed run (keep_previous_metrics)
 
     def before_fit(self) -> None:
         """Say where the run logs and checkpoints (the folder changes with every run: ``version_<k>``)."""
         rank_zero_info(f"lcreg: this run logs to {self.trainer.log_dir}")
+
+    def after_fit(self) -> None:
+        """A resumed run that logged nothing (resumed at its step cap) keeps its ``metrics.csv`` as it was."""
+        from lcreg.resume import restore_unlogged_metrics
+
+        restore_unlogged_metrics(self._kept_metrics)
 
     def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
         """Parse ``args``: arguments, a dict, or :class:`ConfigLayers` (:func:`instantiate`).
@@ -318,7 +325,7 @@ class LcregCLI(LightningCLI):
         rank_zero_info(f"lcreg: resuming from {last.path}")
         if subcommand == "fit" and last.version is not None:
             trainer["logger"]["init_args"]["version"] = last.version
-            kept = keep_previous_metrics(last.path.parent.parent)
+            kept = self._kept_metrics = keep_previous_metrics(last.path.parent.parent)
             if kept is not None:
                 rank_zero_info(f"lcreg: the earlier metrics of this run are kept in {kept}")
         return str(last.path)

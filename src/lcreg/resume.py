@@ -24,6 +24,7 @@ __all__ = [
     "best_checkpoint_of",
     "find_last_checkpoint",
     "keep_previous_metrics",
+    "restore_unlogged_metrics",
     "set_aside_metrics",
 ]
 
@@ -152,6 +153,19 @@ def keep_previous_metrics(log_dir: Path) -> Path | None:
         n += 1
     metrics.rename(target)
     return target
+
+
+def restore_unlogged_metrics(kept: Path | None) -> None:
+    """Undo :func:`keep_previous_metrics` when the resumed run logged nothing (no new ``metrics.csv``).
+
+    A run resumed at its step cap (or stopped before its first log) trains no step: the renamed file goes back to
+    ``metrics.csv`` instead of leaving the run without one and a segment that duplicates the earlier file.
+
+    Args:
+        kept: What :func:`keep_previous_metrics` returned.
+    """
+    if kept is not None and kept.is_file() and not (metrics := kept.parent / "metrics.csv").exists():
+        kept.rename(metrics)
 
 
 def set_aside_metrics(log_dir: Path) -> Path | None:

@@ -282,6 +282,21 @@ def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path:
     assert last_checkpoint(tmp_path / "nothing") is None
 
 
+def test_a_run_resumed_at_its_cap_keeps_one_metrics_file(tmp_path: Path) -> None:
+    # A finished run started again (a queue restarted after the run's last step, before its row) trains no step and
+    # logs nothing: its metrics.csv stays as it was, not renamed to a segment that the next sync copies beside the
+    # committed metrics.csv it duplicates.
+    data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
+    run = converge_overrides(max_steps=2, val_every=2, patience=50, run_dir=tmp_path, name="r")
+    first = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    log_dir = Path(first.trainer.log_dir or "")
+    before = (log_dir / "metrics.csv").read_text(encoding="utf-8")
+    again = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    assert again.trainer.global_step == 2
+    assert sorted(p.name for p in log_dir.glob("metrics*.csv")) == ["metrics.csv"]
+    assert (log_dir / "metrics.csv").read_text(encoding="utf-8") == before
+
+
 def test_a_run_started_again_sets_aside_the_curve_of_a_lost_run(tmp_path: Path) -> None:
     # A new machine restores a run's committed metrics files but not its checkpoints: the run starts from scratch,
     # and the lost run's rows must not be read as earlier segments of the new curve.

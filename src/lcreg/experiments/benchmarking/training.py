@@ -205,7 +205,7 @@ def fit(
     """
     from lcreg.callbacks import TrainingClock
     from lcreg.models.base import RegistrationModule
-    from lcreg.resume import keep_previous_metrics, set_aside_metrics
+    from lcreg.resume import keep_previous_metrics, restore_unlogged_metrics, set_aside_metrics
 
     cli = build_cli_for(name, configs, values)
     callback = cli.trainer.checkpoint_callback
@@ -216,8 +216,9 @@ def fit(
         raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
     log_dir = Path(cli.trainer.log_dir or cli.trainer.default_root_dir)
     start = last_checkpoint(log_dir) if resume else None
+    kept = None
     if start is not None:
-        keep_previous_metrics(log_dir)
+        kept = keep_previous_metrics(log_dir)
     else:  # from scratch: a lost run's curve in this folder is not an earlier segment of this one
         set_aside_metrics(log_dir)
         if validate_first:
@@ -230,6 +231,8 @@ def fit(
         if stop.code not in (None, 0):
             raise
         raise SystemExit(TERMINATED_EXIT_CODE) from stop
+    finally:
+        restore_unlogged_metrics(kept)
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")
