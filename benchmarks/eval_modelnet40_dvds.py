@@ -46,7 +46,7 @@ from lcreg.experiments.benchmarking import (
     machine_line,
     mean_std_row,
     output_path,
-    pair_batches,
+    pair_batches_and_classes,
     report_table,
     write_text,
 )
@@ -58,6 +58,8 @@ from lcreg.types import RegistrationBatch
 from lcreg.weights.export import save
 
 SMOKE = {"num_points": 64, "batch_size": 2, "pairs": 2, "init_seeds": [0, 1], "icp_distances": [0.2], "refine": True}
+PairColumns = dict[str, list[str]]
+"""Per-pair columns of ``--pairs-csv`` beside the errors, by name: ``centroid_offset`` and ``class``."""
 
 
 def icp(distance: float) -> RegistrationModule:
@@ -130,8 +132,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--pairs-csv",
         default=None,
-        help="also write every row's per-pair errors (sigma, row, pair, rre_deg, rte, centroid_offset) to this CSV "
-        "file, e.g. for an original's success-conditional means",
+        help="also write every row's per-pair errors (sigma, row, pair, rre_deg, rte, centroid_offset, class: the "
+        "pair's object class, empty without labels) to this CSV file, e.g. for an original's success-conditional "
+        "means or failures by class",
     )
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
@@ -161,19 +164,20 @@ def learned(
     return build(method, checkpoint, configs=configs, values={**seeded, **cli_args("model", model_args or {})})
 
 
-def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[RegistrationBatch], str]:
-    """The deterministic ``--split`` pairs at noise ``sigma`` and a description of their source."""
+def evaluation_pairs(args: argparse.Namespace, sigma: float) -> tuple[list[RegistrationBatch], str, list[str] | None]:
+    """The deterministic ``--split`` pairs at noise ``sigma``, a description of their source and every pair's class
+    (``None`` without labels)."""
     options = {"protocol": args.protocol, "noise_sigma": sigma, "seed": args.seed}
     if args.same_points:
         options["independent_sampling"] = False
     if args.root is not None:  # the synthetic shapes have no validation objects to draw from
         options["val_pairs_per_object"] = args.val_pairs
-    batches, source = pair_batches(
+    batches, source, classes = pair_batches_and_classes(
         args.root, args.split, args.pairs, num_points=args.num_points, batch_size=args.batch_size, **options
     )
     if args.from_truth:
-        return [at_truth(batch) for batch in batches], f"{source}, each source moved to its true pose"
-    return batches, source
+        return [at_truth(batch) for batch in batches], f"{source}, each source moved to its true pose", classes
+    return batches, source, classes
 
 
 def at_truth(batch: RegistrationBatch) -> RegistrationBatch:
@@ -202,10 +206,10 @@ def centroid_offsets(batches: Sequence[RegistrationBatch]) -> list[float]:
     return offsets
 
 
-def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport], list[float]]:
-    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``, its rows' reports and the pairs' centroid
-    offsets (:func:`centroid_offsets`)."""
-    batches, source = evaluation_pairs(args, sigma)
+def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport], PairColumns]:
+    """The Markdown table (rows, then mean ± std rows) at noise ``sigma``, its rows' reports and the pairs' own
+    columns: centroid offset (:func:`centroid_offsets`) and class."""
+    batches, source, classes = evaluation_pairs(args, sigma)
     reports: list[EvaluationReport] = []
     groups: list[tuple[list[EvaluationReport], str]] = []
     for refine in (False, True) if args.refine else (False,):
@@ -244,20 +248,23 @@ def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationR
         f"batch {args.batch_size}, {machine_line()}\n"
     )
     rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
-    return header + "\n" + rows + "\n", reports, centroid_offsets(batches)
+    offsets = [f"{c:.6g}" for c in centroid_offsets(batches)]
+    return header + "\n" + rows + "\n", reports, {"centroid_offset": offsets, "class": classes or [""] * len(offsets)}
 
 
-def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport], list[float]]]) -> Path:
-    """Every report's per-pair rotation (degrees) and translation errors and the pair's centroid offset, one line per
-    pair, under ``sigma,row``."""
+def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport], PairColumns]]) -> Path:
+    """Every report's per-pair rotation (degrees) and translation errors and the pair's own columns
+    (:data:`PairColumns`), one line per pair, under ``sigma,row``."""
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(["sigma", "row", "pair", "rre_deg", "rte", "centroid_offset"])
-    for sigma, reports, offsets in tables:
+    names = list(tables[0][2]) if tables else []
+    writer.writerow(["sigma", "row", "pair", "rre_deg", "rte", *names])
+    for sigma, reports, columns in tables:
+        per_pair = list(zip(*(columns[name] for name in names), strict=True))
         for report in reports:
-            errors = zip(report.rotation_error_deg.tolist(), report.translation_error.tolist(), offsets, strict=True)
+            errors = zip(report.rotation_error_deg.tolist(), report.translation_error.tolist(), per_pair, strict=True)
             writer.writerows(
-                [sigma, report.name, i, f"{r:.6g}", f"{t:.6g}", f"{c:.6g}"] for i, (r, t, c) in enumerate(errors)
+                [sigma, report.name, i, f"{r:.6g}", f"{t:.6g}", *own] for i, (r, t, own) in enumerate(errors)
             )
     return write_text(path, text.getvalue())
 
@@ -270,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.out:
         write_text(args.out, text)
     if args.pairs_csv:
-        rows = [(sigma, reports, offsets) for sigma, (_, reports, offsets) in tables.items()]
+        rows = [(sigma, reports, columns) for sigma, (_, reports, columns) in tables.items()]
         print(f"wrote {write_pairs_csv(args.pairs_csv, rows)}")
 
 

@@ -16,6 +16,8 @@ from types import ModuleType
 import pytest
 import torch
 
+from lcreg.data.synthetic import PRIMITIVES
+
 from _shared_data import shared_data  # type: ignore[import-not-found]
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
@@ -97,7 +99,7 @@ def test_eval_val_pairs_draws_the_converge_budgets_validation_pairs() -> None:
     sizes = {}
     for per_object in (1, 4):
         args = script.parse(["--ckpt", "x.ckpt", "--root", str(root), "--split", "val", "--val-pairs", str(per_object)])
-        batches, _ = script.evaluation_pairs(args, 0.0)
+        batches, _, _ = script.evaluation_pairs(args, 0.0)
         sizes[per_object] = sum(b.points_src.shape[0] for b in batches)
     assert sizes == {1: 78, 4: 312}
 
@@ -108,11 +110,15 @@ def test_eval_pairs_csv_holds_each_rows_per_pair_errors_that_make_its_table_valu
     out, pairs = tmp_path / "t.md", tmp_path / "pairs.csv"
     script.main(["--smoke", "--out", str(out), "--pairs-csv", str(pairs), "--noise-sigma", "0", "0.01"])
     errors: dict[tuple[str, str], list[float]] = {}
-    offsets: dict[str, set[tuple[str, str]]] = {}
+    offsets: dict[str, set[tuple[str, str, str]]] = {}
     for line in csv.DictReader(pairs.open()):
         errors.setdefault((line["sigma"], line["row"]), []).append(float(line["rre_deg"]))
-        offsets.setdefault(line["sigma"], set()).add((line["pair"], line["centroid_offset"]))
-    assert all(len(pairs_of_sigma) == 2 for pairs_of_sigma in offsets.values())  # one offset per pair, every row
+        offsets.setdefault(line["sigma"], set()).add((line["pair"], line["centroid_offset"], line["class"]))
+    # One offset and one class per pair, in every row; the class is the datamodule's for the pair's object.
+    assert all(len(pairs_of_sigma) == 2 for pairs_of_sigma in offsets.values())
+    _, _, classes = script.evaluation_pairs(script.parse(["--smoke"]), 0.0)
+    assert classes is not None and len(classes) == 2 and set(classes) <= set(PRIMITIVES)  # the synthetic kinds
+    assert {(pair, cls) for pair, _, cls in offsets["0.0"]} == {(str(i), c) for i, c in enumerate(classes)}
     table, sigma, column = {}, "", 0
     for line in out.read_text().splitlines():
         if "noise sigma" in line:

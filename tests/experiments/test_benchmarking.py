@@ -17,6 +17,7 @@ import lcreg
 import lcreg.experiments.evaluation
 from lcreg.cli import expand_configs
 from lcreg.config import ConfigValueError
+from lcreg.data.synthetic import PRIMITIVES
 from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     DATA_CONFIGS,
@@ -42,6 +43,7 @@ from lcreg.experiments.benchmarking import (
     method_layers,
     output_path,
     pair_batches,
+    pair_batches_and_classes,
     peak_memory_mib,
     peak_rss_increase_mib,
     read_metrics,
@@ -59,6 +61,8 @@ from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationResult
 from lcreg.weights import training_only
 from lcreg.weights.export import save
+
+from _shared_data import shared_data  # type: ignore[import-not-found]
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
 
@@ -399,6 +403,21 @@ def test_pair_batches_keep_the_first_pairs() -> None:
     assert batches[1].points_src.shape == (1, 16, 3) and batches[1].transform_ref_src.shape == (1, 4, 4)
     val, _ = pair_batches(None, "val", pairs=2, num_points=16, batch_size=4)
     assert [len(b) for b in val] == [2]
+
+
+def test_pair_classes_follow_the_pairs_of_a_labelled_split() -> None:
+    # Synthetic: a shape's class is the kind of its first primitive, one per pair, in pair order.
+    batches, _, classes = pair_batches_and_classes(None, pairs=3, num_points=16, batch_size=2)
+    assert classes is not None and len(classes) == sum(len(b) for b in batches) == 3
+    assert set(classes) <= set(PRIMITIVES)
+
+
+def test_modelnet40_pair_classes_are_of_object_k_mod_the_objects() -> None:
+    # Pair k of the 312 validation pairs is object k mod 78 (session 21 read DVDs' failures by class).
+    root = shared_data("modelnet40_mini")
+    val, _, names = pair_batches_and_classes(str(root), "val", num_points=64, batch_size=16, val_pairs_per_object=4)
+    assert names is not None and len(names) == sum(len(b) for b in val) == 312
+    assert names[75] == names[153] == names[231] == names[309] == "bowl" and names[184] == "airplane"
 
 
 def test_training_loss_includes_injected_local_consistency() -> None:

@@ -31,7 +31,13 @@ from lcreg.experiments.benchmarking.curves import (
     summary_table,
     write_synthetic_metrics,
 )
-from lcreg.experiments.benchmarking.data import pair_batches, split_batches, synthetic_options, synthetic_overrides
+from lcreg.experiments.benchmarking.data import (
+    pair_batches,
+    pair_batches_and_classes,
+    split_batches,
+    synthetic_options,
+    synthetic_overrides,
+)
 from lcreg.experiments.benchmarking.measure import (
     RegistrationSpeed,
     Timing,
@@ -135,6 +141,7 @@ __all__ = [
     "method_layers",
     "output_path",
     "pair_batches",
+    "pair_batches_and_classes",
     "peak_memory_mib",
     "peak_rss_increase_mib",
     "peak_rss_mib",

@@ -4,14 +4,24 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import fields, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from lightning.pytorch import LightningDataModule
 
 from lcreg.experiments.benchmarking.registry import Values
 from lcreg.types import RegistrationBatch
 
-__all__ = ["SYNTHETIC_DATA", "pair_batches", "split_batches", "synthetic_options", "synthetic_overrides"]
+if TYPE_CHECKING:
+    from lcreg.data.datamodule import PairDataModule
+
+__all__ = [
+    "SYNTHETIC_DATA",
+    "pair_batches",
+    "pair_batches_and_classes",
+    "split_batches",
+    "synthetic_options",
+    "synthetic_overrides",
+]
 
 SYNTHETIC_DATA = "lcreg.data.datamodule.SyntheticDataModule"
 Split = Literal["val", "test"]
@@ -72,9 +82,27 @@ def pair_batches(
     Returns:
         The batches and a description of their source.
     """
+    batches, source, _ = pair_batches_and_classes(root, split, pairs, num_points, batch_size, protocol, **options)
+    return batches, source
+
+
+def pair_batches_and_classes(
+    root: str | None,
+    split: Split = "test",
+    pairs: int | None = None,
+    num_points: int = 1024,
+    batch_size: int = 16,
+    protocol: Protocol = "unseen_objects",
+    **options: Any,
+) -> tuple[list[RegistrationBatch], str, list[str] | None]:
+    """:func:`pair_batches` and the class of every pair's object, in pair order (``None`` without labels).
+
+    The class is :meth:`~lcreg.data.datamodule.PairDataModule.pair_classes`'s (its name, else its label), so that
+    failures can be read per class (e.g. shapes with an axis of symmetry).
+    """
     from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
 
-    dm: LightningDataModule
+    dm: PairDataModule
     if root is None:
         sizes = synthetic_options(pairs, num_points, batch_size) if pairs else {"num_points": num_points}
         dm = SyntheticDataModule(**{**sizes, "batch_size": batch_size, **options})
@@ -82,7 +110,19 @@ def pair_batches(
     else:
         dm = ModelNet40DataModule(root, protocol, num_points=num_points, batch_size=batch_size, **options)
         source = f"ModelNet40 {root} ({protocol.replace('_', ' ')} {split} pairs)"
-    return _first_pairs(split_batches(dm, split), pairs), source
+    batches = _first_pairs(split_batches(dm, split), pairs)
+    return batches, source, _classes(dm, split, batches)
+
+
+def _classes(dm: PairDataModule, split: Split, batches: list[RegistrationBatch]) -> list[str] | None:
+    """The class of every pair of ``batches`` (``None`` when the split has no labels or a batch no indices)."""
+    classes: list[str] = []
+    for batch in batches:
+        names = None if batch.index is None else dm.pair_classes(split, batch.index)
+        if names is None:
+            return None
+        classes += names
+    return classes
 
 
 def _first_pairs(batches: Iterable[RegistrationBatch], pairs: int | None) -> list[RegistrationBatch]:
