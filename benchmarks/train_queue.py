@@ -45,8 +45,9 @@ RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
 """Small files copied from a job's run folder (checkpoints only as :func:`keep_resume` and :func:`keep_best` do)."""
 RESUME_MAX_BYTES = 8 * 2**20
 """Largest checkpoint folder :func:`keep_resume` keeps: IDAM's (2.4 MB) is kept; DeepGMR's (about 35 MB: 1.5 M
-parameters with Adam's state, in ``last.ckpt`` and the selected checkpoint) and DVDs' (40 MB) are not, as every sync
-commit would add them to the history; their runs resume only on a machine that kept the run folder."""
+parameters with Adam's state, in ``last.ckpt`` and the selected checkpoint) and DVDs' (23 MB; 40 MB before its frozen
+LC metric was left out of checkpoints) are not, as every sync commit would add them to the history; their runs resume
+only on a machine that kept the run folder."""
 LCREG_MAIN = "import sys; from lcreg.__main__ import main; sys.argv[0] = 'lcreg'; main()"
 """``lcreg`` as a ``python -c`` program (the console script of whichever lcreg the interpreter imports)."""
 SMOKE_QUEUE = """

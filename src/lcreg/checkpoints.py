@@ -138,11 +138,16 @@ def check_class(path: str | Path, checkpoint: dict[str, Any], class_path: str) -
 def check_keys(path: str | Path, keys: Iterable[str], model: torch.nn.Module) -> None:
     """Refuse a ``state_dict`` whose keys differ from ``model``'s (another architecture or configuration).
 
+    A key the model does not save but loads, a parameter left out of its ``state_dict()`` (a frozen LC metric, which
+    its seed rebuilds: :class:`lcreg.nn.local_consistency.LocalConsistency`), is not unexpected: older checkpoints
+    hold it.
+
     Raises:
         CheckpointMismatchError: Naming the model class and a few missing/unexpected keys.
     """
     saved, expected = set(keys), set(model.state_dict())
-    missing, unexpected = sorted(expected - saved), sorted(saved - expected)
+    loadable = expected | {name for name, _ in model.named_parameters()}
+    missing, unexpected = sorted(expected - saved), sorted(saved - loadable)
     if not missing and not unexpected:
         return
     parts = [

@@ -143,10 +143,10 @@ def test_hosts_save_their_arguments_and_bind_terms_without_ritual_calls() -> Non
 
     host = _Host(width=16, loss_terms=[LocalConsistencyLoss()], max_bad_steps=3)
     assert dict(host.hparams) == {"width": 16, "max_bad_steps": 3}  # the components are never hyper-parameters
-    assert host.state_dict()["loss_terms.0.local_consistency.metric.weight"].shape == (16, 32)  # bound after __init__
+    assert host.loss_terms[0].local_consistency.metric.weight.shape == (16, 32)  # bound after __init__
     wider = _WiderHost(extra=2, loss_terms=[LocalConsistencyLoss()])
     assert dict(wider.hparams) == {"extra": 2}  # the outermost constructor's arguments: what rebuilds it
-    assert wider.state_dict()["loss_terms.0.local_consistency.metric.weight"].shape == (8, 16)
+    assert wider.loss_terms[0].local_consistency.metric.weight.shape == (8, 16)
     assert type(wider)(**wider.hparams).encoder.feature_dim == 8
 
 

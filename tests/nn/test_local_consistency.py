@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import io
+
 import numpy as np
 import pytest
 import torch
@@ -279,6 +281,32 @@ def test_metric_initialisation_is_seeded_and_leaves_the_global_rng_alone() -> No
     bound = 1 / 16**0.5
     assert a.metric.weight.abs().max() <= bound and a.metric.bias.abs().max() <= bound
     assert a.metric.weight.std() > 0.5 * bound / 3**0.5  # uniform(-b, b) has std b/sqrt(3)
+
+
+def test_a_frozen_metric_is_left_out_of_the_state_dict_and_rebuilt_from_its_seed() -> None:
+    """A frozen metric is a function of the seed and width: checkpoints do not store it (8.4 MB for DVDs' 1024
+    channels), a state dict without it loads strictly and gives the same loss; a trainable metric is stored."""
+    encoder = PointNetEncoder([16, 24], batch_norm=False)
+    src, ref, _ = _clouds()
+    src, ref = src.float(), ref.float()
+    saved = LocalConsistency(feature_dim=24, num_local_points=16, metric_seed=3)
+    state = saved.state_dict()
+    assert not any(key.startswith("metric.") for key in state)
+    torch.save(state, buffer := io.BytesIO())
+    assert buffer.tell() < 2_000  # no 48 x 24 matrix in it
+    loaded = LocalConsistency(feature_dim=24, num_local_points=16, metric_seed=3)
+    loaded.load_state_dict(torch.load(io.BytesIO(buffer.getvalue())), strict=True)
+    torch.testing.assert_close(loaded(encoder, src, ref), saved(encoder, src, ref), rtol=0, atol=0)
+    trainable = LocalConsistency(feature_dim=24, num_local_points=16, trainable_metric=True)
+    assert {"metric.weight", "metric.bias"} <= set(trainable.state_dict())
+
+
+def test_a_state_dict_that_holds_the_metric_still_loads_it() -> None:
+    """Checkpoints written before the frozen metric was left out hold it; their values are loaded as before."""
+    older = {"metric.weight": torch.full((24, 48), 0.5), "metric.bias": torch.zeros(24)}
+    lc = LocalConsistency(feature_dim=24, num_local_points=16)
+    lc.load_state_dict(older, strict=True)
+    torch.testing.assert_close(lc.metric.weight, older["metric.weight"])
 
 
 def test_estimate_pairing_refuses_a_transform_that_is_not_rigid() -> None:
