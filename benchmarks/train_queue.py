@@ -17,7 +17,9 @@ committed copies of its result logs are restored into an empty run folder, so it
 run in progress when a session ended resumes from the checkpoints ``sync`` kept in ``<results>/<id>/resume/`` (when
 they are small enough, :data:`RESUME_MAX_BYTES`; otherwise it starts again). For a job with ``keep_best = true``
 ``sync`` also writes the slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the
-runs whose weights may ship).
+runs whose weights may ship). For a job with a ``test_command`` (``{checkpoint}``: a finished run's selected
+checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``) ``sync`` runs it once per finished run, so that a
+baseline's test outlives its run folder where its weights are too large to keep.
 """
 
 from __future__ import annotations
@@ -72,6 +74,13 @@ class Job:
     cap_hours: float | None = None
     gpu_hours: float = 0.0
     keep_best: bool = False
+    test_command: str | None = None
+
+    def test_argv(self, checkpoint: Path, out: Path) -> list[str]:
+        """:attr:`test_command` for one finished run (``{checkpoint}``, ``{out}``: the path stem of its outputs), run by
+        this interpreter as :meth:`executable` runs the job's command."""
+        words = shlex.split((self.test_command or "").format(checkpoint=checkpoint, out=out))
+        return [*INTERPRETERS.get(words[0], words[:1]), *words[1:]]
 
     def argv(self, runs: Path, results: Path) -> list[str]:
         """The command's arguments with ``{runs}``/``{results}`` filled in (``python`` and ``lcreg`` as written)."""
@@ -83,11 +92,13 @@ class Job:
         adds ``--jobs`` to an ``lcreg reproduce`` sweep or a ``learning_curves.py`` job (runs at once, e.g. on a
         GPU)."""
         words = self.argv(runs, results)
-        head = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}.get(words[0], words[:1])
+        head = INTERPRETERS.get(words[0], words[:1])
         parallel = ["--jobs", str(jobs)] if jobs > 1 and words[:2] in PARALLEL_COMMANDS else []
         return [*head, *words[1:], *parallel]
 
 
+INTERPRETERS = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}
+"""How a command's first word runs: ``python`` is this interpreter, ``lcreg`` its ``lcreg.__main__``."""
 PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_curves.py"])
 """Commands that take ``--jobs`` (the first two words of a job's command)."""
 
@@ -117,8 +128,8 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     there that is newer than the run folder's (a report rebuilt with ``--report-only``) is kept.
 
     Also keeps the resume state of the run in progress unless the job is ``done`` (default: its ``DONE.json``
-    exists; :func:`keep_resume`), and for a ``keep_best`` job the slim weights of every finished run's selected
-    checkpoint (:func:`keep_best`).
+    exists; :func:`keep_resume`), for a ``keep_best`` job the slim weights of every finished run's selected
+    checkpoint (:func:`keep_best`), and for a job with a ``test_command`` every finished run's test (:func:`keep_test`).
     """
     source, target, count = runs / job.id, results / job.id / "runs", 0
     for pattern in RESULT_FILES:
@@ -135,6 +146,7 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     drop_set_aside(source, target)
     done = (results / job.id / "DONE.json").is_file() if done is None else done
     count += len(keep_resume(source, results / job.id / "resume", done=done))
+    count += len(keep_test(job, source, results / job.id / "test")) if job.test_command else 0
     return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
 
 
@@ -209,6 +221,29 @@ def keep_best(source: Path, target: Path) -> list[Path]:
         metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line(training_device())}
         written.append(export_weights(checkpoint, name, target, metadata=metadata))
     return written
+
+
+def keep_test(job: Job, source: Path, target: Path) -> list[Path]:
+    """Run ``job.test_command`` once for every finished run in ``source/runs.jsonl`` whose selected checkpoint exists
+    and whose ``target/<variant>-seed<k>.md`` does not; returns the files the commands wrote under ``target``.
+
+    For jobs whose selected weights are too large to keep (:func:`keep_best`; iPCRNet's slim weights are 16.9 MB), the
+    test result is what outlives the run folder. A failing command is reported and leaves no ``.md``, so the next
+    sync tries again.
+    """
+    target.mkdir(parents=True, exist_ok=True)
+    before, env = set(target.iterdir()), {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    for row in ResultLog(source / "runs.jsonl").rows if (source / "runs.jsonl").is_file() else ():
+        checkpoint = Path(row.get("best_checkpoint") or "")
+        out = target / f"{row.get('variant')}-seed{row.get('seed')}".lower()
+        if "variant" not in row or out.with_suffix(".md").exists() or not checkpoint.is_file():
+            continue
+        argv = ["nice", "-n", "5", *job.test_argv(checkpoint, out)]
+        print(f"queue: {job.id}: test {shlex.join(argv)}", flush=True)
+        if (code := subprocess.run(argv, cwd=REPO, env=env).returncode) != 0:
+            print(f"queue: {job.id}: test of {out.name} exited {code}; tried again at the next sync", flush=True)
+            out.with_suffix(".md").unlink(missing_ok=True)
+    return sorted(set(target.iterdir()) - before)
 
 
 def merged_rows(first: Path, second: Path) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shlex
@@ -33,6 +34,11 @@ def test_committed_queue_jobs_are_valid_and_their_arguments_parse(tmp_path: Path
         assert script.parent.name == "benchmarks" and (BENCHMARKS / script.name).is_file(), job.id
         args = load(script.stem).parse(argv[2:])
         assert args.patience is not None and args.val_pairs > 1, f"{job.id}: queued runs use the converge budget"
+        if job.test_command:  # the test of each finished run: on the test split, the selected checkpoint, kept outputs
+            words = job.test_argv(tmp_path / "best.ckpt", tmp_path / "out")
+            test = load(Path(words[1]).stem).parse(words[2:])
+            assert test.split == "test" and test.ckpt == [str(tmp_path / "best.ckpt")], job.id
+            assert str(test.out) == str(tmp_path / "out") + ".md" and test.pairs_csv, job.id
 
 
 def test_queue_refuses_bad_files(tmp_path: Path) -> None:
@@ -236,6 +242,34 @@ def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_pat
     Path(row["best_checkpoint"]).unlink()  # a lost run folder: nothing to export, no error, the kept file stays
     assert queue.keep_best(runs / "smoke", res / "smoke" / "best") == []
     assert kept.stat().st_mtime_ns == before
+
+
+def test_a_job_with_a_test_command_tests_each_finished_run_once(tmp_path: Path) -> None:
+    """Weights too large to keep (iPCRNet's) are lost with the run folder: ``test_command`` runs once per finished
+    run at a sync, on its selected checkpoint, and what it writes under ``test/`` is kept; a failing test is retried."""
+    queue = load("train_queue")
+    writer = "import sys, pathlib; pathlib.Path(sys.argv[2] + '.md').write_text(sys.argv[1])"
+    file = tmp_path / "q.toml"
+    file.write_text(
+        queue.SMOKE_QUEUE.replace(
+            "cpu_hours = 0.01", f'cpu_hours = 0.01\ntest_command = """python -c "{writer}" {{checkpoint}} {{out}}"""'
+        )
+    )
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    queue.main(["run", "--queue", str(file), "--runs", str(runs), "--results", str(res)])
+    rows = [json.loads(line) for line in (runs / "smoke" / "runs.jsonl").read_text().splitlines()]
+    tests = res / "smoke" / "test"
+    assert sorted(p.name for p in tests.iterdir()) == sorted(f"{r['variant']}-seed{r['seed']}.md".lower() for r in rows)
+    (row,) = [r for r in rows if r["variant"] == "selfsup"]
+    assert (tests / "selfsup-seed0.md").read_text() == row["best_checkpoint"]
+    before = (tests / "selfsup-seed0.md").stat().st_mtime_ns
+    assert queue.keep_test(job, runs / "smoke", tests) == []  # tested once
+    assert (tests / "selfsup-seed0.md").stat().st_mtime_ns == before
+    failing = dataclasses.replace(job, test_command='python -c "import sys; sys.exit(3)" {checkpoint} {out}')
+    (tests / "selfsup-seed0.md").unlink()
+    assert queue.keep_test(failing, runs / "smoke", tests) == [] and not (tests / "selfsup-seed0.md").exists()
+    assert queue.keep_test(job, runs / "smoke", tests) == [tests / "selfsup-seed0.md"]  # the next sync tries again
 
 
 def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
