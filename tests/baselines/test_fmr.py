@@ -81,6 +81,14 @@ def test_test_time_registration_uses_ten_iterations(batch: RegistrationBatch) ->
     assert model.register(batch.points_src, batch.points_ref).num_iters.tolist() == [10, 10, 10]
 
 
+def test_eval_iterations_sets_the_test_time_solve_and_leaves_training_alone(batch: RegistrationBatch) -> None:
+    model = _model(tolerance=0.0, eval_iterations=3, pose_weight=1.0)
+    assert model.register(batch.points_src, batch.points_ref).num_iters.tolist() == [3, 3, 3]
+    assert model.train()(batch.points_src, batch.points_ref).num_iters.tolist() == [10, 10, 10]
+    with pytest.raises(ValueError, match="eval_iterations"):
+        _model(eval_iterations=0)
+
+
 def test_injected_local_consistency_reaches_the_pointnet_encoder(batch: RegistrationBatch) -> None:
     check_local_consistency_gradient(lambda terms: _model(loss_terms=terms), batch)
 

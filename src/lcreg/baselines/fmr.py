@@ -49,6 +49,7 @@ class FMRNet(LucasKanadeModule):
         encoder_channels: PointNet widths (original: 64, 64, 64, 128, 1024).
         batch_norm: BatchNorm in the encoder (original: yes).
         max_iterations: IC-LK iterations, training and test (original: 10).
+        eval_iterations: IC-LK iterations at validation/test/predict (``None``: ``max_iterations``, the original).
         tolerance: Stopping threshold on ``||dxi||`` (original: 1e-7).
         damping: Relative damping of ``J^T J``.
         jacobian: ``"finite_difference"`` (original), ``"analytic"`` or ``"autodiff"``.
@@ -67,6 +68,7 @@ class FMRNet(LucasKanadeModule):
         encoder_channels: Sequence[int] = (64, 64, 64, 128, 1024),
         batch_norm: bool = True,
         max_iterations: int = 10,
+        eval_iterations: int | None = None,
         tolerance: float = 1e-7,
         damping: float = 1e-6,
         jacobian: JacobianMode = "finite_difference",
@@ -80,7 +82,7 @@ class FMRNet(LucasKanadeModule):
             encoder_channels,
             batch_norm,
             max_iterations,
-            None,
+            eval_iterations,
             tolerance,
             damping,
             jacobian,
