@@ -58,7 +58,9 @@ the reference initialisation's Chamfer descent ends at rotations 90-180 deg away
 ``pcrnet_idinit_lr1e-4`` the same at the original TensorFlow code's lr 1e-4 (at 1e-3, 2 of 3 runs collapsed to one
 constant update with dead ReLUs, ``benchmarks/pcrnet_collapse.py``), ``fmr_semi`` is FMR-Net's semi-supervised
 variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its reconstruction
-alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves). ``prnet`` is PRNet as
+alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves), ``fmr_tw100`` is
+FMR-Net with ``selfsup_tw100``'s self-motion term added to its reconstruction (label-free; a goal (c) probe: FMR-Net's
+descriptor keeps more pairs at the true pose than DVDs', its solve falls into more wrong basins). ``prnet`` is PRNet as
 in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
 ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
 rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the converge budget got
@@ -147,6 +149,14 @@ def recipe_with(*extra_motions: Mapping[str, Any], **self_motion: float) -> Vari
     return Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": terms})
 
 
+SELF_MOTION_TW100 = {
+    "class_path": "lcreg.models.loss_terms.SelfMotionLoss",
+    "init_args": {**RECIPE_SELF_MOTION, "translation_weight": 100.0},
+}
+"""``selfsup_tw100``'s self-motion term alone, for a host other than DVDs (``fmr_tw100``: FMR-Net's reconstruction
+plus the term; its descriptor's fixed point is less biased than DVDs', its wrong-basin tail worse)."""
+
+
 STATIONARITY = {
     "class_path": "lcreg.models.loss_terms.SelfMotionStationarityLoss",
     "init_args": {**RECIPE_SELF_MOTION, "translation_weight": 100.0},
@@ -190,6 +200,7 @@ VARIANTS: dict[str, Variant] = {
     ),
     "fmr": Variant("fmr"),
     "fmr_semi": Variant("fmr", overrides={"model.init_args.pose_weight": 1.0}),
+    "fmr_tw100": Variant("fmr", overrides={"model.init_args.loss_terms": [SELF_MOTION_TW100]}),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
     "pointnetlk_nobn_steplr": Variant(
         "pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK, **HALVE_EVERY_5_EPOCHS}

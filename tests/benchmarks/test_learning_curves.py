@@ -54,6 +54,11 @@ def test_variant_values_build_their_models() -> None:
     assert cli("pcrnet").model.hparams.identity_init is False
     assert cli("pcrnet_idinit").model.hparams.identity_init is True
     assert cli("fmr").model.hparams.pose_weight == 0 and cli("fmr_semi").model.hparams.pose_weight == 1.0
+    hybrid = cli("fmr_tw100").model  # FMR-Net's own config and loss, plus the recipe's self-motion term
+    assert type(hybrid).__name__ == "FMRNet" and hybrid.hparams.pose_weight == 0
+    assert [(type(t).__name__, t.translation_weight, t.max_angle_deg) for t in hybrid.loss_terms] == [
+        ("SelfMotionLoss", 100.0, 45.0)
+    ]
 
 
 def test_recipe_levers_change_only_their_self_motion_argument() -> None:
