@@ -60,8 +60,9 @@ constant update with dead ReLUs, ``benchmarks/pcrnet_collapse.py``), ``fmr_semi`
 variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its reconstruction
 alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves), ``fmr_tw100`` is
 FMR-Net with ``selfsup_tw100``'s self-motion term added to its reconstruction (label-free; a goal (c) probe: FMR-Net's
-descriptor keeps more pairs at the true pose than DVDs', its solve falls into more wrong basins). ``prnet`` is PRNet as
-in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
+descriptor keeps more pairs at the true pose than DVDs', its solve falls into more wrong basins); ``selfsup_tw100_bn``
+is ``selfsup_tw100`` with FMR-Net's BatchNorm in the encoder (the other candidate for that difference). ``prnet`` is
+PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
 ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
 rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the converge budget got
 worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the
@@ -164,10 +165,15 @@ STATIONARITY = {
 """The fixed-point term on the recipe's self-motion pairs, translation weighted as ``selfsup_tw100``'s."""
 
 
+def with_overrides(variant: Variant, overrides: Mapping[str, Any]) -> Variant:
+    """``variant`` with more (or changed) configuration values."""
+    return variant._replace(overrides={**variant.overrides, **overrides})
+
+
 def plus_terms(variant: Variant, *terms: Mapping[str, Any]) -> Variant:
     """``variant`` (a :func:`recipe_with` one) with more loss terms appended after its own."""
     own = variant.overrides["model.init_args.loss_terms"]
-    return variant._replace(overrides={**variant.overrides, "model.init_args.loss_terms": [*own, *map(dict, terms)]})
+    return with_overrides(variant, {"model.init_args.loss_terms": [*own, *map(dict, terms)]})
 
 
 VARIANTS: dict[str, Variant] = {
@@ -192,6 +198,7 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw400": recipe_with(translation_weight=400.0),
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
+    "selfsup_tw100_bn": with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True}),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),

@@ -33,6 +33,9 @@ def test_variant_values_build_their_models() -> None:
     ]
     assert [t.translation_weight for t in stat.loss_terms[1:]] == [100.0, 100.0]
     assert cli("selfsup_tw100").config["model"]["init_args"]["loss_terms"][-1]["class_path"].endswith("SelfMotionLoss")
+    bn, plain = cli("selfsup_tw100_bn"), cli("selfsup_tw100")  # the same recipe, BatchNorm in the encoder
+    assert bn.model.hparams.batch_norm is True and plain.model.hparams.batch_norm is False
+    assert bn.config["model"]["init_args"]["loss_terms"] == plain.config["model"]["init_args"]["loss_terms"]
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
