@@ -150,10 +150,7 @@ def recipe_with(*extra_motions: Mapping[str, Any], **self_motion: float) -> Vari
     return Variant("dvds_selfsup", overrides={"model.init_args.loss_terms": terms})
 
 
-SELF_MOTION_TW100 = {
-    "class_path": "lcreg.models.loss_terms.SelfMotionLoss",
-    "init_args": {**RECIPE_SELF_MOTION, "translation_weight": 100.0},
-}
+SELF_MOTION_TW100 = recipe_with(translation_weight=100.0).overrides["model.init_args.loss_terms"][-1]
 """``selfsup_tw100``'s self-motion term alone, for a host other than DVDs (``fmr_tw100``: FMR-Net's reconstruction
 plus the term; its descriptor's fixed point is less biased than DVDs', its wrong-basin tail worse)."""
 

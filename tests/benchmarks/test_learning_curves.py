@@ -57,7 +57,9 @@ def test_variant_values_build_their_models() -> None:
     assert cli("pcrnet").model.hparams.identity_init is False
     assert cli("pcrnet_idinit").model.hparams.identity_init is True
     assert cli("fmr").model.hparams.pose_weight == 0 and cli("fmr_semi").model.hparams.pose_weight == 1.0
-    hybrid = cli("fmr_tw100").model  # FMR-Net's own config and loss, plus the recipe's self-motion term
+    hybrid = cli("fmr_tw100").model  # FMR-Net's own config and loss, plus selfsup_tw100's self-motion term
+    tw100_terms = cli("selfsup_tw100").config["model"]["init_args"]["loss_terms"]
+    assert cli("fmr_tw100").config["model"]["init_args"]["loss_terms"] == tw100_terms[-1:]
     assert type(hybrid).__name__ == "FMRNet" and hybrid.hparams.pose_weight == 0
     assert [(type(t).__name__, t.translation_weight, t.max_angle_deg) for t in hybrid.loss_terms] == [
         ("SelfMotionLoss", 100.0, 45.0)
