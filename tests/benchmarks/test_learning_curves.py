@@ -36,6 +36,12 @@ def test_variant_values_build_their_models() -> None:
     bn, plain = cli("selfsup_tw100_bn"), cli("selfsup_tw100")  # the same recipe, BatchNorm in the encoder
     assert bn.model.hparams.batch_norm is True and plain.model.hparams.batch_norm is False
     assert bn.config["model"]["init_args"]["loss_terms"] == plain.config["model"]["init_args"]["loss_terms"]
+    paper_fmr, paper = cli("model_D_bn_lr1e-3"), cli("model_D")  # model D with FMR-Net's BatchNorm and lr
+    assert paper_fmr.model.hparams.batch_norm is True and paper.model.hparams.batch_norm is False
+    lrs = [c.model.configure_optimizers().param_groups[0]["lr"] for c in (paper_fmr, paper)]
+    assert lrs == [pytest.approx(1e-3), pytest.approx(1e-4)]
+    assert paper_fmr.config["model"]["init_args"]["loss_terms"] == paper.config["model"]["init_args"]["loss_terms"]
+    assert (paper_fmr.model.hparams.lambda_recon, paper_fmr.model.hparams.lambda_normal) == (0.5, 0.1)
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
