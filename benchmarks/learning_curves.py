@@ -35,45 +35,46 @@ plateau); ``--min-steps`` equal to ``--steps`` trains every run to the cap and s
 the committed copy of a queue job's runs); ``--also-runs DIR ...`` adds the finished runs of other run folders to the
 report (e.g. a lever job against the recipe runs of an earlier job).
 
-Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order):
-model A and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
+Variants (same batch 16, pair stream and validation pairs; the ``--seeds`` seed fixes initialisation and order): model A
+and D are the paper's objective exactly as written (``configs/ablation/model_A.yaml``,
 ``configs/dvds_modelnet40.yaml``); the label-free recipe adds :class:`~lcreg.models.loss_terms.SelfMotionLoss`
-(``configs/dvds_selfsup_modelnet40.yaml``); PointNetLK is the supervised control (analytic Jacobian, lr 1e-4,
-gradient clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without BatchNorm (like the DVDs
-encoder: the solve then sees the same function as the training pass), ``pointnetlk_nobn_steplr`` that with the lr
-halved every 5 epochs (its validation mean RRE rose after step 500 at a constant lr). ``selfsup_lr3e-5`` and
-``selfsup_steplr`` are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of issue 23);
-``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the recall
-thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_tw100_fine`` adds to
-``selfsup_tw100`` a second self-motion term on small motions (Euler U[0, 2 deg], t U[-0.02, 0.02], translation
-weighted 100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_tw100_stat`` adds
-to ``selfsup_tw100`` :class:`~lcreg.models.loss_terms.SelfMotionStationarityLoss` on the same kind of pairs
-(translation weighted 100): one IC-LK update started at the known motion should not move (started at the true test
-pose, the shipped DVDs file ends at the recall it reaches from the identity: the descriptor's minimum is biased);
-``selfsup_frac50`` draws its two samplings from half the cloud each (they share half their points, as two
-independent samplings of 1024 of ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet``
-and ``fmr`` are those baselines with their own configs (``configs/models/``), at the batch and points given here;
-``pcrnet_idinit`` starts iPCRNet's every delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``,
-the reference initialisation's Chamfer descent ends at rotations 90-180 deg away, the identity start fits them),
-``pcrnet_idinit_lr1e-4`` the same at the original TensorFlow code's lr 1e-4 (at 1e-3, 2 of 3 runs collapsed to one
-constant update with dead ReLUs, ``benchmarks/pcrnet_collapse.py``), ``fmr_semi`` is FMR-Net's semi-supervised
-variant (the original's ``--train-type 1``: the pose term beside the reconstruction; trained on its reconstruction
-alone, FMR-Net's IC-LK stops registering the fixed pairs, though on unseen pairs it improves), ``fmr_tw100`` is
-FMR-Net with ``selfsup_tw100``'s self-motion term added to its reconstruction (label-free; a goal (c) probe: FMR-Net's
-descriptor keeps more pairs at the true pose than DVDs', its solve falls into more wrong basins); ``selfsup_tw100_bn``
-is ``selfsup_tw100`` with FMR-Net's BatchNorm in the encoder (the other candidate for that difference);
-``model_D_bn_lr1e-3`` is the paper's model D (its objective as written, no self-motion term) with FMR-Net's optimiser
-settings, BatchNorm in the encoder and Adam lr 1e-3 (``configs/models/dvds.yaml`` turned both off on evidence of a
-few hundred steps; FMR-Net with them dips early, then reaches ICP's recall on the test pairs with starts). ``prnet`` is
-PRNet as in ``lcreg reproduce lc`` (``configs/models/prnet.yaml``, the DCP-family pairs of
-``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's batch 36); ``prnet_lr2.2e-4`` scales that learning
-rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3 every PRNet run of the converge budget got
-worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce lc`` (the same pairs), ``dcp_nobn`` the
-same without BatchNorm in its DGCNN: trained on 8 fixed pairs (``benchmarks/overfit.py``), DCP-v2 fits them in
-training mode but not in eval mode, where BatchNorm's running statistics replace the batch's own.
-``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without BatchNorm in its DGCNN and TemperatureNet): evaluated with
-each batch's own statistics, its lr-2.2e-4 checkpoint registers the validation pairs better than in eval mode
-(``docs/results/converge/prnet_lr_256/probes/``). """
+(``configs/dvds_selfsup_modelnet40.yaml``); PointNetLK is the supervised control (analytic Jacobian, lr 1e-4, gradient
+clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without BatchNorm (like the DVDs encoder: the solve
+then sees the same function as the training pass), ``pointnetlk_nobn_steplr`` that with the lr halved every 5 epochs
+(its validation mean RRE rose after step 500 at a constant lr); ``pointnetlk_orig`` is
+``configs/models/pointnetlk.yaml`` as it stands, the original's settings (BatchNorm with its running statistics
+refreshed before each solve, finite-difference Jacobian, Adam lr 1e-3, no clipping), which FMR-Net shares.
+``selfsup_lr3e-5`` and ``selfsup_steplr`` are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of
+issue 23); ``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the
+recall thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_tw100_fine`` adds to
+``selfsup_tw100`` a second self-motion term on small motions (Euler U[0, 2 deg], t U[-0.02, 0.02], translation weighted
+100: the errors left after the coarse solve, at the recall thresholds' scale); ``selfsup_tw100_stat`` adds to
+``selfsup_tw100`` :class:`~lcreg.models.loss_terms.SelfMotionStationarityLoss` on the same kind of pairs (translation
+weighted 100): one IC-LK update started at the known motion should not move (started at the true test pose, the shipped
+DVDs file ends at the recall it reaches from the identity: the descriptor's minimum is biased); ``selfsup_frac50`` draws
+its two samplings from half the cloud each (they share half their points, as two independent samplings of 1024 of
+ModelNet40's 2048 points do; the recipe's 0.75 shares three quarters); ``pcrnet`` and ``fmr`` are those baselines with
+their own configs (``configs/models/``), at the batch and points given here; ``pcrnet_idinit`` starts iPCRNet's every
+delta pose at the identity (on 8 fixed pairs, ``benchmarks/overfit.py``, the reference initialisation's Chamfer descent
+ends at rotations 90-180 deg away, the identity start fits them), ``pcrnet_idinit_lr1e-4`` the same at the original
+TensorFlow code's lr 1e-4 (at 1e-3, 2 of 3 runs collapsed to one constant update with dead ReLUs,
+``benchmarks/pcrnet_collapse.py``), ``fmr_semi`` is FMR-Net's semi-supervised variant (the original's ``--train-type
+1``: the pose term beside the reconstruction; trained on its reconstruction alone, FMR-Net's IC-LK stops registering the
+fixed pairs, though on unseen pairs it improves), ``fmr_tw100`` is FMR-Net with ``selfsup_tw100``'s self-motion term
+added to its reconstruction (label-free; a goal (c) probe: FMR-Net's descriptor keeps more pairs at the true pose than
+DVDs', its solve falls into more wrong basins); ``selfsup_tw100_bn`` is ``selfsup_tw100`` with FMR-Net's BatchNorm in
+the encoder (the other candidate for that difference); ``model_D_bn_lr1e-3`` is the paper's model D (its objective as
+written, no self-motion term) with FMR-Net's optimiser settings, BatchNorm in the encoder and Adam lr 1e-3
+(``configs/models/dvds.yaml`` turned both off on evidence of a few hundred steps; FMR-Net with them dips early, then
+reaches ICP's recall on the test pairs with starts). ``prnet`` is PRNet as in ``lcreg reproduce lc``
+(``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's
+batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3
+every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce
+lc`` (the same pairs), ``dcp_nobn`` the same without BatchNorm in its DGCNN: trained on 8 fixed pairs
+(``benchmarks/overfit.py``), DCP-v2 fits them in training mode but not in eval mode, where BatchNorm's running
+statistics replace the batch's own. ``prnet_lr2.2e-4_nobn`` asks the same of PRNet (without BatchNorm in its DGCNN and
+TemperatureNet): evaluated with each batch's own statistics, its lr-2.2e-4 checkpoint registers the validation pairs
+better than in eval mode (``docs/results/converge/prnet_lr_256/probes/``). """
 
 from __future__ import annotations
 
@@ -211,6 +212,7 @@ VARIANTS: dict[str, Variant] = {
     "fmr": Variant("fmr"),
     "fmr_semi": Variant("fmr", overrides={"model.init_args.pose_weight": 1.0}),
     "fmr_tw100": Variant("fmr", overrides={"model.init_args.loss_terms": [SELF_MOTION_TW100]}),
+    "pointnetlk_orig": Variant("pointnetlk"),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
     "pointnetlk_nobn_steplr": Variant(
         "pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK, **HALVE_EVERY_5_EPOCHS}

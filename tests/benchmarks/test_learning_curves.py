@@ -50,6 +50,9 @@ def test_variant_values_build_their_models() -> None:
     nobn = cli("pointnetlk_nobn")
     assert nobn.model.hparams.batch_norm is False and nobn.model.hparams.jacobian == "analytic"
     assert nobn.trainer.gradient_clip_val == 1.0
+    orig = cli("pointnetlk_orig")  # the config as it stands: the original's BatchNorm, Jacobian, lr, no clipping
+    assert (orig.model.hparams.batch_norm, orig.model.hparams.jacobian) == (True, "finite_difference")
+    assert orig.model.configure_optimizers().param_groups[0]["lr"] == 1e-3 and not orig.trainer.gradient_clip_val
     lever = cli("pointnetlk_nobn_steplr")
     assert lever.model.hparams.batch_norm is False and lever.trainer.gradient_clip_val == 1.0
     scheduler = lever.model.configure_optimizers()["lr_scheduler"]
