@@ -21,6 +21,10 @@ then starts): a row's errors are then where its objective's minimum lies near th
 finds it. ICP starts exactly at the true pose; a centring solve (the IC-LK models, iPCRNet) at the true rotation with
 the two centroids aligned (the pair's centroid offset away); ``benchmarks/lk_fixed_point.py`` starts the IC-LK solve
 at the exact true pose.
+``--choose-starts A [A ...]`` (with ``--split val``) applies the rule that sets an IC-LK model's test-time starts
+(:func:`lcreg.experiments.evaluation.choose_start_angle`): each checkpoint with one start and with starts at ±A° about
+x, y and z for each A, and the setting with the lowest mean RRE (ties: one start, then the smaller angle); the test is
+then run once with ``--model-args "eval_start_angles_deg=[A]"``. Only the trained rows are evaluated in this mode.
 ``--pairs-csv PATH`` also writes every row's per-pair errors (e.g. for an original's success-conditional means) and
 each pair's centroid offset (the translation error of aligning the two centroids under the true rotation: what the
 two samplings alone leave; 0 with ``--same-points`` and no noise).
@@ -51,7 +55,7 @@ from lcreg.experiments.benchmarking import (
     write_text,
 )
 from lcreg.experiments.benchmarking.registry import REFINE_CONFIG
-from lcreg.experiments.evaluation import EvaluationReport, evaluate
+from lcreg.experiments.evaluation import EvaluationReport, choose_start_angle, evaluate
 from lcreg.geometry.se3 import identity, transform_normals, transform_points
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
@@ -128,6 +132,15 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         default=[0, 1, 2, 3, 4],
         help="initialisation seeds of the untrained-weights baseline (reported as mean ± std)",
     )
+    parser.add_argument(
+        "--choose-starts",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="DEG",
+        help="with --split val: each checkpoint with one start and with starts at ±DEG, and the setting with the "
+        "lowest mean RRE (ties: one start, then the smaller angle); only the trained rows",
+    )
     parser.add_argument("--out", default=None, help="Markdown file to write the table to")
     parser.add_argument(
         "--pairs-csv",
@@ -148,6 +161,10 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     if not args.ckpt:
         parser.error("--ckpt is required (outside --smoke)")
     args.model_args = key_values(args.model_args, "--model-args")
+    if args.choose_starts is not None and args.split != "val":
+        parser.error("--choose-starts chooses on validation pairs: add --split val (then test once with the choice)")
+    if args.choose_starts is not None and "eval_start_angles_deg" in args.model_args:
+        parser.error("--choose-starts sets eval_start_angles_deg itself: leave it out of --model-args")
     return args
 
 
@@ -241,15 +258,46 @@ def table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationR
         evaluate(icp(d), batches, f"Open3D ICP p2p (identity init, dist {d}, 50 it.)") for d in args.icp_distances
     ]
     reports += [evaluate(build(name), batches, name) for name in args.classical]
+    rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
+    return _header(args, source, reports, sigma) + "\n" + rows + "\n", reports, _pair_columns(batches, classes)
+
+
+def starts_table(args: argparse.Namespace, sigma: float) -> tuple[str, list[EvaluationReport], PairColumns]:
+    """``--choose-starts``: every checkpoint with one start and with each ``--choose-starts`` angle, and the setting
+    :func:`~lcreg.experiments.evaluation.choose_start_angle` picks for it (as :func:`table` returns its results)."""
+    batches, source, classes = evaluation_pairs(args, sigma)
+    reports: list[EvaluationReport] = []
+    chosen: list[str] = []
+    for checkpoint in args.ckpt:
+        mean_rre: dict[float | None, float] = {}
+        for angle in (None, *args.choose_starts):
+            starts = "one start" if angle is None else f"starts ±{angle:g}°"
+            values = {**args.model_args, "eval_start_angles_deg": "[]" if angle is None else f"[{angle:g}]"}
+            model = learned(args.method, checkpoint, None, False, values)
+            reports.append(evaluate(model, batches, f"{args.method} ({Path(checkpoint).name}), {starts}"))
+            mean_rre[angle] = reports[-1].metrics["rre_mean_deg"]
+        best = choose_start_angle(mean_rre)
+        setting = "one start" if best is None else f"`eval_start_angles_deg=[{best:g}]`"
+        chosen.append(f"- {Path(checkpoint).name}: {setting} (mean RRE {mean_rre[best]:.4g}°)")
+    rule = "Chosen by the lowest mean RRE (ties: one start, then the smaller angle):"
+    text = f"{report_table(reports)}\n\n{rule}\n\n" + "\n".join(chosen) + "\n"
+    return _header(args, source, reports, sigma) + "\n" + text, reports, _pair_columns(batches, classes)
+
+
+def _header(args: argparse.Namespace, source: str, reports: Sequence[EvaluationReport], sigma: float) -> str:
+    """The line above a table: the pairs and the machine; prints every row's mean solver iterations."""
     for r in reports:
         print(f"{r.name}: mean IC-LK/ICP iterations {r.extra['mean_iterations']:.2f}", flush=True)
-    header = (
+    return (
         f"{source}, {reports[0].num_pairs} {args.split} pairs, {args.num_points} points, noise sigma {sigma}, "
         f"batch {args.batch_size}, {machine_line()}\n"
     )
-    rows = report_table(reports) + "\n" + "\n".join(mean_std_row(g, label) for g, label in groups if g)
+
+
+def _pair_columns(batches: Sequence[RegistrationBatch], classes: list[str] | None) -> PairColumns:
+    """The pairs' own columns of ``--pairs-csv``: centroid offset (:func:`centroid_offsets`) and class."""
     offsets = [f"{c:.6g}" for c in centroid_offsets(batches)]
-    return header + "\n" + rows + "\n", reports, {"centroid_offset": offsets, "class": classes or [""] * len(offsets)}
+    return {"centroid_offset": offsets, "class": classes or [""] * len(offsets)}
 
 
 def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[EvaluationReport], PairColumns]]) -> Path:
@@ -271,7 +319,8 @@ def write_pairs_csv(path: str | Path, tables: Sequence[tuple[float, list[Evaluat
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = parse(argv)
-    tables = {sigma: table(args, sigma) for sigma in args.noise_sigma}
+    make = table if args.choose_starts is None else starts_table
+    tables = {sigma: make(args, sigma) for sigma in args.noise_sigma}
     text = "\n".join(markdown for markdown, _, _ in tables.values())
     print(text)
     if args.out:

@@ -91,6 +91,49 @@ def test_eval_model_args_reach_the_constructor_and_malformed_ones_are_refused() 
         script.parse(["--ckpt", "x.ckpt", "--model-args", "eval_iterations"])
 
 
+def test_eval_choose_starts_reports_each_setting_and_the_rules_choice(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--choose-starts``: per checkpoint one row with one start and one per angle, each built with that setting,
+    and the choice of :func:`~lcreg.experiments.evaluation.choose_start_angle` on the rows' mean RRE."""
+    from lcreg.experiments.evaluation import choose_start_angle
+
+    script = load("eval_modelnet40_dvds")
+    out, pairs = tmp_path / "starts.md", tmp_path / "pairs.csv"
+    script.main(
+        ["--smoke", "--split", "val", "--choose-starts", "30", "90", "--out", str(out), "--pairs-csv", str(pairs)]
+    )
+    means: dict[str, list[float]] = {}
+    for line in csv.DictReader(pairs.open()):
+        means.setdefault(line["row"], []).append(float(line["rre_deg"]))
+    names = {"one start": None, "starts ±30°": 30.0, "starts ±90°": 90.0}
+    assert sorted(row.rsplit(", ", 1)[1] for row in means) == sorted(names)  # only the trained rows, no ICP
+    mean_rre = {names[row.rsplit(", ", 1)[1]]: statistics.fmean(v) for row, v in means.items()}
+    best = choose_start_angle(mean_rre)
+    chosen = out.read_text().split("smaller angle):")[1].strip()
+    assert chosen.startswith("- ") and ("one start" if best is None else f"eval_start_angles_deg=[{best:g}]") in chosen
+    args = script.parse(["--smoke", "--split", "val", "--choose-starts", "30"])
+    model = script.learned("dvds", None, 0, False, {**args.model_args, "eval_start_angles_deg": "[30]"})
+    assert model.eval_start_angles_deg == (30.0,)
+    with pytest.raises(SystemExit):
+        script.parse(["--ckpt", "x.ckpt", "--choose-starts", "30"])
+    assert "add --split val" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.parse(
+            [
+                "--ckpt",
+                "x.ckpt",
+                "--split",
+                "val",
+                "--choose-starts",
+                "30",
+                "--model-args",
+                "eval_start_angles_deg=[45]",
+            ]
+        )
+    assert "leave it out of --model-args" in capsys.readouterr().err
+
+
 @pytest.mark.data
 def test_eval_val_pairs_draws_the_converge_budgets_validation_pairs() -> None:
     # 4 pairs per validation object: the 312 pairs the converge budget ranks checkpoints on (78 objects)

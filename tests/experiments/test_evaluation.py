@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from lcreg.experiments.benchmarking import report_table
-from lcreg.experiments.evaluation import evaluate
+from lcreg.experiments.evaluation import choose_start_angle, evaluate
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.metrics.functional import registration_recall
 from lcreg.models.base import RegistrationModule
@@ -67,3 +67,15 @@ def test_mean_std_row_over_seeds() -> None:
     row = mean_std_row(reports, "two seeds")
     # recall 100 % and 50 %: mean 75 %, sample std 35.4 %
     assert row.startswith("| two seeds |") and "75 ± 35 %" in row and row.endswith("| 4 |")
+
+
+def test_choose_start_angle_takes_the_lowest_mean_rre_and_breaks_ties_towards_fewer_starts() -> None:
+    # FMR-Net seed 0's 312 validation pairs (docs/results/converge/fmr_1024/test/seed0_goal_c.md): +-45 deg wins
+    assert choose_start_angle({None: 1.587, 30.0: 0.504, 45.0: 0.474, 60.0: 1.352, 90.0: 2.088}) == 45.0
+    assert choose_start_angle({60.0: 0.5, None: 0.5, 30.0: 0.5}) is None  # a tie keeps the single start
+    assert choose_start_angle({90.0: 0.5, 30.0: 0.5, 45.0: 0.7}) == 30.0  # then the smaller angle
+    assert choose_start_angle({None: 0.9, 30.0: 0.8}) == 30.0
+    with pytest.raises(ValueError, match="empty"):
+        choose_start_angle({})
+    with pytest.raises(ValueError, match="finite"):
+        choose_start_angle({None: 1.0, 30.0: float("nan")})

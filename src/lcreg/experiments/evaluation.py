@@ -8,7 +8,8 @@ are comparable. Tables of reports: :func:`lcreg.experiments.benchmarking.report_
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -19,7 +20,7 @@ from lcreg.metrics.registration import PerPairErrors, registration_metrics
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch
 
-__all__ = ["EvaluationReport", "evaluate"]
+__all__ = ["EvaluationReport", "choose_start_angle", "evaluate"]
 
 
 @dataclass
@@ -66,3 +67,28 @@ def evaluate(model: RegistrationModule, batches: Iterable[RegistrationBatch], na
     return EvaluationReport(
         name, values, rot, trans, 1000 * seconds / max(count, 1), count, {"mean_iterations": iters / max(count, 1)}
     )
+
+
+def choose_start_angle(mean_rre_deg: Mapping[float | None, float]) -> float | None:
+    """The rule that sets an IC-LK model's ``eval_start_angles_deg`` on validation pairs, before its one test run.
+
+    The setting with the lowest mean RRE wins; ties go to ``None`` (the single identity start), then to the smaller
+    angle (fewer wrong basins reachable, the same cost). Issue 23 fixed this rule in session 10 for the shipped files
+    and in session 23 for FMR-Net's goal (c) comparison (``docs/results/converge/README.md``).
+
+    Args:
+        mean_rre_deg: Mean RRE (degrees) on the validation pairs per setting: ``None`` for one start, ``a`` for the
+            starts at ±a degrees about x, y and z.
+
+    Returns:
+        The chosen setting (``None`` or an angle in degrees).
+
+    Raises:
+        ValueError: If ``mean_rre_deg`` is empty or holds a value that is not finite.
+    """
+    if not mean_rre_deg:
+        raise ValueError("`mean_rre_deg` is empty: nothing to choose from")
+    bad = {angle: value for angle, value in mean_rre_deg.items() if not math.isfinite(value)}
+    if bad:
+        raise ValueError(f"`mean_rre_deg` must be finite, got {bad}")
+    return min(mean_rre_deg, key=lambda angle: (mean_rre_deg[angle], -math.inf if angle is None else angle))
