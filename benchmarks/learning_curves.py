@@ -66,7 +66,9 @@ DVDs', its solve falls into more wrong basins); ``selfsup_tw100_bn`` is ``selfsu
 the encoder (the other candidate for that difference); ``model_D_bn_lr1e-3`` is the paper's model D (its objective as
 written, no self-motion term) with FMR-Net's optimiser settings, BatchNorm in the encoder and Adam lr 1e-3
 (``configs/models/dvds.yaml`` turned both off on evidence of a few hundred steps; FMR-Net with them dips early, then
-reaches ICP's recall on the test pairs with starts). ``prnet`` is PRNet as in ``lcreg reproduce lc``
+reaches ICP's recall on the test pairs with starts); ``aux_only_bn_lr1e-3`` keeps of it only DVDs' auxiliary tasks
+(folding reconstruction 0.5, normals 0.1: no global residual, no LC), FMR-Net's kind of objective with DVDs' own
+decoder and normal head. ``prnet`` is PRNet as in ``lcreg reproduce lc``
 (``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's
 batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3
 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce
@@ -203,6 +205,9 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
     "selfsup_tw100_bn": with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True}),
     "model_D_bn_lr1e-3": Variant("dvds", overrides={**FMR_OPTIMISATION}),
+    "aux_only_bn_lr1e-3": Variant(
+        "dvds", overrides={**FMR_OPTIMISATION, "model.init_args.lambda_global": 0, "model.init_args.loss_terms": []}
+    ),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),

@@ -42,6 +42,10 @@ def test_variant_values_build_their_models() -> None:
     assert lrs == [pytest.approx(1e-3), pytest.approx(1e-4)]
     assert paper_fmr.config["model"]["init_args"]["loss_terms"] == paper.config["model"]["init_args"]["loss_terms"]
     assert (paper_fmr.model.hparams.lambda_recon, paper_fmr.model.hparams.lambda_normal) == (0.5, 0.1)
+    aux = cli("aux_only_bn_lr1e-3").model  # DVDs' reconstruction and normals alone, FMR-Net's optimiser settings
+    assert aux.hparams.batch_norm is True and aux.configure_optimizers().param_groups[0]["lr"] == pytest.approx(1e-3)
+    assert aux.hparams.lambda_global == 0 and len(aux.loss_terms) == 0 and aux.decoder is not None
+    assert (aux.hparams.lambda_recon, aux.hparams.lambda_normal) == (0.5, 0.1)
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
