@@ -133,7 +133,9 @@ HALVE_EVERY_5_EPOCHS = {
         "init_args": {"step_size": 5, "gamma": 0.5},
     }
 }
-FMR_OPTIMISATION = {"model.init_args.batch_norm": True, "model.init_args.optimizer.init_args.lr": 0.001}
+FMR_OPTIMISATION = MappingProxyType(
+    {"model.init_args.batch_norm": True, "model.init_args.optimizer.init_args.lr": 0.001}
+)
 """FMR-Net's encoder BatchNorm and Adam learning rate (``configs/models/fmr.yaml``), for a DVDs variant."""
 RECIPE_SELF_MOTION = {"max_angle_deg": 45.0, "max_translation": 0.5, "sample_fraction": 0.75}  # self_motion.yaml
 
@@ -204,9 +206,10 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
     "selfsup_tw100_bn": with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True}),
-    "model_D_bn_lr1e-3": Variant("dvds", overrides={**FMR_OPTIMISATION}),
-    "aux_only_bn_lr1e-3": Variant(
-        "dvds", overrides={**FMR_OPTIMISATION, "model.init_args.lambda_global": 0, "model.init_args.loss_terms": []}
+    "model_D_bn_lr1e-3": Variant("dvds", overrides=FMR_OPTIMISATION),
+    "aux_only_bn_lr1e-3": with_overrides(
+        Variant("dvds", overrides=FMR_OPTIMISATION),
+        {"model.init_args.lambda_global": 0, "model.init_args.loss_terms": []},
     ),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
