@@ -18,6 +18,7 @@ from lcreg.experiments.benchmarking.curves import (
     Series,
     aggregate,
     canonical_key,
+    curve_figures,
     ema,
     figure_pixels,
     load_runs,
@@ -283,6 +284,36 @@ def test_the_title_of_a_one_panel_figure_fits_its_width(tmp_path: Path) -> None:
     assert_drawn(image, 1)
     top = image[: image.shape[0] // 5, :, :3]  # title and legend rows
     assert (top[:, :3] > 0.9).all() and (top[:, -3:] > 0.9).all()  # no text cut at the left or right edge
+
+
+LONG_LABELS = [f"DVDs recipe tw100 + BatchNorm + variant {i}, seed 0" for i in range(5)]
+
+
+@needs_matplotlib
+def test_the_run_legend_fits_a_narrow_figure(tmp_path: Path) -> None:
+    """Before (session 24's ``other.png``): five long labels in four columns ran past both edges of a 2-panel PNG."""
+    runs = {label: [{"lr": series([0, 5], [1e-3, 1e-4]), "val/x": series([0, 5], [1.0, 2.0])}] for label in LONG_LABELS}
+    fig = next(f for n, f in curve_figures(runs) if n == "other")
+    fig.canvas.draw()
+    (legend,) = fig.legends
+    box = legend.get_window_extent()
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.width
+    assert 1 < legend._ncols < 4  # as many columns as fit, not one per row
+
+
+@needs_matplotlib
+def test_long_panel_titles_wrap_instead_of_overlapping(tmp_path: Path) -> None:
+    """Before: per-direction panel titles ("… ‖J col‖/‖φ‖: <label>") of neighbouring panels overwrote each other."""
+    runs = {
+        label: [read_metrics(write_synthetic_metrics(tmp_path / f"{i}.csv", seed=i))]
+        for i, label in enumerate(LONG_LABELS[:3])
+    }
+    fig = next(f for n, f in curve_figures(runs) if n == "jacobian")
+    fig.canvas.draw()
+    boxes = [ax.title.get_window_extent() for ax in fig.axes if ax.get_visible()]
+    assert all(0 <= b.x0 and b.x1 <= fig.bbox.width for b in boxes)
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1 :])
+    assert any("\n" in ax.get_title() for ax in fig.axes)
 
 
 @needs_matplotlib

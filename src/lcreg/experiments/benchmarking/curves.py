@@ -9,7 +9,8 @@ max) and :func:`plot_curves` draws one PNG per figure of :data:`FIGURES` (panels
 out, and so are figures without panels); keys no figure claims go to ``other.png``. :func:`summary_table` gives the
 first (first validation), last and best value of the main metrics per label, ``mean ± std`` over seeds.
 
-matplotlib (the ``plot`` extra) is imported inside :func:`plot_curves` only, with the ``Agg`` backend.
+matplotlib (the ``plot`` extra) is imported inside :func:`curve_figures` (which :func:`plot_curves` saves) only, with
+the ``Agg`` backend.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ __all__ = [
     "Series",
     "aggregate",
     "canonical_key",
+    "curve_figures",
     "ema",
     "figure_pixels",
     "load_runs",
@@ -472,8 +474,13 @@ def _log_scale(ax: Axes, low: float, high: float) -> None:
         ax.yaxis.set_minor_formatter(NullFormatter())
 
 
+PANEL_TITLE_PT = 9.0
+"""Font size of a panel's title, points."""
+
+
 def _style_axes(ax: Axes, title: str, ylabel: str) -> None:
-    ax.set_title(title, fontsize=9)
+    chars = int(PANEL_SIZE[0] * 72 / (PANEL_TITLE_PT * TITLE_CHAR_PT / 10))  # a 10 pt character is TITLE_CHAR_PT wide
+    ax.set_title(textwrap.fill(title, chars, break_long_words=False), fontsize=PANEL_TITLE_PT)
     ax.set_xlabel("step", fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.tick_params(which="both", labelsize=7)
@@ -510,10 +517,15 @@ def _legend(fig: Figure, title: str, runs: Runs, colours: Mapping[str, str], lab
         return label if len(runs[label]) == 1 else f"{label} ({len(runs[label])} seeds)"
 
     handles = [Line2D([], [], color=colours[label], linewidth=2, label=name(label)) for label in labels]
-    legend = fig.legend(
-        handles=handles, loc="outside upper center", ncols=min(len(handles), 4), fontsize=8, frameon=False, title=title
-    )
-    legend.get_title().set_fontsize(10)
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]  # the Agg canvas of agg_figure
+    for ncols in range(min(len(handles), 4), 0, -1):  # the most columns (at most 4) whose row fits the width
+        legend = fig.legend(
+            handles=handles, loc="outside upper center", ncols=ncols, fontsize=8, frameon=False, title=title
+        )
+        legend.get_title().set_fontsize(10)
+        if ncols == 1 or legend.get_window_extent(renderer).width <= fig.bbox.width:
+            return
+        legend.remove()
 
 
 def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> str:
@@ -527,8 +539,8 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
     return title + (f" ({'; '.join(notes)})" if notes else "")
 
 
-def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smooth: float) -> Path:
-    """Draw ``specs`` on an Agg canvas of :func:`figure_pixels` and write the PNG."""
+def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float) -> Figure:
+    """Draw ``specs`` on an Agg canvas of :func:`figure_pixels`."""
     width, height = figure_pixels(len(specs))
     fig = agg_figure(width / DPI, height / DPI, DPI, "learning curves")
     axes = fig.subplots(math.ceil(len(specs) / COLUMNS), min(len(specs), COLUMNS), squeeze=False).ravel()
@@ -539,7 +551,7 @@ def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, path: Path, smoot
         ax.set_visible(False)
     drawn = [label for label in runs if any(label in labels for _, _, labels in specs)]
     _legend(fig, _wrapped(_title(title, runs, specs, smooth), width), runs, colours, drawn)
-    return save_png(fig, path)
+    return fig
 
 
 def _wrapped(title: str, width_px: int) -> str:
@@ -563,13 +575,17 @@ def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float
         prefix: Start of every file name.
         smooth: :func:`ema` weight of the training (not ``val/``) series, applied per seed before aggregating.
     """
+    return [save_png(fig, Path(out_dir) / f"{prefix}{name}.png") for name, fig in curve_figures(runs, smooth)]
+
+
+def curve_figures(runs: Runs, smooth: float = 0.0) -> list[tuple[str, Figure]]:
+    """The figures of :func:`plot_curves` by name (``validation``, ``jacobian``, ``training``, ``other``), unsaved."""
     present = sorted({key for seeds in runs.values() for metrics in seeds for key in metrics})
-    written = []
+    figures = []
     for fig, panels in _layout(present):
         if specs := _axes_specs(panels, runs):
-            path = Path(out_dir) / f"{prefix}{fig.name}.png"
-            written.append(_render(fig.title, specs, runs, path, smooth))
-    return written
+            figures.append((fig.name, _render(fig.title, specs, runs, smooth)))
+    return figures
 
 
 # --------------------------------------------------------------------------------------------------- smoke data
