@@ -19,12 +19,14 @@ they are small enough, :data:`RESUME_MAX_BYTES`; otherwise it starts again). For
 ``sync`` also writes the slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the
 runs whose weights may ship). For a job with a ``test_command`` (``{checkpoint}``: a finished run's selected
 checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``) ``sync`` runs it once per finished run, so that a
-baseline's test outlives its run folder where its weights are too large to keep.
+baseline's test outlives its run folder where its weights are too large to keep. Several runners may share a
+``--runs`` folder (one thread each): a job runs in one of them at a time (:func:`job_lock`); the others skip it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shlex
@@ -34,7 +36,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -295,11 +297,37 @@ def status_line(job: Job, results: Path) -> str:
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
 
 
-def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs: int = 1) -> bool:
+@contextlib.contextmanager
+def job_lock(job: Job, runs: Path) -> Iterator[int | None]:
+    """Hold ``<runs>/<id>.lock`` (an exclusive ``flock``) while ``job`` runs here.
+
+    Yields the lock file's descriptor, or ``None`` when another runner holds it (its pid is in the file). Pass the
+    descriptor to the job's process (:func:`run_job`): the kernel releases the lock when the runner and its training
+    process have both exited, killed ones included, so a runner killed without its child does not free the job for
+    a second runner while the first one's training still writes the run folder.
+    """
+    import fcntl  # POSIX only, as `nice`
+
+    runs.mkdir(parents=True, exist_ok=True)
+    with open(runs / f"{job.id}.lock", "a+", encoding="utf-8") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield None
+            return
+        file.truncate(0)
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        yield file.fileno()
+
+
+def run_job(
+    job: Job, runs: Path, results: Path, max_minutes: float | None, jobs: int = 1, lock_fd: int | None = None
+) -> bool:
     """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done.
 
     ``jobs``: runs at once of an ``lcreg reproduce`` or ``learning_curves.py`` job (:meth:`Job.executable`), each on
-    one thread.
+    one thread. ``lock_fd``: the descriptor of :func:`job_lock`, inherited by the job's process.
     """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     argv = ["nice", "-n", "5", *job.executable(runs, results, jobs)]
@@ -310,7 +338,11 @@ def run_job(job: Job, runs: Path, results: Path, max_minutes: float | None, jobs
     start = time.monotonic()
     try:
         code = subprocess.run(
-            argv, cwd=REPO, env=env, timeout=None if max_minutes is None else max_minutes * 60
+            argv,
+            cwd=REPO,
+            env=env,
+            timeout=None if max_minutes is None else max_minutes * 60,
+            pass_fds=() if lock_fd is None else (lock_fd,),
         ).returncode
     except subprocess.TimeoutExpired:
         print(f"queue: {job.id}: stopped at the time limit ({max_minutes:.2g} min); resumes next call", flush=True)
@@ -396,8 +428,12 @@ def main(argv: Sequence[str] | None = None) -> None:
             if minutes is not None and minutes <= 0:
                 print(f"queue: {job.id}: no time left of --max-minutes; it runs on the next call", flush=True)
                 sys.exit(1)
-            if not run_job(job, args.runs, args.results, minutes, args.jobs):
-                sys.exit(1)
+            with job_lock(job, args.runs) as lock_fd:
+                if lock_fd is None:
+                    print(f"queue: {job.id}: another runner holds {args.runs / job.id}.lock; skipped", flush=True)
+                    continue
+                if not run_job(job, args.runs, args.results, minutes, args.jobs, lock_fd):
+                    sys.exit(1)
     if args.smoke:
         print(status_line(jobs[0], args.results))
 

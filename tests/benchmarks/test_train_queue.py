@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -364,3 +365,70 @@ def test_sync_keeps_a_report_regenerated_here_over_the_run_folders_older_copy(tm
     os.utime(metrics, ns=(later + 10**9, later + 10**9))
     queue.sync(job, runs, res)
     assert (res / "j" / "runs" / "a" / "metrics.csv").read_text() == "step\n1\n2\n"
+
+
+def test_a_job_held_by_another_runner_is_skipped_and_the_next_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Before: two runners whose `--only` lists shared a job could both train it into one run folder."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    jobs = [f'[[job]]\nid = "{name}"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n' for name in ("held", "free")]
+    file.write_text("\n".join(jobs))
+    held, _ = queue.load_jobs(file)
+    args = ["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+    with queue.job_lock(held, tmp_path / "runs") as fd:
+        assert fd is not None
+        with queue.job_lock(held, tmp_path / "runs") as second:
+            assert second is None  # one holder at a time, within a process too
+        queue.main(args)
+    assert "queue: held: another runner holds" in capsys.readouterr().out
+    assert not (tmp_path / "res" / "held" / "DONE.json").exists()
+    assert (tmp_path / "res" / "free" / "DONE.json").is_file()
+    queue.main(args)  # released: the next runner takes it
+    assert (tmp_path / "res" / "held" / "DONE.json").is_file()
+
+
+def _children(pid: int) -> list[int]:
+    """Pids whose parent is ``pid`` (Linux ``/proc``)."""
+    children = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        with contextlib.suppress(OSError):
+            if f"PPid:\t{pid}\n" in status.read_text():
+                children.append(int(status.parent.name))
+    return children
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runner's job")
+def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) -> None:
+    """The job's process inherits the lock: a runner killed without its child does not free the job."""
+    import signal
+    import subprocess
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "slow"\nsection = "cpu"\nwhat = "x"\ncommand = "sleep 30"\n')
+    (job,) = queue.load_jobs(file)
+    folders = ["--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+    argv = [sys.executable, str(BENCHMARKS / "train_queue.py"), "run", "--queue", str(file), *folders]
+    runner = subprocess.Popen(argv, start_new_session=True)
+    try:
+        for _ in range(300):  # the runner has started its job
+            if _children(runner.pid):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("the runner did not start its job")
+        assert (tmp_path / "runs" / "slow.lock").read_text().strip() == str(runner.pid)
+        runner.kill()
+        runner.wait()
+        with queue.job_lock(job, tmp_path / "runs") as fd:
+            assert fd is None  # `sleep 30`, orphaned, still holds it
+    finally:
+        os.killpg(runner.pid, signal.SIGKILL)
+    for _ in range(100):
+        with queue.job_lock(job, tmp_path / "runs") as fd:
+            if fd is not None:
+                break
+        time.sleep(0.1)
+    assert fd is not None  # released once the job's process is gone
