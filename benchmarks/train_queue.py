@@ -287,12 +287,16 @@ def restore(job: Job, runs: Path, results: Path) -> int:
     return count
 
 
-def status_line(job: Job, results: Path) -> str:
-    """``id  section  done|pending (<k> result rows: finished runs, earlier rules' included)  estimate  what``."""
+def status_line(job: Job, results: Path, runs: Path | None = None) -> str:
+    """``id  section  done|pending|running (<k> result rows: finished runs, earlier rules' included)  estimate  what``.
+
+    ``running`` (with the runner's pid): a runner here holds the job's lock in ``runs`` (:func:`job_lock`).
+    """
     done = (results / job.id / "DONE.json").is_file()
     logs = [p for p in (results / job.id / "runs").glob("*.jsonl") if p.name != "models.jsonl"]
     finished = sum(len(p.read_text(encoding="utf-8").splitlines()) for p in logs)
-    state = "done" if done else f"pending ({finished} result rows)"
+    pid = None if done or runs is None else holder(job, runs)
+    state = "done" if done else f"{'pending' if pid is None else f'running, pid {pid},'} ({finished} result rows)"
     hours = f"{job.gpu_hours} GPU-h" if job.section == "gpu" else f"{job.cpu_hours} CPU-h (cap {job.cap_hours})"
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
 
@@ -319,6 +323,22 @@ def job_lock(job: Job, runs: Path) -> Iterator[int | None]:
         file.write(f"{os.getpid()}\n")
         file.flush()
         yield file.fileno()
+
+
+def holder(job: Job, runs: Path) -> int | None:
+    """The pid of the runner holding ``job``'s lock in ``runs`` (:func:`job_lock`), or ``None`` if none does."""
+    import fcntl
+
+    path = runs / f"{job.id}.lock"
+    if not path.is_file():
+        return None
+    with open(path, encoding="utf-8") as file:
+        try:
+            fcntl.flock(file, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            text = file.read().strip()
+            return int(text) if text.isdigit() else -1
+        return None
 
 
 def run_job(
@@ -417,7 +437,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "status":
         for job in jobs:
-            print(status_line(job, args.results))
+            print(status_line(job, args.results, args.runs))
         return
     deadline = None if args.max_minutes is None else time.monotonic() + 60 * args.max_minutes
     for job in jobs:

@@ -381,10 +381,14 @@ def test_a_job_held_by_another_runner_is_skipped_and_the_next_runs(
         assert fd is not None
         with queue.job_lock(held, tmp_path / "runs") as second:
             assert second is None  # one holder at a time, within a process too
+        assert queue.holder(held, tmp_path / "runs") == os.getpid()
+        assert f"running, pid {os.getpid()}," in queue.status_line(held, tmp_path / "res", tmp_path / "runs")
         queue.main(args)
     assert "queue: held: another runner holds" in capsys.readouterr().out
     assert not (tmp_path / "res" / "held" / "DONE.json").exists()
     assert (tmp_path / "res" / "free" / "DONE.json").is_file()
+    assert queue.holder(held, tmp_path / "runs") is None
+    assert "pending (0 result rows)" in queue.status_line(held, tmp_path / "res", tmp_path / "runs")
     queue.main(args)  # released: the next runner takes it
     assert (tmp_path / "res" / "held" / "DONE.json").is_file()
 
