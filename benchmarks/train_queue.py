@@ -4,6 +4,8 @@
     python benchmarks/train_queue.py run --section cpu --runs /work/runs/converge    # one thread, nice, in order
     python benchmarks/train_queue.py run --section gpu --max-minutes 9                # resumable chunks on a GPU
     python benchmarks/train_queue.py sync                                             # copy finished rows to commit
+    python benchmarks/train_queue.py start --runs /work/runs/converge                 # the file's CPU runners, detached
+    python benchmarks/train_queue.py stop --runs /work/runs/converge                  # end them and their training
     python benchmarks/train_queue.py --smoke                                          # seconds: a tiny queue
 
 Every job is one resumable command (``{runs}``: its run folder under ``--runs``, ``{results}``: its folder under
@@ -21,6 +23,10 @@ runs whose weights may ship). For a job with a ``test_command`` (``{checkpoint}`
 checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``) ``sync`` runs it once per finished run, so that a
 baseline's test outlives its run folder where its weights are too large to keep. Several runners may share a
 ``--runs`` folder (one thread each): a job runs in one of them at a time (:func:`job_lock`); the others skip it.
+The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``run --only <its jobs>``): ``start``
+launches them in the background from a worktree at the current commit (so that code changed meanwhile does not
+disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
+training processes (a run resumes from its ``last.ckpt``).
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -103,6 +110,38 @@ INTERPRETERS = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCRE
 """How a command's first word runs: ``python`` is this interpreter, ``lcreg`` its ``lcreg.__main__``."""
 PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_curves.py"])
 """Commands that take ``--jobs`` (the first two words of a job's command)."""
+
+
+@dataclass(frozen=True)
+class Runner:
+    """One CPU runner of ``start``: ``run --section cpu --only <only>`` (its jobs, in order), and why."""
+
+    name: str
+    only: tuple[str, ...]
+    why: str = ""
+
+
+def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
+    """The ``[[runner]]`` tables of a queue file, in order.
+
+    Raises:
+        ValueError: If a runner lacks a field or has an unknown one, two share a name, one names no job or a job the
+            queue does not have, or two list the same job.
+    """
+    runners = []
+    for entry in tomllib.loads(path.read_text(encoding="utf-8")).get("runner", []):
+        try:
+            runners.append(Runner(**{**entry, "only": tuple(entry.get("only", ()))}))
+        except TypeError as err:
+            raise ValueError(f"{path}: runner {entry.get('name', '?')!r}: {err}") from None
+    known, listed = {job.id for job in jobs}, [job for runner in runners for job in runner.only]
+    for runner in runners:
+        unknown = set(runner.only) - known
+        if not runner.only or unknown:
+            raise ValueError(f"{path}: runner {runner.name!r} names no job or unknown ones: {sorted(unknown)}")
+    if len({r.name for r in runners}) != len(runners) or len(set(listed)) != len(listed):
+        raise ValueError(f"{path}: runner names and the jobs they list must be unique")
+    return runners
 
 
 def load_jobs(path: Path) -> list[Job]:
@@ -380,6 +419,90 @@ def run_job(
     return True
 
 
+def runner_pids(runs: Path) -> list[int]:
+    """Pids of this machine's ``train_queue.py run`` processes whose ``--runs`` is ``runs`` (Linux ``/proc``)."""
+    pids = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        with contextlib.suppress(OSError):
+            argv = cmdline.read_bytes().decode(errors="replace").split("\0")
+            if any(a.endswith("train_queue.py") for a in argv[1:2]) and "run" in argv and "--runs" in argv[:-1]:
+                if Path(argv[argv.index("--runs") + 1]).resolve() == runs.resolve():
+                    pids.append(int(cmdline.parent.name))
+    return sorted(pids)
+
+
+def descendants(pid: int) -> list[int]:
+    """``pid``'s child processes, their children, and so on (Linux ``/proc``)."""
+    parents: dict[int, list[int]] = {}
+    for status in Path("/proc").glob("[0-9]*/status"):
+        with contextlib.suppress(OSError, StopIteration, ValueError):
+            line = next(x for x in status.read_text().splitlines() if x.startswith("PPid:"))
+            parents.setdefault(int(line.split()[1]), []).append(int(status.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        children = parents.get(todo.pop(), [])
+        found += children
+        todo += children
+    return found
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (exited, not yet reaped by its parent)."""
+    with contextlib.suppress(OSError):
+        return "\tZ" not in next(x for x in Path(f"/proc/{pid}/status").read_text().splitlines() if x[:6] == "State:")
+    return False
+
+
+def stop_runners(runs: Path, grace_s: float = 60.0) -> list[int]:
+    """SIGTERM the runners of ``runs`` and their training processes (Lightning stops at the step, exit 143), SIGKILL
+    what is left after ``grace_s``. Returns the pids signalled."""
+    pids = [p for runner in runner_pids(runs) for p in (runner, *descendants(runner))]
+    for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+        deadline = time.monotonic() + wait
+        while any(map(alive, pids)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+    return pids
+
+
+def queue_worktree() -> Path:
+    """A worktree of the repository at ``HEAD`` beside it (``wt-queue-<short sha>``), made if missing."""
+    git = ["git", "-C", str(REPO)]
+    sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+    tree = REPO.parent / f"wt-queue-{sha.stdout.strip()}"
+    if not tree.is_dir():
+        subprocess.run([*git, "worktree", "prune"], check=True)
+        subprocess.run([*git, "worktree", "add", "--detach", str(tree), "HEAD"], check=True, capture_output=True)
+    return tree
+
+
+def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: Path, results: Path) -> list[int]:
+    """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
+    their pids.
+
+    Raises:
+        SystemExit: If runners of ``runs`` are running already (``stop`` them first).
+    """
+    if running := runner_pids(runs):
+        raise SystemExit(f"runners of {runs} are running already (pids {running}): `train_queue.py stop` first")
+    (runs / "logs").mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
+    pids = []
+    for runner in runners:
+        argv = [sys.executable, str(checkout / "benchmarks" / "train_queue.py"), "run", "--section", "cpu"]
+        argv += ["--queue", str(queue.resolve())]
+        argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
+        with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:
+            process = subprocess.Popen(
+                argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            )
+        print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}", flush=True)
+        pids.append(process.pid)
+    return pids
+
+
 def selected(job: Job, args: argparse.Namespace) -> bool:
     """Whether ``run`` starts ``job``: the jobs of ``--section``, or the jobs named by ``--only`` whatever their section
     (a GPU session may take over a CPU job, e.g. the PRNet runs that cost 11 s a step on one CPU thread; the job's run
@@ -401,10 +524,15 @@ def chosen_jobs(jobs: Sequence[Job], only: Sequence[str] | None) -> list[Job]:
     return [by_id[name] for name in dict.fromkeys(only)]
 
 
+def default_queue(checkout: Path) -> Path:
+    """The queue file of a checkout."""
+    return checkout / "benchmarks" / "train_queue.toml"
+
+
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("action", nargs="?", choices=("status", "run", "sync"), default="status")
-    parser.add_argument("--queue", type=Path, default=REPO / "benchmarks" / "train_queue.toml")
+    parser.add_argument("action", nargs="?", choices=("status", "run", "sync", "start", "stop"), default="status")
+    parser.add_argument("--queue", type=Path, default=default_queue(REPO))
     parser.add_argument("--section", choices=("cpu", "gpu"), default="cpu")
     parser.add_argument(
         "--only", nargs="+", default=None, help="job ids, in the order to run them (run: whatever their section)"
@@ -423,6 +551,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         default=1,
         help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; default 1: one thread)",
     )
+    parser.add_argument(
+        "--checkout",
+        type=Path,
+        default=None,
+        help="start: the checkout the runners run from (default: a worktree at HEAD beside the repository)",
+    )
     add_smoke_argument(parser)
     return parser.parse_args(argv)
 
@@ -434,6 +568,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         (scratch / "train_queue.toml").write_text(SMOKE_QUEUE, encoding="utf-8")
         args.queue, args.runs, args.results = scratch / "train_queue.toml", scratch / "runs", scratch
         args.action = "run"
+    if args.action in ("start", "stop"):
+        if args.action == "stop":
+            print(f"queue: stopped {len(stop_runners(args.runs))} processes of the runners of {args.runs}")
+            return
+        runners = load_runners(args.queue, load_jobs(args.queue))
+        checkout = args.checkout or queue_worktree()
+        queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
+        start_runners(runners, checkout, queue, args.runs, args.results)
+        return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "status":
         for job in jobs:

@@ -436,3 +436,61 @@ def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) ->
                 break
         time.sleep(0.1)
     assert fd is not None  # released once the job's process is gone
+
+
+def test_committed_runners_list_known_jobs_once() -> None:
+    queue = load("train_queue")
+    file = BENCHMARKS / "train_queue.toml"
+    jobs = queue.load_jobs(file)
+    runners = queue.load_runners(file, jobs)
+    assert runners and all(runner.why for runner in runners)
+    sections = {job.id: job.section for job in jobs}
+    assert all(sections[job] == "cpu" for runner in runners for job in runner.only)  # `start` runs the CPU section
+
+
+@pytest.mark.parametrize(
+    ("tables", "message"),
+    [
+        ('[[runner]]\nname = "a"\nonly = ["nope"]\n', "unknown ones"),
+        ('[[runner]]\nname = "a"\nonly = []\n', "names no job"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\n[[runner]]\nname = "b"\nonly = ["j"]\n', "must be unique"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\nthreads = 2\n', "unexpected keyword"),
+    ],
+)
+def test_bad_runner_tables_are_refused(tmp_path: Path, tables: str, message: str) -> None:
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n' + tables)
+    with pytest.raises(ValueError, match=message):
+        queue.load_runners(file, queue.load_jobs(file))
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
+def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path: Path) -> None:
+    """`start` runs each runner detached from this process (its own log); `stop` ends runner and training process."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    sleep = "python -c 'import time; time.sleep(60)'"
+    jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
+    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\n'
+    file.write_text("\n".join(jobs) + runners)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
+    queue.main(["start", *args])
+    try:
+        for _ in range(300):  # both runners have started their first job
+            pids = queue.runner_pids(runs)
+            if len(pids) == 2 and all(queue.descendants(pid) for pid in pids):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"runners: {queue.runner_pids(runs)}; logs: {[p.read_text() for p in runs.glob('logs/*')]}")
+        assert {p.name for p in (runs / "logs").iterdir()} == {"one.log", "two.log"}
+        assert {queue.holder(job, runs) for job in queue.load_jobs(file)} == {*pids, None}  # a and c run, b waits
+        with pytest.raises(SystemExit, match="running already"):
+            queue.main(["start", *args])
+    finally:
+        signalled = queue.stop_runners(runs, grace_s=10)
+    assert len(signalled) >= 4  # two runners and their two training processes
+    assert queue.runner_pids(runs) == [] and not any(map(queue.alive, signalled))
+    assert all(queue.holder(job, runs) is None for job in queue.load_jobs(file))
