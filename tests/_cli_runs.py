@@ -5,6 +5,8 @@ Tests that call the CLI also request the ``isolated_cli`` fixture (``tests/conft
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -13,6 +15,8 @@ from typing import Any
 
 import pytest
 import yaml
+from lightning.pytorch import Trainer
+from lightning.pytorch.callbacks import Callback
 
 from lcreg.cli import main
 
@@ -84,3 +88,15 @@ def cli_isolation(root: Path) -> Iterator[None]:
         patch.setattr(sys, "argv", ["lcreg"])
         patch.chdir(root)
         yield
+
+
+class SigtermAt(Callback):
+    """Send this process SIGTERM at the end of optimiser step ``step`` (``--trainer.callbacks+=_cli_runs.SigtermAt``);
+    Lightning's handler then stops ``fit`` at that step's end, as on a signal from outside."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer: Trainer, *args: Any) -> None:
+        if trainer.global_step == self.step:
+            os.kill(os.getpid(), signal.SIGTERM)

@@ -214,6 +214,26 @@ def test_last_checkpoint_records_the_best_checkpoint_of_the_same_validation(tmp_
     assert [p.name for p in run.glob("*.ckpt") if p.name != "last.ckpt"] == [Path(recorded["best_model_path"]).name]
 
 
+def test_a_run_stopped_by_sigterm_saves_the_step_it_reached_and_resumes_like_the_uninterrupted_run(
+    whole: Path, tmp_path: Path
+) -> None:
+    """Before: a SIGTERM between two saves lost the steps since the last one (up to `every_n_train_steps`: 50 steps
+    of a queue run); here step 5 was lost and the run resumed from step 3, the end of the first epoch."""
+    with pytest.raises(SystemExit) as stop:
+        _fit(tmp_path / "stopped", "--trainer.callbacks+=_cli_runs.SigtermAt", "--trainer.callbacks.step=5")
+    assert stop.value.code == 143
+    last = tmp_path / "stopped" / "lcreg" / "version_0" / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=True)["global_step"] == 5
+    _fit(tmp_path / "stopped", "--ckpt_path", "last")
+    expected, resumed = (
+        torch.load(p / "checkpoints" / "last.ckpt", weights_only=True) for p in (whole, last.parents[1])
+    )
+    assert resumed["global_step"] == expected["global_step"] == 6
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(resumed["state_dict"][key], value, rtol=0, atol=0, msg=key)
+    assert _val_errors(last.parents[1]) == _val_errors(whole)
+
+
 def test_lcreg_fit_stopped_by_sigterm_exits_143_and_keeps_its_last_checkpoint(tmp_path: Path) -> None:
     """Before: Lightning ended `fit` on SIGTERM with a SystemExit of code None, so `lcreg fit` exited 0 as if the run
     had finished (a scheduler's preemption or a queue's stop looked like a finished run)."""

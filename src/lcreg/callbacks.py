@@ -14,6 +14,7 @@ from lightning.pytorch import LightningModule, Trainer
 from lightning.pytorch.callbacks import BasePredictionWriter, Callback, Checkpoint, TQDMProgressBar
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from lcreg.types import RegistrationResult
 
@@ -29,8 +30,8 @@ class LatestCheckpoint(Checkpoint):
 
     Lightning's ``ModelCheckpoint(save_last=True)`` rewrites ``last.ckpt`` only when it also saves a top-k
     checkpoint, so ``last.ckpt`` trails the run. This callback writes it every ``every_n_train_steps`` optimiser
-    steps, at the last step (``max_steps``), after every validation and at the end of every complete training epoch
-    (at most once per step; a step followed by a validation is saved after it), through
+    steps, at the last step (``max_steps``), after every validation, at the end of every complete training epoch and
+    when SIGTERM stops ``fit`` (at most once per step; a step followed by a validation is saved after it), through
     ``Trainer.save_checkpoint`` (an atomic write: a killed run leaves the previous file whole). The file goes to
     the directory of the trainer's first ``ModelCheckpoint`` (``<log_dir>/checkpoints`` by default).
 
@@ -96,6 +97,17 @@ class LatestCheckpoint(Checkpoint):
         from the epoch-end hook would resume that schedule one step late.
         """
         if not (_epoch_complete(trainer) and _checkpoints_update_at_epoch_end(trainer)):
+            self._save(trainer)
+
+    def on_exception(self, trainer: Trainer, pl_module: LightningModule, exception: BaseException) -> None:
+        """Save when SIGTERM stopped ``fit`` at the end of a step, so that the run resumes from the step it reached.
+
+        Lightning raises ``SIGTERMException`` once the step in progress (and any validation it ran) has ended: the
+        same state as this callback's other saves. Not when the signal stopped a validation before its last batch
+        (the run then resumes from the save before that validation); not on other exceptions (a crash or Ctrl+C
+        may stop in the middle of an update).
+        """
+        if isinstance(exception, SIGTERMException) and not trainer.validating:
             self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
