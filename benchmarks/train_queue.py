@@ -478,6 +478,11 @@ def queue_worktree() -> Path:
     return tree
 
 
+RUNNER_NICE = 10
+"""Niceness ``start`` adds to a runner; its training runs 5 nicer still (:func:`run_job`), so that the session's own
+work (tests, CI) gets the cores first."""
+
+
 def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: Path, results: Path) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
     their pids.
@@ -491,7 +496,8 @@ def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
     pids = []
     for runner in runners:
-        argv = [sys.executable, str(checkout / "benchmarks" / "train_queue.py"), "run", "--section", "cpu"]
+        argv = ["nice", "-n", str(RUNNER_NICE), sys.executable, str(checkout / "benchmarks" / "train_queue.py")]
+        argv += ["run", "--section", "cpu"]
         argv += ["--queue", str(queue.resolve())]
         argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
         with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:

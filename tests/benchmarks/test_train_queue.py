@@ -417,7 +417,7 @@ def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) ->
     argv = [sys.executable, str(BENCHMARKS / "train_queue.py"), "run", "--queue", str(file), *folders]
     runner = subprocess.Popen(argv, start_new_session=True)
     try:
-        for _ in range(300):  # the runner has started its job
+        for _ in range(1200):  # the runner has started its job
             if _children(runner.pid):
                 break
             time.sleep(0.1)
@@ -430,7 +430,7 @@ def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) ->
             assert fd is None  # `sleep 30`, orphaned, still holds it
     finally:
         os.killpg(runner.pid, signal.SIGKILL)
-    for _ in range(100):
+    for _ in range(300):
         with queue.job_lock(job, tmp_path / "runs") as fd:
             if fd is not None:
                 break
@@ -478,7 +478,7 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path:
     args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
     queue.main(["start", *args])
     try:
-        for _ in range(300):  # both runners have started their first job
+        for _ in range(1200):  # both runners have started their first job
             pids = queue.runner_pids(runs)
             if len(pids) == 2 and all(queue.descendants(pid) for pid in pids):
                 break
@@ -486,6 +486,10 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path:
         else:
             pytest.fail(f"runners: {queue.runner_pids(runs)}; logs: {[p.read_text() for p in runs.glob('logs/*')]}")
         assert {p.name for p in (runs / "logs").iterdir()} == {"one.log", "two.log"}
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        for pid in pids:  # the runner nice 10, its training 5 more: the session's own work comes first
+            assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)
+            assert all(os.getpriority(os.PRIO_PROCESS, c) == min(own + 15, 19) for c in queue.descendants(pid))
         assert {queue.holder(job, runs) for job in queue.load_jobs(file)} == {*pids, None}  # a and c run, b waits
         with pytest.raises(SystemExit, match="running already"):
             queue.main(["start", *args])
