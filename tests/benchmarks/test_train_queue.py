@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
@@ -393,16 +392,6 @@ def test_a_job_held_by_another_runner_is_skipped_and_the_next_runs(
     assert (tmp_path / "res" / "held" / "DONE.json").is_file()
 
 
-def _children(pid: int) -> list[int]:
-    """Pids whose parent is ``pid`` (Linux ``/proc``)."""
-    children = []
-    for status in Path("/proc").glob("[0-9]*/status"):
-        with contextlib.suppress(OSError):
-            if f"PPid:\t{pid}\n" in status.read_text():
-                children.append(int(status.parent.name))
-    return children
-
-
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runner's job")
 def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) -> None:
     """The job's process inherits the lock: a runner killed without its child does not free the job."""
@@ -418,7 +407,7 @@ def test_the_lock_outlives_a_killed_runner_while_its_job_runs(tmp_path: Path) ->
     runner = subprocess.Popen(argv, start_new_session=True)
     try:
         for _ in range(1200):  # the runner has started its job
-            if _children(runner.pid):
+            if queue.descendants(runner.pid):
                 break
             time.sleep(0.1)
         else:
