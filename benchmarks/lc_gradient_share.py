@@ -14,7 +14,7 @@ DCP-family pairs of ModelNet40 under ``--root``, the budget's points and batch) 
 and the L2 norm of its gradient on the encoder LC reads (``model.descriptor_encoder()``), as medians over the batches.
 
 The *matched weight* is median(‖∇ own‖ / ‖∇ LC‖): the LC weight at which LC's encoder gradient equals the host's own
-(the rule fixed in ``docs/results/converge/README.md`` before any test number, as a fairer second test than the
+(the rule fixed in ``docs/results/converge/history.md`` before any test number, as a fairer second test than the
 paper's literal weight 1).
 
 A gradient norm is not what the runs' optimiser (Adam) moves by: Adam scales each coordinate by its own gradient

@@ -455,9 +455,12 @@ def test_bad_runner_tables_are_refused(tmp_path: Path, tables: str, message: str
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
-def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path: Path) -> None:
+def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`start` runs each runner detached from this process (its own log); `stop` ends runner and training process."""
     queue = load("train_queue")
+    monkeypatch.setattr(queue, "GROUP_NICE", 1)  # set, but not so low that a busy test machine starves the runners
     file = tmp_path / "q.toml"
     sleep = "python -c 'import time; time.sleep(60)'"
     jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
@@ -479,6 +482,8 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path:
         for pid in pids:  # the runner nice 10, its training 5 more: the session's own work comes first
             assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)
             assert all(os.getpriority(os.PRIO_PROCESS, c) == min(own + 15, 19) for c in queue.descendants(pid))
+            if Path("/proc/self/autogroup").is_file():  # sessions are shared first: the runner's session is niced too
+                assert Path(f"/proc/{pid}/autogroup").read_text().split()[-1] == "1"
         assert {queue.holder(job, runs) for job in queue.load_jobs(file)} == {*pids, None}  # a and c run, b waits
         with pytest.raises(SystemExit, match="running already"):
             queue.main(["start", *args])
@@ -487,3 +492,53 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(tmp_path:
     assert len(signalled) >= 4  # two runners and their two training processes
     assert queue.runner_pids(runs) == [] and not any(map(queue.alive, signalled))
     assert all(queue.holder(job, runs) is None for job in queue.load_jobs(file))
+
+
+def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budget(tmp_path: Path) -> None:
+    """Both row schemas: ``learning_curves.py`` (stop in ``stopped_step``, the selection only in the checkpoint's
+    name, its monitor in the budget) and ``lcreg reproduce`` (``steps``, ``selected_on``, ``best_val``); a job's rows
+    of an earlier rule keep their own table. ``sync`` writes the same table to ``<results>/runs.md``."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text(
+        '[[job]]\nid = "curves"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n'
+        '[[job]]\nid = "sweep"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n'
+    )
+    res = tmp_path / "res"
+    curves = [
+        {"variant": "fmr", "seed": 1, "points": 1024, "steps": 3000, "budget": "converge p12 v4 mval/rre_median_deg",
+         "best_checkpoint": "/gone/step002350-val_rre_median_deg0.3769.ckpt", "seconds": 19722.4,
+         "stopped_step": 2950, "early_stopped": True},
+        {"variant": "pcr", "seed": 0, "points": 1024, "steps": 3000, "budget": "converge p6 v4 min3000",
+         "best_checkpoint": "/gone/step003000-val_rre_clip5_deg10.5000.ckpt", "seconds": 5.0,
+         "stopped_step": 3000, "early_stopped": False},
+    ]  # fmt: skip
+    sweep = [
+        {"variant": "prnet/X", "seed": 0, "budget": "B1", "steps": 650, "stopped_early": True, "train_s": 270.0,
+         "selected": "step000050-val_rre_median_deg3.3750.ckpt", "selected_on": "val/rre_median_deg",
+         "best_val": 3.375, "num_points": 256},
+        {"variant": "prnet/X", "seed": 0, "budget": "B1, lr 0.00022", "steps": 3000, "stopped_early": False,
+         "train_s": 900.0, "selected": "step002900-val_rre_median_deg1.6800.ckpt",
+         "selected_on": "val/rre_median_deg", "best_val": 1.68, "num_points": 256},
+    ]  # fmt: skip
+    for job, name, rows in (("curves", "runs.jsonl", curves), ("sweep", "lc.jsonl", sweep)):
+        (res / job / "runs").mkdir(parents=True)
+        (res / job / "runs" / name).write_text("".join(json.dumps(row) + "\n" for row in rows))
+    table = queue.runs_table(queue.load_jobs(file), res)
+    sections = table.split("\n## ")[1:]
+    assert [s.splitlines()[0] for s in sections] == [
+        "`curves`: converge p12 v4 mval/rre_median_deg",
+        "`curves`: converge p6 v4 min3000",
+        "`sweep`: B1",
+        "`sweep`: B1, lr 0.00022",
+    ]
+    rows = [s.splitlines()[-1] for s in sections]
+    assert rows[0] == "| fmr | 1 | 1024 | 2,950 | early stop | 2,350 | `val/rre_median_deg` | 0.3769 | 19,722 |"
+    assert rows[1] == "| pcr | 0 | 1024 | 3,000 | step cap | 3,000 | `val/rre_clip5_deg` | 10.5 | 5 |"
+    assert rows[2] == "| prnet/X | 0 | 256 | 650 | early stop | 50 | `val/rre_median_deg` | 3.375 | 270 |"
+    assert rows[3] == "| prnet/X | 0 | 256 | 3,000 | step cap | 2,900 | `val/rre_median_deg` | 1.68 | 900 |"
+    queue.main(["sync", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(res)])
+    assert (res / "runs.md").read_text() == table
+    out = tmp_path / "runs.md"
+    queue.main(["runs", "--queue", str(file), "--results", str(res), "--out", str(out)])
+    assert out.read_text() == table

@@ -74,7 +74,7 @@ def choose_start_angle(mean_rre_deg: Mapping[float | None, float]) -> float | No
 
     The setting with the lowest mean RRE wins; ties go to ``None`` (the single identity start), then to the smaller
     angle (fewer wrong basins reachable, the same cost). Issue 23 fixed this rule in session 10 for the shipped files
-    and in session 23 for FMR-Net's goal (c) comparison (``docs/results/converge/README.md``).
+    and in session 23 for FMR-Net's goal (c) comparison (``docs/results/converge/history.md``).
 
     Args:
         mean_rre_deg: Mean RRE (degrees) on the validation pairs per setting: ``None`` for one start, ``a`` for the

@@ -61,7 +61,7 @@ MATCHED_LC_WEIGHTS = {"dcp": 0.505, "prnet": 1.30, "idam": 51.6, "deepgmr": 58.8
 """Per host, the LC weight at which LC's gradient on the encoder equals the host's own loss's: the median of
 ‖∇ own‖ / ‖∇ LC‖ over the first 20 training batches of the ``converge`` budget at initialisation, seed 0
 (``benchmarks/lc_gradient_share.py``, ``docs/results/converge/lc_gradient_share.md``; the rule was fixed in
-``docs/results/converge/README.md`` before any test number). At the paper's weight 1, LC has 3 % of IDAM's encoder
+``docs/results/converge/history.md`` before any test number). At the paper's weight 1, LC has 3 % of IDAM's encoder
 gradient and 1/59 of DeepGMR's, so "LC + X does not beat X" at weight 1 would not show that LC cannot help them."""
 
 
