@@ -698,7 +698,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":
         table = runs_table(jobs, args.results)
-        print(table, end="") if args.out is None else args.out.write_text(table, encoding="utf-8")
+        if args.out is None:
+            print(table, end="")
+        else:
+            args.out.write_text(table, encoding="utf-8")
         return
     if args.action == "status":
         for job in jobs:
