@@ -124,11 +124,14 @@ PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_cur
 
 @dataclass(frozen=True)
 class Runner:
-    """One CPU runner of ``start``: ``run --section cpu --only <only>`` (its jobs, in order), and why."""
+    """One CPU runner of ``start``: ``run --section cpu --only <only>`` (its jobs, in order), and why. ``jobs`` > 1
+    adds ``run --jobs <jobs>``: a sweep of its jobs (:data:`PARALLEL_COMMANDS`) trains that many runs at once, each
+    on its own thread, so a job of many runs gets that many shares of the cores."""
 
     name: str
     only: tuple[str, ...]
     why: str = ""
+    jobs: int = 1
 
 
 def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
@@ -149,6 +152,8 @@ def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
         unknown = set(runner.only) - known
         if not runner.only or unknown:
             raise ValueError(f"{path}: runner {runner.name!r} names no job or unknown ones: {sorted(unknown)}")
+        if not isinstance(runner.jobs, int) or isinstance(runner.jobs, bool) or runner.jobs < 1:
+            raise ValueError(f"{path}: runner {runner.name!r}: jobs must be an integer >= 1, got {runner.jobs!r}")
     if len({r.name for r in runners}) != len(runners) or len(set(listed)) != len(listed):
         raise ValueError(f"{path}: runner names and the jobs they list must be unique")
     return runners
@@ -609,12 +614,14 @@ def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: 
         argv += ["run", "--section", "cpu"]
         argv += ["--queue", str(queue.resolve())]
         argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
+        argv += ["--jobs", str(runner.jobs)] if runner.jobs > 1 else []
         with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
             )
         nice_group(process.pid, GROUP_NICE)
-        print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}", flush=True)
+        runs_at_once = f" ({runner.jobs} runs at once)" if runner.jobs > 1 else ""
+        print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}{runs_at_once}", flush=True)
         pids.append(process.pid)
     return pids
 
@@ -666,7 +673,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--jobs",
         type=int,
         default=1,
-        help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; default 1: one thread)",
+        help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; a runner's `jobs`; default 1)",
     )
     parser.add_argument("--out", type=Path, default=None, help="runs: write the table here (default: print it)")
     parser.add_argument(

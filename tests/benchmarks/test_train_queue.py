@@ -444,6 +444,8 @@ def test_committed_runners_list_known_jobs_once() -> None:
         ('[[runner]]\nname = "a"\nonly = []\n', "names no job"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\n[[runner]]\nname = "b"\nonly = ["j"]\n', "must be unique"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\nthreads = 2\n', "unexpected keyword"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = 0\n', "jobs must be an integer >= 1"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = "2"\n', "jobs must be an integer >= 1"),
     ],
 )
 def test_bad_runner_tables_are_refused(tmp_path: Path, tables: str, message: str) -> None:
@@ -464,7 +466,7 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     file = tmp_path / "q.toml"
     sleep = "python -c 'import time; time.sleep(60)'"
     jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
-    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\n'
+    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\njobs = 2\n'
     file.write_text("\n".join(jobs) + runners)
     runs, res = tmp_path / "runs", tmp_path / "res"
     args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
@@ -478,6 +480,9 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
         else:
             pytest.fail(f"runners: {queue.runner_pids(runs)}; logs: {[p.read_text() for p in runs.glob('logs/*')]}")
         assert {p.name for p in (runs / "logs").iterdir()} == {"one.log", "two.log"}
+        argvs = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in pids]
+        assert sorted(b"--jobs" in argv for argv in argvs) == [False, True]  # runner "two" runs 2 runs at once
+        assert all(argv[argv.index(b"--jobs") + 1] == b"2" for argv in argvs if b"--jobs" in argv)
         own = os.getpriority(os.PRIO_PROCESS, 0)
         for pid in pids:  # the runner nice 10, its training 5 more: the session's own work comes first
             assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)
