@@ -121,6 +121,25 @@ def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
     assert recon[-1] < recon[0], recon
 
 
+@pytest.mark.parametrize("squared", [False, True])
+def test_reconstruction_term_is_the_chamfer_of_both_decodings(batch: RegistrationBatch, squared: bool) -> None:
+    """``L_CD`` per cloud against scipy's nearest neighbours: mean distance both ways (the paper), or mean squared
+    distance both ways with ``squared_chamfer`` (FMR-Net's reconstruction loss); the two clouds' terms summed."""
+    from scipy.spatial import cKDTree
+
+    model = _model(lc_weight=0.0, squared_chamfer=squared, batch_norm=False).train()  # codes of each cloud alone
+    losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
+    expected = 0.0
+    with torch.no_grad():
+        for cloud in (batch.points_src, batch.points_ref):
+            for decoded, points in zip(model.decoder(model.encoder(cloud)).double(), cloud.double(), strict=True):
+                a, b = decoded.numpy(), points.numpy()
+                d_ab, d_ba = cKDTree(b).query(a)[0], cKDTree(a).query(b)[0]
+                power = 2 if squared else 1
+                expected += ((d_ab**power).mean() + (d_ba**power).mean()) / len(cloud)
+    torch.testing.assert_close(losses["recon"].double(), torch.tensor(expected, dtype=torch.float64), rtol=1e-4, atol=0)
+
+
 def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> None:
     cases = [
         ({"lc_weight": 0.0}, "lc", None),

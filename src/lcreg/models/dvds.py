@@ -64,6 +64,8 @@ class DVDs(LucasKanadeModule):
         global_loss: ``"l2"`` (paper: ``||psi(W(X)) - psi(Y)||_2``) or ``"normalized_l2"`` (the same divided by the
             RMS norm of the two descriptors; IC-LK is invariant to the descriptor scale, so this removes the trivial
             minimiser "shrink the features" without changing what registration uses).
+        squared_chamfer: The reconstruction term's Chamfer distance averages squared nearest-neighbour distances
+            (FMR-Net's reconstruction loss) instead of distances (default, the paper's ``L_CD``).
         diagnostics_every_n_steps: Period of the gradient-norm diagnostics (0: never).
         **kwargs: :class:`~lcreg.models.lucas_kanade.LucasKanadeModule` arguments (``eval_iterations``,
             ``voxel_grid``) and components (``optimizer``, ``lr_scheduler``, ``loss_terms`` such as
@@ -88,6 +90,7 @@ class DVDs(LucasKanadeModule):
         decoder_hidden: Sequence[int] = (256, 256),
         normal_hidden: Sequence[int] = (128, 64),
         global_loss: Literal["l2", "normalized_l2"] = "l2",
+        squared_chamfer: bool = False,
         diagnostics_every_n_steps: int = 50,
         **kwargs: Any,
     ) -> None:
@@ -114,7 +117,12 @@ class DVDs(LucasKanadeModule):
         if global_loss not in ("l2", "normalized_l2"):
             raise ValueError(f"`global_loss` must be 'l2' or 'normalized_l2', got {global_loss!r}")
         self.global_loss = global_loss
+        self.squared_chamfer = squared_chamfer
         self.diagnostics_every_n_steps = diagnostics_every_n_steps
+
+    def _chamfer(self, decoded: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Batch mean of the Chamfer distance between a reconstruction and its cloud (squared if configured)."""
+        return chamfer_distance(decoded, points, squared=self.squared_chamfer).mean()
 
     def _normal_loss(self, points: torch.Tensor, normals: torch.Tensor | None, code: torch.Tensor) -> torch.Tensor:
         """``1 - mean cos(pred, n)`` per batch (``|cos|`` for PCA-estimated, unoriented normals), batch mean."""
@@ -142,7 +150,7 @@ class DVDs(LucasKanadeModule):
         losses = {"global": residual.mean()}
         losses["loss"] = self.lambda_global * losses["global"]
         if self.decoder is not None:
-            recon = chamfer_distance(self.decoder(f_x), x).mean() + chamfer_distance(self.decoder(f_y), y).mean()
+            recon = self._chamfer(self.decoder(f_x), x) + self._chamfer(self.decoder(f_y), y)
             losses["recon"] = recon
             losses["loss"] = losses["loss"] + self.lambda_recon * recon
         if self.normal_head is not None:
