@@ -7,6 +7,7 @@
     python benchmarks/train_queue.py start --runs /work/runs/converge                 # the file's CPU runners, detached
     python benchmarks/train_queue.py stop --runs /work/runs/converge                  # end them and their training
     python benchmarks/train_queue.py runs --out docs/results/converge/runs.md         # every finished run's stop
+    python benchmarks/train_queue.py progress --runs /work/runs/converge              # the runs training now
     python benchmarks/train_queue.py --smoke                                          # seconds: a tiny queue
 
 Every job is one resumable command (``{runs}``: its run folder under ``--runs``, ``{results}``: its folder under
@@ -28,7 +29,8 @@ The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``
 launches them in the background from a worktree at the current commit (so that code changed meanwhile does not
 disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
 training processes (a run resumes from its ``last.ckpt``). ``runs`` tabulates every finished run of the committed
-results: the step at which it stopped, why, and the step its rule selected (:func:`runs_table`).
+results: the step at which it stopped, why, and the step its rule selected (:func:`runs_table`). ``progress`` shows
+the runs training now: each one's last validation and its best so far (:func:`progress_table`).
 """
 
 from __future__ import annotations
@@ -56,8 +58,10 @@ from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
     SELECTION_METRIC,
     ResultLog,
+    Series,
     add_smoke_argument,
     machine_line,
+    read_metrics,
     training_device,
 )
 
@@ -436,6 +440,47 @@ def runs_table(jobs: Sequence[Job], results: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+PROGRESS_KEYS = ("val/rre_median_deg", "val/rre_clip5_deg", "val/recall_r2_t0p01", "val/rre_mean_deg")
+"""Validation metrics ``progress`` shows (the stopping rules' monitors, the recall of goal (c), the tail)."""
+
+
+def active_runs(job: Job, runs: Path, hours: float) -> list[Path]:
+    """The ``metrics.csv`` files of ``job``'s run folder written in the last ``hours`` (its runs training now; a run
+    set aside as lost, under ``abandoned/``, is not one), oldest first."""
+    folder, since = runs / job.id, time.time() - 3600 * hours
+    files = [f for f in folder.rglob("metrics.csv") if "abandoned" not in f.parts] if folder.is_dir() else []
+    return sorted((f for f in files if f.stat().st_mtime >= since), key=lambda f: f.stat().st_mtime)
+
+
+def progress_cell(key: str, series: Series) -> str:
+    """``last @ step (best v @ step)`` of ``key``'s series: higher is better for recalls, lower for the rest."""
+    best = int(series.values.argmax() if "recall" in key else series.values.argmin())
+    last = f"{series.values[-1]:.4g} @ {series.steps[-1]}"
+    return f"{last} (best {series.values[best]:.4g} @ {series.steps[best]})"
+
+
+def progress_table(jobs: Sequence[Job], runs: Path, hours: float = 3.0) -> str:
+    """Markdown: every run of ``jobs`` that logged in the last ``hours`` (:func:`active_runs`), with the runner
+    holding its job (a finished run of a held job is listed too: see when it last wrote), the step of its last
+    validation and, for each of :data:`PROGRESS_KEYS`, the last value and the
+    best so far (over the segments of a resumed run)."""
+    header = ["job", "run", "held by", "written", "last validation", *(k.removeprefix("val/") for k in PROGRESS_KEYS)]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for job in jobs:
+        pid = holder(job, runs)
+        for path in active_runs(job, runs, hours):
+            metrics = read_metrics(path)
+            shown = {key: metrics[key] for key in PROGRESS_KEYS if key in metrics and len(metrics[key].steps)}
+            cells = [progress_cell(key, shown[key]) if key in shown else "–" for key in PROGRESS_KEYS]
+            last = max((int(series.steps[-1]) for series in shown.values()), default=None)
+            run = path.parent.relative_to(runs / job.id).as_posix()
+            held = "–" if pid is None else f"pid {pid}"
+            step = "none yet" if last is None else f"step {last}"
+            written = f"{(time.time() - path.stat().st_mtime) / 60:.0f} min ago"
+            lines.append("| " + " | ".join([job.id, run, held, written, step, *cells]) + " |")
+    return "\n".join(lines) + "\n"
+
+
 @contextlib.contextmanager
 def job_lock(job: Job, runs: Path) -> Iterator[int | None]:
     """Hold ``<runs>/<id>.lock`` (an exclusive ``flock``) while ``job`` runs here.
@@ -654,7 +699,7 @@ def default_queue(checkout: Path) -> Path:
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    actions = ("status", "run", "sync", "start", "stop", "runs")
+    actions = ("status", "run", "sync", "start", "stop", "runs", "progress")
     parser.add_argument("action", nargs="?", choices=actions, default="status")
     parser.add_argument("--queue", type=Path, default=default_queue(REPO))
     parser.add_argument("--section", choices=("cpu", "gpu"), default="cpu")
@@ -676,6 +721,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; a runner's `jobs`; default 1)",
     )
     parser.add_argument("--out", type=Path, default=None, help="runs: write the table here (default: print it)")
+    parser.add_argument("--hours", type=float, default=3.0, help="progress: runs that logged within these hours")
     parser.add_argument(
         "--checkout",
         type=Path,
@@ -709,6 +755,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             print(table, end="")
         else:
             args.out.write_text(table, encoding="utf-8")
+        return
+    if args.action == "progress":
+        print(progress_table(jobs, args.runs, args.hours), end="")
         return
     if args.action == "status":
         for job in jobs:

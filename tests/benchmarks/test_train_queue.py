@@ -547,3 +547,29 @@ def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budg
     out = tmp_path / "runs.md"
     queue.main(["runs", "--queue", str(file), "--results", str(res), "--out", str(out)])
     assert out.read_text() == table
+
+
+def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(tmp_path: Path) -> None:
+    """Over the segments of a resumed run: the last validation and the best so far (the highest recall, the lowest
+    errors); a run that has not logged within ``hours`` and a run set aside as lost are left out."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    runs = tmp_path / "runs"
+    head = "epoch,step,val/rre_median_deg,val/recall_r2_t0p01,train/loss\n"
+    live = runs / "j" / "v" / "seed1"
+    live.mkdir(parents=True)
+    (live / "metrics.segment1.csv").write_text(head + "0,0,2.0,0.5,\n0,10,,,9.0\n0,49,0.5,0.75,\n")
+    (live / "metrics.csv").write_text(head + "1,99,0.8,0.7,\n")
+    for old in (runs / "j" / "v" / "seed0", runs / "j" / "v" / "seed1" / "abandoned" / "1"):
+        old.mkdir(parents=True)
+        (old / "metrics.csv").write_text(head + "0,0,9.0,0.0,\n")
+    os.utime(runs / "j" / "v" / "seed0" / "metrics.csv", (time.time() - 4 * 3600,) * 2)
+    table = queue.progress_table(queue.load_jobs(file), runs, hours=3.0)
+    rows = [line for line in table.splitlines()[2:] if line]
+    assert len(rows) == 1, table
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert cells[:3] == ["j", "v/seed1", "–"] and cells[4] == "step 99"
+    assert cells[5] == "0.8 @ 99 (best 0.5 @ 49)"  # median RRE: lowest is best
+    assert cells[6] == "–"  # clip5 not logged
+    assert cells[7] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
