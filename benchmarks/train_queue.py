@@ -462,8 +462,8 @@ def progress_cell(key: str, series: Series) -> str:
 def progress_table(jobs: Sequence[Job], runs: Path, hours: float = 3.0) -> str:
     """Markdown: every run of ``jobs`` that logged in the last ``hours`` (:func:`active_runs`), with the runner
     holding its job (a finished run of a held job is listed too: see when it last wrote), the step of its last
-    validation and, for each of :data:`PROGRESS_KEYS`, the last value and the
-    best so far (over the segments of a resumed run)."""
+    validation and, for each of :data:`PROGRESS_KEYS`, the last value and the best so far (over the segments of a
+    resumed run)."""
     header = ["job", "run", "held by", "written", "last validation", *(k.removeprefix("val/") for k in PROGRESS_KEYS)]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for job in jobs:
