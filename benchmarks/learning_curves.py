@@ -43,7 +43,9 @@ clipping 1, as in issue 12's table); ``pointnetlk_nobn`` is the same without Bat
 then sees the same function as the training pass), ``pointnetlk_nobn_steplr`` that with the lr halved every 5 epochs
 (its validation mean RRE rose after step 500 at a constant lr); ``pointnetlk_orig`` is
 ``configs/models/pointnetlk.yaml`` as it stands, the original's settings (BatchNorm with its running statistics
-refreshed before each solve, finite-difference Jacobian, Adam lr 1e-3, no clipping), which FMR-Net shares.
+refreshed before each solve, finite-difference Jacobian, Adam lr 1e-3, no clipping), which FMR-Net shares;
+``pointnetlk_fmrinit`` is ``pointnetlk`` (BatchNorm, supervised settings) starting from FMR-Net's reconstruction-trained
+encoder (``encoder_from``, :data:`FMR_SEED0_WEIGHTS`), as the original starts from a classifier's (``--transfer-from``).
 ``selfsup_lr3e-5`` and ``selfsup_steplr`` are the recipe at lr 3e-5 and with the lr halved every 5 epochs (the levers of
 issue 23); ``selfsup_tw25`` weighs the self-motion term's translation error 25 times (a 0.01 error like a 2 deg one, the
 recall thresholds), ``selfsup_tw100`` 100 times, ``selfsup_tw400`` 400 times; ``selfsup_tw100_fine`` adds to
@@ -130,6 +132,8 @@ SUPERVISED_LK = {  # PointNetLK as in issue 12's table: analytic Jacobian, lr 1e
     "model.init_args.optimizer.init_args.lr": 0.0001,
     "trainer.gradient_clip_val": 1.0,
 }
+FMR_SEED0_WEIGHTS = Path(__file__).resolve().parents[1] / "docs/results/converge/fmr_1024/best/fmr-seed0.pt"
+"""FMR-Net's reconstruction-trained encoder (``fmr_1024`` seed 0: the lowest validation median RRE of its seeds)."""
 HALVE_EVERY_5_EPOCHS = {
     "model.init_args.lr_scheduler": {
         "class_path": "torch.optim.lr_scheduler.StepLR",
@@ -236,6 +240,9 @@ VARIANTS: dict[str, Variant] = {
     "fmr_tw100": Variant("fmr", overrides={"model.init_args.loss_terms": [SELF_MOTION_TW100]}),
     "pointnetlk_orig": Variant("pointnetlk"),
     "pointnetlk_nobn": Variant("pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK}),
+    "pointnetlk_fmrinit": Variant(
+        "pointnetlk", overrides={"model.init_args.encoder_from": str(FMR_SEED0_WEIGHTS), **SUPERVISED_LK}
+    ),
     "pointnetlk_nobn_steplr": Variant(
         "pointnetlk", overrides={"model.init_args.batch_norm": False, **SUPERVISED_LK, **HALVE_EVERY_5_EPOCHS}
     ),

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pytest
 import torch
@@ -16,6 +19,7 @@ from lcreg.nn.lk import InverseCompositionalLK
 from lcreg.nn.pointnet import PointNetEncoder
 
 from _host_contract import tiny_batch  # type: ignore[import-not-found]
+from _weights_files import exported, lightning_checkpoint, tiny_model  # type: ignore[import-not-found]
 
 SMALL = {"encoder_channels": (16, 32)}
 
@@ -136,3 +140,91 @@ def test_eval_starts_are_checked() -> None:
     batch = tiny_batch(batch_size=1, num_points=64)
     with pytest.raises(ValueError, match="not with `voxel_grid`"):
         model.eval()(batch.points_src, batch.points_ref)
+
+
+# --- encoder_from: training starts from another IC-LK model's encoder ---------------------------------------------
+def _encoder_state(model: LucasKanadeModule) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in model.encoder.state_dict().items()}
+
+
+def _fit_steps(model: LucasKanadeModule, steps: int, root: Path, ckpt_path: str | None = None) -> Path:
+    """``steps`` training steps on one tiny batch (lr 0: parameters move only if something loads them); the last
+    checkpoint's path."""
+    from lightning.pytorch import Trainer
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    batch = tiny_batch(batch_size=2, num_points=48)
+    loader = torch.utils.data.DataLoader([batch] * steps, batch_size=None, collate_fn=lambda b: b)
+    checkpoints = ModelCheckpoint(dirpath=root, save_last=True)
+    trainer = Trainer(
+        max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[checkpoints]
+    )
+    trainer.fit(model, train_dataloaders=loader, ckpt_path=ckpt_path)
+    return root / "last.ckpt"
+
+
+@pytest.mark.parametrize("source_kind", ["fmr", "dvds"])
+@pytest.mark.parametrize("suffix", [".pt", ".ckpt"])
+def test_encoder_from_loads_another_models_encoder_at_the_first_setup(
+    tmp_path: Path, source_kind: str, suffix: str
+) -> None:
+    source = tiny_model(source_kind, seed=3, lc=False)
+    path = (
+        exported(source, tmp_path, name="source")
+        if suffix == ".pt"
+        else lightning_checkpoint(source, tmp_path / "source.ckpt")
+    )
+    model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(path))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    model.setup("validate")  # a step-0 validation already sees the starting encoder
+    expected = _encoder_state(source)
+    got = _encoder_state(model)
+    assert got.keys() == expected.keys() and all(torch.equal(got[k], expected[k]) for k in got)  # BN buffers too
+    assert not torch.equal(got["linears.0.weight"], before["encoder.linears.0.weight"])
+    assert all(torch.equal(v, before[k]) for k, v in model.state_dict().items() if not k.startswith("encoder."))
+    with torch.no_grad():
+        model.encoder.linears[0].weight.add_(1.0)  # trained since: a later setup (fit after validate) keeps it
+    trained = _encoder_state(model)
+    model.setup("fit")
+    assert all(torch.equal(v, trained[k]) for k, v in _encoder_state(model).items())
+    assert PointNetLK.inference_hparams["encoder_from"] is None  # the export leaves the path out
+
+
+def test_weights_loaded_before_the_first_setup_win_over_encoder_from(tmp_path: Path) -> None:
+    path = exported(tiny_model("fmr", seed=3, lc=False), tmp_path, name="source")
+    own = tiny_model("pointnetlk", seed=5, lc=False, eval_iterations=None, max_iterations=10)
+    model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(path))
+    model.load_state_dict(own.state_dict())  # what --weights does before Lightning sets the model up
+    model.setup("fit")
+    assert all(torch.equal(v, own.state_dict()[k]) for k, v in model.state_dict().items())
+
+
+def test_encoder_from_refuses_missing_files_and_other_encoders(tmp_path: Path) -> None:
+    from lcreg.weights import PretrainedMismatchError, PretrainedNotFoundError
+
+    missing = PointNetLK(encoder_channels=[16, 32], encoder_from=str(tmp_path / "nothing.pt"))
+    with pytest.raises(PretrainedNotFoundError, match=r"nothing\.pt"):
+        missing.setup("fit")
+    wider = exported(tiny_model("fmr", lc=False, encoder_channels=[16, 64]), tmp_path, name="wider")
+    model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(wider))
+    with pytest.raises(PretrainedMismatchError, match=r"wider.*`encoder` does not fit.*shapes"):
+        model.setup("fit")
+
+
+def test_encoder_from_starts_a_fit_and_a_resumed_fit_keeps_its_checkpoint(tmp_path: Path) -> None:
+    first = exported(tiny_model("fmr", seed=1, lc=False), tmp_path, name="first")
+    model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(first), optimizer=_zero_lr_adam)
+    last = _fit_steps(model, 1, tmp_path / "run")
+    params = dict(model.encoder.named_parameters())
+    source = dict(tiny_model("fmr", seed=1, lc=False).encoder.named_parameters())
+    assert all(torch.equal(params[k], source[k]) for k in params)  # lr 0: the loaded encoder trained
+    # the file now holds another encoder: a resumed fit restores its checkpoint over what setup loads
+    exported(tiny_model("fmr", seed=2, lc=False), tmp_path, name="first", overwrite=True)
+    resumed = PointNetLK(encoder_channels=[16, 32], encoder_from=str(first), optimizer=_zero_lr_adam)
+    _fit_steps(resumed, 2, tmp_path / "run", ckpt_path=str(last))
+    again = dict(resumed.encoder.named_parameters())
+    assert all(torch.equal(again[k], params[k]) for k in again)
+
+
+def _zero_lr_adam(params: Any) -> torch.optim.Optimizer:
+    return torch.optim.Adam(params, lr=0.0)

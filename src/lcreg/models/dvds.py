@@ -73,7 +73,11 @@ class DVDs(LucasKanadeModule):
     """
 
     training_only_modules: ClassVar[tuple[str, ...]] = ("loss_terms", "decoder", "normal_head")
-    inference_hparams: ClassVar[Mapping[str, Any]] = {"lambda_recon": 0.0, "lambda_normal": 0.0}
+    inference_hparams: ClassVar[Mapping[str, Any]] = {
+        **LucasKanadeModule.inference_hparams,
+        "lambda_recon": 0.0,
+        "lambda_normal": 0.0,
+    }
 
     def __init__(
         self,

@@ -16,10 +16,11 @@ collapsing self-supervised descriptor shows there first (issue 12); ``benchmarks
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 
 from lcreg.models.base import RegistrationModule
 from lcreg.nn.lk import (
@@ -60,6 +61,12 @@ class LucasKanadeModule(RegistrationModule):
         eval_start_margin: With ``eval_start_angles_deg``: another start replaces the identity's answer only if its
             final residual is below ``(1 - eval_start_margin)`` times the identity's
             (:func:`~lcreg.nn.lk.select_start`; 0: the lowest residual wins).
+        encoder_from: The encoder's starting weights: a registered name, an exported ``.pt`` or a Lightning
+            ``.ckpt`` of any IC-LK model with the same encoder (e.g. FMR-Net's reconstruction-trained PointNet for
+            PointNetLK, whose original starts from a classifier's, ``--transfer-from``). Loaded by the model's first
+            :meth:`setup` (:func:`lcreg.weights.load_submodule`), unless weights were loaded into it before
+            (``load_state_dict``: ``--weights``); a checkpoint Lightning restores (a resumed fit, ``--ckpt_path``)
+            comes after and wins. Not kept in exported weights.
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``optimizer``, ``lr_scheduler``,
             ``loss_terms``, ``refiner``).
 
@@ -83,9 +90,12 @@ class LucasKanadeModule(RegistrationModule):
         voxel_grid: VoxelGrid | None = None,
         eval_start_angles_deg: Sequence[float] = (),
         eval_start_margin: float = 0.0,
+        encoder_from: str | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        self.encoder_from = encoder_from
+        self._encoder_pending = encoder_from is not None
         self.eval_start_margin = check_start_margin(eval_start_margin, "eval_start_margin")
         if not all(math.isfinite(a) for a in eval_start_angles_deg):
             raise ValueError(f"`eval_start_angles_deg` must be finite angles in degrees, got {eval_start_angles_deg}")
@@ -98,6 +108,8 @@ class LucasKanadeModule(RegistrationModule):
         )
         self.eval_iterations = eval_iterations
         self.eval_start_angles_deg = tuple(float(a) for a in eval_start_angles_deg)
+
+    inference_hparams: ClassVar[Mapping[str, Any]] = {"encoder_from": None}
 
     _voxel_grid: VoxelGrid | None = None
     _plain_components: ClassVar[tuple[str, ...]] = ("refiner", "voxel_grid")
@@ -120,6 +132,26 @@ class LucasKanadeModule(RegistrationModule):
     @voxel_grid.setter
     def voxel_grid(self, voxel_grid: VoxelGrid | None) -> None:
         self._set_voxel_grid(voxel_grid)
+
+    def setup(self, stage: str) -> None:
+        """The base checks, then, the first time, the encoder's starting weights (``encoder_from``).
+
+        Raises:
+            CheckpointError: ``encoder_from`` is missing or damaged, or its encoder does not fit this one (a
+                subclass naming the file, :func:`lcreg.weights.load_submodule`).
+        """
+        super().setup(stage)
+        if self._encoder_pending and self.encoder_from is not None:
+            from lcreg.weights import load_submodule  # lcreg.weights imports the models lazily, so no cycle
+
+            weights = load_submodule(self, "encoder", self.encoder_from)
+            self._encoder_pending = False
+            rank_zero_info(f"encoder initialised from {weights.path} ({weights.class_path})")
+
+    def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
+        """``torch.nn.Module.load_state_dict``; weights loaded before the first ``setup`` win over ``encoder_from``."""
+        self._encoder_pending = False
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def forward(self, points_src: torch.Tensor, points_ref: torch.Tensor) -> RegistrationResult:
         """IC-LK registration with the current descriptor (``eval_iterations`` and the voxel grid outside training)."""
