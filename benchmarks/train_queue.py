@@ -623,7 +623,20 @@ RUNNER_NICE = 10
 """Niceness ``start`` adds to a runner; its training runs 5 nicer still (:func:`run_job`), so that the session's own
 work (tests, CI) gets the cores first."""
 GROUP_NICE = 19
-"""Niceness of a runner's scheduling group (:func:`nice_group`)."""
+"""Niceness of a one-job runner's scheduling group (:func:`nice_group`; with ``jobs = N``, :func:`group_nice`)."""
+SCHED_WEIGHTS = (1024, 820, 655, 526, 423, 335, 272, 215, 172, 137, 110, 87, 70, 56, 45, 36, 29, 23, 18, 15)
+"""CPU weight of niceness 0-19 (Linux ``sched_prio_to_weight``): a group's share of the CPU is its weight's share."""
+
+
+def group_nice(nice: int, jobs: int) -> int:
+    """The niceness (0-19) whose weight is nearest ``jobs`` times that of ``nice``: a runner training ``jobs`` runs at
+    once gets ``jobs`` shares of the CPU, as ``jobs`` one-job runners would.
+
+    Its runs share one session, so one autogroup: at ``nice`` the three runs of a ``jobs = 3`` runner shared one
+    runner's share (measured in session 28: 50 s of CPU each while every one-job runner's run had 154 s).
+    """
+    target = jobs * SCHED_WEIGHTS[nice]
+    return min(range(len(SCHED_WEIGHTS)), key=lambda n: (abs(SCHED_WEIGHTS[n] - target), -n))
 
 
 def nice_group(pid: int, nice: int) -> bool:
@@ -664,7 +677,7 @@ def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: 
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
             )
-        nice_group(process.pid, GROUP_NICE)
+        nice_group(process.pid, group_nice(GROUP_NICE, runner.jobs))
         runs_at_once = f" ({runner.jobs} runs at once)" if runner.jobs > 1 else ""
         print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}{runs_at_once}", flush=True)
         pids.append(process.pid)

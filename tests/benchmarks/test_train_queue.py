@@ -457,6 +457,16 @@ def test_bad_runner_tables_are_refused(tmp_path: Path, tables: str, message: str
         queue.load_runners(file, queue.load_jobs(file))
 
 
+def test_a_runner_of_n_runs_at_once_gets_n_shares_of_the_cpu() -> None:
+    queue = load("train_queue")
+    weight = dict(enumerate(queue.SCHED_WEIGHTS))
+    assert [queue.group_nice(19, n) for n in (1, 2, 3, 4)] == [19, 16, 14, 13]
+    for jobs in (2, 3, 4):  # within the kernel table's step (about 1.25x a niceness) of jobs one-job runners
+        assert 0.8 < weight[queue.group_nice(19, jobs)] / (jobs * weight[19]) < 1.25
+    assert queue.group_nice(1, 2) == 0  # never below 0
+    assert queue.group_nice(5, 1) == 5
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
 def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -497,11 +507,12 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
         argvs = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in pids]
         assert sorted(b"--jobs" in argv for argv in argvs) == [False, True]  # runner "two" runs 2 runs at once
         assert all(argv[argv.index(b"--jobs") + 1] == b"2" for argv in argvs if b"--jobs" in argv)
-        for pid in pids:  # the runner nice 10, its training 5 more: the session's own work comes first
-            assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)
+        for pid, argv in zip(pids, argvs, strict=True):  # the runner nice 10, its training 5 more: the session's
+            assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)  # own work comes first
             assert all(niceness(c) in (min(own + 15, 19), None) for c in queue.descendants(pid))
-            if Path("/proc/self/autogroup").is_file():  # sessions are shared first: the runner's session is niced too
-                assert Path(f"/proc/{pid}/autogroup").read_text().split()[-1] == "1"
+            if Path("/proc/self/autogroup").is_file():  # sessions are shared first: the runner's session is niced too,
+                group = str(queue.group_nice(1, 2) if b"--jobs" in argv else 1)  # two runs at once: two shares
+                assert Path(f"/proc/{pid}/autogroup").read_text().split()[-1] == group
         assert {queue.holder(job, runs) for job in queue.load_jobs(file)} == {*pids, None}  # a and c run, b waits
         with pytest.raises(SystemExit, match="running already"):
             queue.main(["start", *args])
