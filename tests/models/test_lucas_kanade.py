@@ -203,7 +203,7 @@ def test_encoder_from_refuses_missing_files_and_other_encoders(tmp_path: Path) -
     from lcreg.weights import PretrainedMismatchError, PretrainedNotFoundError
 
     missing = PointNetLK(encoder_channels=[16, 32], encoder_from=str(tmp_path / "nothing.pt"))
-    with pytest.raises(PretrainedNotFoundError, match=r"nothing\.pt"):
+    with pytest.raises(PretrainedNotFoundError, match=r"nothing\.pt.*no such file \(the model's `encoder_from`\)"):
         missing.setup("fit")
     wider = exported(tiny_model("fmr", lc=False, encoder_channels=[16, 64]), tmp_path, name="wider")
     model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(wider))

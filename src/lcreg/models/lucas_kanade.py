@@ -142,9 +142,12 @@ class LucasKanadeModule(RegistrationModule):
         """
         super().setup(stage)
         if self._encoder_pending and self.encoder_from is not None:
-            from lcreg.weights import load_submodule  # lcreg.weights imports the models lazily, so no cycle
+            from lcreg.weights import PretrainedError, load_submodule  # imports the models lazily: no cycle
 
-            weights = load_submodule(self, "encoder", self.encoder_from)
+            try:
+                weights = load_submodule(self, "encoder", self.encoder_from)
+            except PretrainedError as err:  # the same error, saying which argument named the file
+                raise type(err)(err.source, f"{err.reason} (the model's `encoder_from`)", err.path) from err
             self._encoder_pending = False
             rank_zero_info(f"encoder initialised from {weights.path} ({weights.class_path})")
 
