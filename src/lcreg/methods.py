@@ -80,7 +80,19 @@ METHODS: dict[str, MethodInfo] = {
                 ),
             ),
         ),
-        MethodInfo("fmr", "FMR-Net", "lcreg.baselines.fmr.FMRNet", "FMR-Net (Huang et al. 2020): feature-metric LK"),
+        MethodInfo(
+            "fmr",
+            "FMR-Net",
+            "lcreg.baselines.fmr.FMRNet",
+            "FMR-Net (Huang et al. 2020): feature-metric LK",
+            pretrained=(
+                (
+                    "fmr-modelnet40",
+                    "FMR-Net trained label-free (reconstruction) on ModelNet40, analytic Jacobian, 20 IC-LK iterations "
+                    "(configs/models/fmr.yaml + configs/data/modelnet40.yaml)",
+                ),
+            ),
+        ),
         MethodInfo("dcp", "DCP-v2", "lcreg.baselines.dcp.DCP", "DCP-v2 (Wang & Solomon 2019): attention + SVD"),
         MethodInfo("prnet", "PRNet", "lcreg.baselines.prnet.PRNet", "PRNet (Wang & Solomon 2019): keypoints, partial"),
         MethodInfo("idam", "IDAM", "lcreg.baselines.idam.IDAM", "IDAM (Li et al. 2020): iterative distance-aware"),
