@@ -285,7 +285,11 @@ def test_listing_names_stays_light() -> None:
 
 def test_lazy_exports_and_names() -> None:
     assert lcreg.pretrained is pretrained and lcreg.pretrained_names is pretrained_names
-    assert registered_names() == sorted(REGISTRY) and {"dvds-modelnet40", "fmr-modelnet40", "pointnetlk-modelnet40"} <= set(REGISTRY)
+    assert registered_names() == sorted(REGISTRY) and {
+        "dvds-modelnet40",
+        "fmr-modelnet40",
+        "pointnetlk-modelnet40",
+    } <= set(REGISTRY)
     assert set(shipped_names()) <= set(REGISTRY)
     assert pretrained_names() == shipped_names()  # only what loads: a registered name without its file is left out
 
