@@ -26,10 +26,13 @@ __all__ = [
     "CheckpointReadError",
     "check_class",
     "check_keys",
+    "few_items",
     "first_non_finite",
+    "load_submodule",
     "one_line",
     "read_checkpoint",
     "read_torch_file",
+    "state_problems",
 ]
 
 
@@ -165,3 +168,77 @@ def one_line(text: str, limit: int = 300) -> str:
     """
     flat = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", text).split())
     return flat if len(flat) <= limit else flat[: limit - 3] + "..."
+
+
+def state_problems(own: Mapping[str, Any], state: Mapping[str, Any], missing: list[str]) -> list[str]:
+    """Why ``state`` does not load into a module whose state dict is ``own`` (empty: it loads).
+
+    Tensors the module lacks, the ``missing`` ones (tensors of ``own`` that ``state`` must hold) and shapes.
+    """
+    problems = []
+    if unexpected := [k for k in state if k not in own]:
+        problems.append(f"tensors the model lacks: {few_items(unexpected)}")
+    if missing:
+        problems.append(f"inference tensors missing from the file: {few_items(missing)}")
+    shapes = [
+        f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}"
+        for k, v in state.items()
+        if k in own and v.shape != own[k].shape
+    ]
+    if shapes:
+        problems.append(f"shapes (file vs model): {few_items(shapes)}")
+    return problems
+
+
+def few_items(items: list[str], limit: int = 5) -> str:
+    """The first ``limit`` items, comma-separated, with a count of the rest."""
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more
+
+
+PACKAGE_WEIGHTS = Path(__file__).resolve().parent / "weights"
+"""The folder of the shipped weights files (``lcreg.weights.weights_dir()``: ``<name>.pt``)."""
+
+
+def load_submodule(model: torch.nn.Module, module: str, source: str | Path) -> Path:
+    """Load one submodule of ``model`` (e.g. its ``encoder``) from the weights of any model that has the same one.
+
+    Transfer learning across classes: e.g. PointNetLK starting from the PointNet of FMR-Net's reconstruction
+    training (the PointNetLK original starts from a classifier's, ``--transfer-from``). Strict for that submodule:
+    every one of its tensors must be in the file under ``<module>.`` with the same shape; the file's other tensors
+    are ignored.
+
+    Args:
+        model: The model to load into (its other tensors are left as they are).
+        module: The attribute name of the submodule (the prefix of its tensors in the file).
+        source: A shipped weights name (``lcreg.pretrained_names()``), an exported ``.pt`` file or a Lightning
+            checkpoint (``.ckpt``): both hold a ``state_dict``.
+
+    Returns:
+        The file read.
+
+    Raises:
+        CheckpointError: A subclass naming the file: missing, unreadable, without a ``state_dict`` or with NaN/Inf
+            (as :func:`read_checkpoint`); :class:`CheckpointMismatchError` when ``model`` has no such submodule or
+            the file's ``<module>.`` tensors do not fit it.
+    """
+    from lcreg.methods import pretrained_weights  # strings only
+
+    path = (
+        PACKAGE_WEIGHTS / f"{source}.pt" if isinstance(source, str) and source in pretrained_weights() else Path(source)
+    )
+    state = read_checkpoint(path)["state_dict"]
+    target = getattr(model, module, None)
+    if not isinstance(target, torch.nn.Module):
+        raise CheckpointMismatchError(path, f"{type(model).__name__} has no submodule `{module}` to load")
+    prefix = f"{module}."
+    own = target.state_dict()
+    sub = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
+    if not sub:
+        raise CheckpointMismatchError(path, f"holds no `{prefix}*` tensors to load into {type(model).__name__}")
+    if problems := state_problems(own, sub, [k for k in own if k not in sub]):
+        raise CheckpointMismatchError(
+            path, f"its `{module}` does not fit that of {type(model).__name__}: {'; '.join(problems)}"
+        )
+    target.load_state_dict(sub)
+    return path

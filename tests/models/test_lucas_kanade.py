@@ -200,14 +200,14 @@ def test_weights_loaded_before_the_first_setup_win_over_encoder_from(tmp_path: P
 
 
 def test_encoder_from_refuses_missing_files_and_other_encoders(tmp_path: Path) -> None:
-    from lcreg.weights import PretrainedMismatchError, PretrainedNotFoundError
+    from lcreg.checkpoints import CheckpointMismatchError, CheckpointNotFoundError
 
     missing = PointNetLK(encoder_channels=[16, 32], encoder_from=str(tmp_path / "nothing.pt"))
-    with pytest.raises(PretrainedNotFoundError, match=r"nothing\.pt.*no such file \(the model's `encoder_from`\)"):
+    with pytest.raises(CheckpointNotFoundError, match=r"nothing\.pt.*no such file \(the model's `encoder_from`\)"):
         missing.setup("fit")
     wider = exported(tiny_model("fmr", lc=False, encoder_channels=[16, 64]), tmp_path, name="wider")
     model = PointNetLK(encoder_channels=[16, 32], encoder_from=str(wider))
-    with pytest.raises(PretrainedMismatchError, match=r"wider.*`encoder` does not fit.*shapes"):
+    with pytest.raises(CheckpointMismatchError, match=r"wider.*`encoder` does not fit.*shapes"):
         model.setup("fit")
 
 

@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 import torch
 from lightning.pytorch.utilities import rank_zero_info
 
+from lcreg.checkpoints import CheckpointError, load_submodule
 from lcreg.models.base import RegistrationModule
 from lcreg.nn.lk import (
     InverseCompositionalLK,
@@ -64,7 +65,7 @@ class LucasKanadeModule(RegistrationModule):
         encoder_from: The encoder's starting weights: a registered name, an exported ``.pt`` or a Lightning
             ``.ckpt`` of any IC-LK model with the same encoder (e.g. FMR-Net's reconstruction-trained PointNet for
             PointNetLK, whose original starts from a classifier's, ``--transfer-from``). Loaded by the model's first
-            :meth:`setup` (:func:`lcreg.weights.load_submodule`), unless weights were loaded into it before
+            :meth:`setup` (:func:`lcreg.checkpoints.load_submodule`), unless weights were loaded into it before
             (``load_state_dict``: ``--weights``); a checkpoint Lightning restores (a resumed fit, ``--ckpt_path``)
             comes after and wins. Not kept in exported weights.
         **kwargs: :class:`~lcreg.models.base.RegistrationModule` components (``optimizer``, ``lr_scheduler``,
@@ -138,18 +139,16 @@ class LucasKanadeModule(RegistrationModule):
 
         Raises:
             CheckpointError: ``encoder_from`` is missing or damaged, or its encoder does not fit this one (a
-                subclass naming the file, :func:`lcreg.weights.load_submodule`).
+                subclass naming the file, :func:`lcreg.checkpoints.load_submodule`).
         """
         super().setup(stage)
         if self._encoder_pending and self.encoder_from is not None:
-            from lcreg.weights import PretrainedError, load_submodule  # imports the models lazily: no cycle
-
             try:
-                weights = load_submodule(self, "encoder", self.encoder_from)
-            except PretrainedError as err:  # the same error, saying which argument named the file
-                raise type(err)(err.source, f"{err.reason} (the model's `encoder_from`)", err.path) from err
+                path = load_submodule(self, "encoder", self.encoder_from)
+            except CheckpointError as err:  # the same error, saying which argument named the file
+                raise type(err)(err.path or self.encoder_from, f"{err.reason} (the model's `encoder_from`)") from err
             self._encoder_pending = False
-            rank_zero_info(f"encoder initialised from {weights.path} ({weights.class_path})")
+            rank_zero_info(f"encoder initialised from {path}")
 
     def load_state_dict(self, state_dict: Mapping[str, Any], strict: bool = True, assign: bool = False) -> Any:
         """``torch.nn.Module.load_state_dict``; weights loaded before the first ``setup`` win over ``encoder_from``."""

@@ -42,7 +42,9 @@ from lcreg.checkpoints import (
     first_non_finite,
     read_checkpoint,
     read_torch_file,
+    state_problems,
 )
+from lcreg.checkpoints import few_items as _few
 from lcreg.methods import pretrained_weights
 
 if TYPE_CHECKING:
@@ -70,7 +72,6 @@ __all__ = [
     "class_path_of",
     "is_plain_mapping",
     "load_into",
-    "load_submodule",
     "model_payload",
     "pretrained",
     "pretrained_names",
@@ -438,72 +439,12 @@ def _load_state(model: torch.nn.Module, weights: PretrainedWeights) -> None:
     """
     own = model.state_dict()
     missing = [k for k in own if k not in weights.state_dict]
-    problems = _state_problems(own, weights.state_dict, [k for k in missing if not training_only(model, k)])
+    problems = state_problems(own, weights.state_dict, [k for k in missing if not training_only(model, k)])
     if problems:
         problems += _differing_args(model, weights.init_args)
         message = f"does not fit {class_path_of(model)} (another architecture?): {'; '.join(problems)}"
         raise PretrainedMismatchError(weights.source, message, weights.path)
     model.load_state_dict(weights.state_dict, strict=not missing)
-
-
-def _state_problems(
-    own: Mapping[str, torch.Tensor], state: Mapping[str, torch.Tensor], missing: list[str]
-) -> list[str]:
-    """Why ``state`` does not load into a module whose state dict is ``own`` (empty: it loads).
-
-    Tensors the module lacks, the ``missing`` ones (tensors of ``own`` that ``state`` must hold) and shapes.
-    """
-    problems = []
-    if unexpected := [k for k in state if k not in own]:
-        problems.append(f"tensors the model lacks: {_few(unexpected)}")
-    if missing:
-        problems.append(f"inference tensors missing from the file: {_few(missing)}")
-    shapes = [
-        f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}"
-        for k, v in state.items()
-        if k in own and v.shape != own[k].shape
-    ]
-    if shapes:
-        problems.append(f"shapes (file vs model): {_few(shapes)}")
-    return problems
-
-
-def load_submodule(model: torch.nn.Module, module: str, source: str | Path) -> PretrainedWeights:
-    """Load one submodule of ``model`` (e.g. its ``encoder``) from the weights of any model that has the same one.
-
-    Transfer learning across classes: e.g. PointNetLK starting from the PointNet of FMR-Net's reconstruction
-    training (the PointNetLK original starts from a classifier's, ``--transfer-from``). Strict for that submodule:
-    every one of its tensors must be in the file under ``<module>.`` with the same shape; the file's other tensors
-    are ignored.
-
-    Args:
-        model: The model to load into (its other tensors are left as they are).
-        module: The attribute name of the submodule (the prefix of its tensors in the file).
-        source: A registered name, an exported ``.pt`` file or a Lightning checkpoint (``.ckpt``).
-
-    Returns:
-        The weights read (provenance in ``metadata``).
-
-    Raises:
-        CheckpointError: A subclass naming the file: as :func:`read_weights`; :class:`PretrainedMismatchError` when
-            ``model`` has no such submodule or the file's ``<module>.`` tensors do not fit it.
-    """
-    weights = read_weights(source)
-    target = getattr(model, module, None)
-    if not isinstance(target, torch.nn.Module):
-        message = f"{class_path_of(model)} has no submodule `{module}` to load"
-        raise PretrainedMismatchError(weights.source, message, weights.path)
-    prefix = f"{module}."
-    state = {k.removeprefix(prefix): v for k, v in weights.state_dict.items() if k.startswith(prefix)}
-    own = target.state_dict()
-    if not state:
-        message = f"holds no `{prefix}*` tensors ({weights.class_path}) to load into {class_path_of(model)}"
-        raise PretrainedMismatchError(weights.source, message, weights.path)
-    if problems := _state_problems(own, state, [k for k in own if k not in state]):
-        message = f"its `{module}` does not fit that of {class_path_of(model)}: {'; '.join(problems)}"
-        raise PretrainedMismatchError(weights.source, message, weights.path)
-    target.load_state_dict(state)
-    return weights
 
 
 def _differing_args(model: torch.nn.Module, init_args: Mapping[str, Any]) -> list[str]:
@@ -521,12 +462,6 @@ def _differing_args(model: torch.nn.Module, init_args: Mapping[str, Any]) -> lis
     if not differ:
         return []
     return [f"the file was built with {_few(differ)}: configure these (e.g. --model.init_args.<name>)"]
-
-
-def _few(items: list[str], limit: int = 5) -> str:
-    """The first ``limit`` items, comma-separated, with a count of the rest."""
-    more = f" and {len(items) - limit} more" if len(items) > limit else ""
-    return ", ".join(items[:limit]) + more
 
 
 # --- the file's content from a checkpoint or a model in memory ----------------------------------------------------
