@@ -33,6 +33,7 @@ import torch
 
 from lcreg import __version__
 from lcreg.checkpoints import (
+    PACKAGE_WEIGHTS,
     CheckpointError,
     CheckpointFormatError,
     CheckpointMismatchError,
@@ -200,7 +201,7 @@ class PretrainedWeights:
 
 def weights_dir() -> Path:
     """The package folder holding the shipped ``<name>.pt`` files and their ``<name>.md`` model cards."""
-    return Path(__file__).resolve().parent
+    return PACKAGE_WEIGHTS
 
 
 def registered_names() -> list[str]:
