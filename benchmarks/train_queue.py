@@ -6,6 +6,7 @@
     python benchmarks/train_queue.py sync                                             # copy finished rows to commit
     python benchmarks/train_queue.py start --runs /work/runs/converge                 # the file's CPU runners, detached
     python benchmarks/train_queue.py stop --runs /work/runs/converge                  # end them and their training
+    python benchmarks/train_queue.py start --runs /work/runs/converge --runner r3     # one runner, the others go on
     python benchmarks/train_queue.py runs --out docs/results/converge/runs.md         # every finished run's stop
     python benchmarks/train_queue.py progress --runs /work/runs/converge              # the runs training now
     python benchmarks/train_queue.py --smoke                                          # seconds: a tiny queue
@@ -28,15 +29,19 @@ baseline's test outlives its run folder where its weights are too large to keep.
 The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``run --only <its jobs>``): ``start``
 launches them in the background from a worktree at the current commit (so that code changed meanwhile does not
 disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
-training processes (a run resumes from its ``last.ckpt``). ``runs`` tabulates every finished run of the committed
-results: the step at which it stopped, why, and the step its rule selected (:func:`runs_table`). ``progress`` shows
-the runs training now: each one's last validation and its best so far (:func:`progress_table`).
+training processes (a run resumes from its ``last.ckpt``). ``--runner <names>`` restricts either to the named runners,
+the others go on (to pause one runner, or start one whose jobs changed, from a worktree at the current commit; a runner
+is known by its jobs: ``stop --runner`` ends every runner running one of that runner's jobs). ``runs`` tabulates every
+finished run of the committed results: the step at which it stopped, why, and the step its rule selected
+(:func:`runs_table`). ``progress`` shows the runs training now: each one's last validation and its best so far
+(:func:`progress_table`).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import re
@@ -48,7 +53,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -560,16 +565,26 @@ def run_job(
     return True
 
 
-def runner_pids(runs: Path) -> list[int]:
-    """Pids of this machine's ``train_queue.py run`` processes whose ``--runs`` is ``runs`` (Linux ``/proc``)."""
+def runner_pids(runs: Path, jobs: Collection[str] | None = None) -> list[int]:
+    """Pids of this machine's ``train_queue.py run`` processes whose ``--runs`` is ``runs`` (Linux ``/proc``); with
+    ``jobs``, only those whose ``--only`` names one of them (a job runs in one runner at a time: that runner)."""
     pids = []
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         with contextlib.suppress(OSError):
             argv = cmdline.read_bytes().decode(errors="replace").split("\0")
             if any(a.endswith("train_queue.py") for a in argv[1:2]) and "run" in argv and "--runs" in argv[:-1]:
                 if Path(argv[argv.index("--runs") + 1]).resolve() == runs.resolve():
-                    pids.append(int(cmdline.parent.name))
+                    if jobs is None or not set(only_argument(argv)).isdisjoint(jobs):
+                        pids.append(int(cmdline.parent.name))
     return sorted(pids)
+
+
+def only_argument(argv: Sequence[str]) -> list[str]:
+    """The job ids a command line's ``--only`` names (none without one)."""
+    if "--only" not in argv:
+        return []
+    names = argv[argv.index("--only") + 1 :]
+    return list(itertools.takewhile(lambda a: not a.startswith("--"), names))
 
 
 def descendants(pid: int) -> list[int]:
@@ -594,10 +609,10 @@ def alive(pid: int) -> bool:
     return False
 
 
-def stop_runners(runs: Path, grace_s: float = 60.0) -> list[int]:
-    """SIGTERM the runners of ``runs`` and their training processes (Lightning stops at the step, exit 143), SIGKILL
-    what is left after ``grace_s``. Returns the pids signalled."""
-    pids = [p for runner in runner_pids(runs) for p in (runner, *descendants(runner))]
+def stop_runners(runs: Path, grace_s: float = 60.0, jobs: Collection[str] | None = None) -> list[int]:
+    """SIGTERM the runners of ``runs`` (with ``jobs``: those running any of them) and their training processes
+    (Lightning stops at the step, exit 143), SIGKILL what is left after ``grace_s``. Returns the pids signalled."""
+    pids = [p for runner in runner_pids(runs, jobs) for p in (runner, *descendants(runner))]
     for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
         for pid in pids:
             with contextlib.suppress(ProcessLookupError):
@@ -655,14 +670,21 @@ def nice_group(pid: int, nice: int) -> bool:
     return True
 
 
-def start_runners(runners: Sequence[Runner], checkout: Path, queue: Path, runs: Path, results: Path) -> list[int]:
+def start_runners(
+    runners: Sequence[Runner], checkout: Path, queue: Path, runs: Path, results: Path, whole: bool = True
+) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
     their pids.
 
+    Args:
+        whole: ``runners`` are all of the queue's: refuse if any runner of ``runs`` runs. Otherwise (``start
+            --runner``) refuse only if one runs a job of ``runners``; the others go on.
+
     Raises:
-        SystemExit: If runners of ``runs`` are running already (``stop`` them first).
+        SystemExit: If runners of ``runs`` (those of these jobs, unless ``whole``) are running already (``stop`` them
+            first).
     """
-    if running := runner_pids(runs):
+    if running := runner_pids(runs, None if whole else [job for runner in runners for job in runner.only]):
         raise SystemExit(f"runners of {runs} are running already (pids {running}): `train_queue.py stop` first")
     (runs / "logs").mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
@@ -705,6 +727,21 @@ def chosen_jobs(jobs: Sequence[Job], only: Sequence[str] | None) -> list[Job]:
     return [by_id[name] for name in dict.fromkeys(only)]
 
 
+def named_runners(runners: Sequence[Runner], names: Sequence[str] | None) -> list[Runner]:
+    """All ``runners``, or those ``names`` names (``start``/``stop --runner``).
+
+    Raises:
+        SystemExit: If ``names`` names a runner the queue does not have.
+    """
+    if names is None:
+        return list(runners)
+    known = {runner.name for runner in runners}
+    if unknown := [name for name in names if name not in known]:
+        names_known = ", ".join(sorted(known))
+        raise SystemExit(f"--runner: no runner {', '.join(map(repr, unknown))} in the queue (names: {names_known})")
+    return [runner for runner in runners if runner.name in names]
+
+
 def default_queue(checkout: Path) -> Path:
     """The queue file of a checkout."""
     return checkout / "benchmarks" / "train_queue.toml"
@@ -736,6 +773,12 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=None, help="runs: write the table here (default: print it)")
     parser.add_argument("--hours", type=float, default=3.0, help="progress: runs that logged within these hours")
     parser.add_argument(
+        "--runner",
+        nargs="+",
+        default=None,
+        help="start/stop: only these runners (by name); the others go on (default: all)",
+    )
+    parser.add_argument(
         "--checkout",
         type=Path,
         default=None,
@@ -753,13 +796,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         args.queue, args.runs, args.results = scratch / "train_queue.toml", scratch / "runs", scratch
         args.action = "run"
     if args.action in ("start", "stop"):
+        runners = named_runners(load_runners(args.queue, load_jobs(args.queue)), args.runner)
         if args.action == "stop":
-            print(f"queue: stopped {len(stop_runners(args.runs))} processes of the runners of {args.runs}")
+            jobs = None if args.runner is None else [job for runner in runners for job in runner.only]
+            print(f"queue: stopped {len(stop_runners(args.runs, jobs=jobs))} processes of the runners of {args.runs}")
             return
-        runners = load_runners(args.queue, load_jobs(args.queue))
         checkout = args.checkout or queue_worktree()
         queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
-        start_runners(runners, checkout, queue, args.runs, args.results)
+        start_runners(runners, checkout, queue, args.runs, args.results, whole=args.runner is None)
         return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":

@@ -597,3 +597,42 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
     assert cells[5] == "0.8 @ 99 (best 0.5 @ 49)"  # median RRE: lowest is best
     assert cells[6] == "–"  # clip5 not logged
     assert cells[7] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
+def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path) -> None:
+    """`--runner` pauses or starts one runner while the others train on; a runner is known by its jobs."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    sleep = "python -c 'import time; time.sleep(60)'"
+    jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
+    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\n'
+    file.write_text("\n".join(jobs) + runners)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
+
+    def wait_for(count: int) -> list[int]:
+        for _ in range(1200):
+            if len(pids := queue.runner_pids(runs)) == count and all(map(queue.descendants, pids)):
+                return pids
+            time.sleep(0.1)
+        pytest.fail(f"expected {count} runners with their jobs, found {queue.runner_pids(runs)}")
+
+    with pytest.raises(SystemExit, match="no runner 'three'"):
+        queue.main(["start", *args, "--runner", "three"])
+    queue.main(["start", *args, "--runner", "two"])
+    try:
+        (two,) = wait_for(1)
+        assert queue.runner_pids(runs, ["c"]) == [two] and queue.runner_pids(runs, ["a", "b"]) == []
+        with pytest.raises(SystemExit, match="running already"):
+            queue.main(["start", *args, "--runner", "two"])
+        with pytest.raises(SystemExit, match="running already"):  # all runners: refused while one runs
+            queue.main(["start", *args])
+        queue.main(["start", *args, "--runner", "one"])  # the other one starts beside it
+        (one,) = set(wait_for(2)) - {two}
+        queue.main(["stop", *args, "--runner", "two"])
+        assert queue.runner_pids(runs) == [one] and not queue.alive(two)
+        assert queue.holder(queue.load_jobs(file)[0], runs) == one  # "one" trains on
+    finally:
+        queue.stop_runners(runs, grace_s=10)
+    assert queue.runner_pids(runs) == []
