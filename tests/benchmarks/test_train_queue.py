@@ -467,6 +467,23 @@ def test_a_runner_of_n_runs_at_once_gets_n_shares_of_the_cpu() -> None:
     assert queue.group_nice(5, 1) == 5
 
 
+def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[str]]:
+    """A queue of three sleeping jobs: runner "one" runs a then b, runner "two" (``jobs = two_jobs``) runs c.
+
+    Returns:
+        The queue file, the runs folder and the arguments of ``start``/``stop`` for them.
+    """
+    file = tmp_path / "q.toml"
+    sleep = "python -c 'import time; time.sleep(60)'"
+    jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
+    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n'
+    runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\n'
+    file.write_text("\n".join(jobs) + runners)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
+    return file, runs, args
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
 def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -474,13 +491,7 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     """`start` runs each runner detached from this process (its own log); `stop` ends runner and training process."""
     queue = load("train_queue")
     monkeypatch.setattr(queue, "GROUP_NICE", 1)  # set, but not so low that a busy test machine starves the runners
-    file = tmp_path / "q.toml"
-    sleep = "python -c 'import time; time.sleep(60)'"
-    jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
-    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\njobs = 2\n'
-    file.write_text("\n".join(jobs) + runners)
-    runs, res = tmp_path / "runs", tmp_path / "res"
-    args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
+    file, runs, args = sleeping_runners(tmp_path, two_jobs=2)
     queue.main(["start", *args])
     try:
         own = os.getpriority(os.PRIO_PROCESS, 0)
@@ -603,13 +614,7 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
 def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path) -> None:
     """`--runner` pauses or starts one runner while the others train on; a runner is known by its jobs."""
     queue = load("train_queue")
-    file = tmp_path / "q.toml"
-    sleep = "python -c 'import time; time.sleep(60)'"
-    jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
-    runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n[[runner]]\nname = "two"\nonly = ["c"]\n'
-    file.write_text("\n".join(jobs) + runners)
-    runs, res = tmp_path / "runs", tmp_path / "res"
-    args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
+    file, runs, args = sleeping_runners(tmp_path, two_jobs=1)
 
     def wait_for(count: int) -> list[int]:
         for _ in range(1200):
