@@ -75,8 +75,8 @@ METHODS: dict[str, MethodInfo] = {
             pretrained=(
                 (
                     "pointnetlk-modelnet40",
-                    "PointNetLK without BatchNorm, analytic Jacobian, trained supervised on ModelNet40 "
-                    "(configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml, batch_norm false)",
+                    "PointNetLK with BatchNorm, analytic Jacobian, trained supervised on ModelNet40 from FMR-Net's "
+                    "encoder (configs/models/pointnetlk.yaml + configs/data/modelnet40.yaml, encoder_from)",
                 ),
             ),
         ),
