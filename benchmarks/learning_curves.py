@@ -65,8 +65,10 @@ TensorFlow code's lr 1e-4 (at 1e-3, 2 of 3 runs collapsed to one constant update
 fixed pairs, though on unseen pairs it improves), ``fmr_tw100`` is FMR-Net with ``selfsup_tw100``'s self-motion term
 added to its reconstruction (label-free; a goal (c) probe: FMR-Net's descriptor keeps more pairs at the true pose than
 DVDs', its solve falls into more wrong basins); ``selfsup_tw100_bn`` is ``selfsup_tw100`` with FMR-Net's BatchNorm in
-the encoder (the other candidate for that difference), ``selfsup_tw100_bn_fmrinit`` the same starting from FMR-Net's
-encoder as ``pointnetlk_fmrinit`` does (does DVDs' objective keep a descriptor whose fixed point is unbiased?);
+the encoder (the other candidate for that difference), ``selfsup_tw100_bn_mlpdec`` the same with FMR-Net's MLP decoder
+in place of FoldingNet (``DVDs(decoder="mlp")``: FMR-Net's objective on DVDs' network with FoldingNet kept a more biased
+descriptor than FMR-Net's own), ``selfsup_tw100_bn_fmrinit`` the same starting from FMR-Net's encoder as
+``pointnetlk_fmrinit`` does (does DVDs' objective keep a descriptor whose fixed point is unbiased?);
 ``model_D_bn_lr1e-3`` is the paper's model D (its objective as written, no self-motion term) with FMR-Net's optimiser
 settings, BatchNorm in the encoder and Adam lr 1e-3
 (``configs/models/dvds.yaml`` turned both off on evidence of a few hundred steps; FMR-Net with them dips early, then
@@ -215,6 +217,14 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
     "selfsup_tw100_bn": with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True}),
+    "selfsup_tw100_bn_mlpdec": with_overrides(
+        recipe_with(translation_weight=100.0),
+        {
+            "model.init_args.batch_norm": True,
+            "model.init_args.decoder": "mlp",
+            "model.init_args.decoder_hidden": [1024, 512, 256],
+        },
+    ),
     "selfsup_tw100_bn_fmrinit": with_overrides(
         recipe_with(translation_weight=100.0),
         {"model.init_args.batch_norm": True, "model.init_args.encoder_from": str(FMR_SEED0_WEIGHTS)},

@@ -121,13 +121,16 @@ def test_a_few_optimizer_steps_lower_the_loss(batch: RegistrationBatch) -> None:
     assert recon[-1] < recon[0], recon
 
 
-@pytest.mark.parametrize("squared", [False, True])
-def test_reconstruction_term_is_the_chamfer_of_both_decodings(batch: RegistrationBatch, squared: bool) -> None:
+@pytest.mark.parametrize(("squared", "decoder"), [(False, "folding"), (True, "folding"), (True, "mlp")])
+def test_reconstruction_term_is_the_chamfer_of_both_decodings(
+    batch: RegistrationBatch, squared: bool, decoder: str
+) -> None:
     """``L_CD`` per cloud against scipy's nearest neighbours: mean distance both ways (the paper), or mean squared
-    distance both ways with ``squared_chamfer`` (FMR-Net's reconstruction loss); the two clouds' terms summed."""
+    distance both ways with ``squared_chamfer`` (FMR-Net's reconstruction loss); the two clouds' terms summed. The
+    same with FMR-Net's MLP decoder."""
     from scipy.spatial import cKDTree
 
-    model = _model(lc_weight=0.0, squared_chamfer=squared, batch_norm=False).train()  # codes of each cloud alone
+    model = _model(lc_weight=0.0, squared_chamfer=squared, batch_norm=False, decoder=decoder).train()  # codes alone
     losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
     expected = 0.0
     with torch.no_grad():
@@ -138,6 +141,26 @@ def test_reconstruction_term_is_the_chamfer_of_both_decodings(batch: Registratio
                 power = 2 if squared else 1
                 expected += ((d_ab**power).mean() + (d_ba**power).mean()) / len(cloud)
     torch.testing.assert_close(losses["recon"].double(), torch.tensor(expected, dtype=torch.float64), rtol=1e-4, atol=0)
+
+
+def test_the_decoder_is_foldingnet_or_fmr_nets_mlp(batch: RegistrationBatch) -> None:
+    """``decoder="mlp"`` swaps FoldingNet for FMR-Net's decoder (grid_size**2 points, the encoder's BatchNorm); the
+    decoder trains only, so neither is in an exported file; anything else is refused, naming the argument."""
+    from lcreg.nn.decoders import MLPDecoder
+    from lcreg.nn.folding import FoldingDecoder
+
+    assert isinstance(_model().decoder, FoldingDecoder)
+    model = _model(decoder="mlp", decoder_hidden=(32, 16)).train()
+    assert isinstance(model.decoder, MLPDecoder)
+    assert any(isinstance(m, torch.nn.BatchNorm1d) for m in model.decoder.modules())
+    code = model.encoder(batch.points_src)
+    assert model.decoder(code).shape == (len(batch), TINY["decoder_grid_size"] ** 2, 3)  # type: ignore[operator]
+    losses = model.training_losses(model(batch.points_src, batch.points_ref), batch)
+    assert torch.isfinite(losses["recon"]) and losses["recon"] > 0
+    assert "decoder" in DVDs.training_only_modules  # left out of exported files, whichever it is
+    assert _model(decoder="mlp", lambda_recon=0.0).decoder is None
+    with pytest.raises(ValueError, match="`decoder` must be 'folding' or 'mlp'"):
+        _model(decoder="transformer")
 
 
 def test_ablation_flags_remove_modules_and_terms(batch: RegistrationBatch) -> None:

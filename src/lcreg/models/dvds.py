@@ -36,6 +36,7 @@ from lcreg.geometry import se3
 from lcreg.geometry.chamfer import chamfer_distance
 from lcreg.geometry.normals import estimate_normals
 from lcreg.models.lucas_kanade import LucasKanadeModule
+from lcreg.nn.decoders import MLPDecoder
 from lcreg.nn.folding import FoldingDecoder
 from lcreg.nn.heads import NormalHead
 from lcreg.nn.lk import JacobianMode
@@ -58,8 +59,12 @@ class DVDs(LucasKanadeModule):
         lambda_normal: ``lambda2`` (normal estimation; 0 disables it).
         lambda_global: Weight of the global residual ``L_p``'s descriptor term (paper: 1; 0 keeps it logged but
             unoptimised, e.g. when a :class:`~lcreg.models.loss_terms.SelfMotionLoss` trains the descriptor).
-        decoder_grid_size: FoldingNet grid side (``grid_size**2`` reconstructed points).
-        decoder_hidden: FoldingNet MLP widths.
+        decoder_grid_size: FoldingNet grid side; ``grid_size**2`` reconstructed points (either decoder).
+        decoder_hidden: The decoder's hidden widths (FoldingNet's MLP; FMR-Net's MLP decoder: 1024, 512, 256).
+        decoder: ``"folding"`` (the paper's FoldingNet ``xi``) or ``"mlp"`` (FMR-Net's fully connected decoder,
+            :class:`~lcreg.nn.decoders.MLPDecoder`, BatchNorm as the encoder's): with the same encoder and the same
+            squared-Chamfer reconstruction, FMR-Net's descriptor keeps more pairs at the true pose than DVDs' with
+            FoldingNet (``docs/results/converge/``), so the decoder is a lever of the descriptor's bias.
         normal_hidden: Normal-head MLP widths.
         global_loss: ``"l2"`` (paper: ``||psi(W(X)) - psi(Y)||_2``) or ``"normalized_l2"`` (the same divided by the
             RMS norm of the two descriptors; IC-LK is invariant to the descriptor scale, so this removes the trivial
@@ -96,6 +101,7 @@ class DVDs(LucasKanadeModule):
         global_loss: Literal["l2", "normalized_l2"] = "l2",
         squared_chamfer: bool = False,
         diagnostics_every_n_steps: int = 50,
+        decoder: Literal["folding", "mlp"] = "folding",
         **kwargs: Any,
     ) -> None:
         super().__init__(
@@ -112,11 +118,17 @@ class DVDs(LucasKanadeModule):
                 f"loss weights must be >= 0, got lambda_recon={lambda_recon}, lambda_normal={lambda_normal}, "
                 f"lambda_global={lambda_global}"
             )
+        if decoder not in ("folding", "mlp"):
+            raise ValueError(f"`decoder` must be 'folding' or 'mlp', got {decoder!r}")
         k = self.encoder.feature_dim
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal
         self.lambda_global = lambda_global
-        self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden) if lambda_recon > 0 else None
+        self.decoder: FoldingDecoder | MLPDecoder | None = None
+        if lambda_recon > 0 and decoder == "folding":
+            self.decoder = FoldingDecoder(k, decoder_grid_size, decoder_hidden)
+        elif lambda_recon > 0:
+            self.decoder = MLPDecoder(k, decoder_hidden, decoder_grid_size**2, batch_norm)
         self.normal_head = NormalHead(k, normal_hidden) if lambda_normal > 0 else None
         if global_loss not in ("l2", "normalized_l2"):
             raise ValueError(f"`global_loss` must be 'l2' or 'normalized_l2', got {global_loss!r}")
