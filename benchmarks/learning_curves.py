@@ -194,6 +194,9 @@ def plus_terms(variant: Variant, *terms: Mapping[str, Any]) -> Variant:
     return with_overrides(variant, {"model.init_args.loss_terms": [*own, *map(dict, terms)]})
 
 
+SELFSUP_TW100_BN = with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True})
+"""The self-motion recipe, translation weighted 100, with FMR-Net's BatchNorm in the encoder (goal (c) probes)."""
+
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -216,18 +219,12 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw400": recipe_with(translation_weight=400.0),
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
-    "selfsup_tw100_bn": with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True}),
+    "selfsup_tw100_bn": SELFSUP_TW100_BN,
     "selfsup_tw100_bn_mlpdec": with_overrides(
-        recipe_with(translation_weight=100.0),
-        {
-            "model.init_args.batch_norm": True,
-            "model.init_args.decoder": "mlp",
-            "model.init_args.decoder_hidden": [1024, 512, 256],
-        },
+        SELFSUP_TW100_BN, {"model.init_args.decoder": "mlp", "model.init_args.decoder_hidden": [1024, 512, 256]}
     ),
     "selfsup_tw100_bn_fmrinit": with_overrides(
-        recipe_with(translation_weight=100.0),
-        {"model.init_args.batch_norm": True, "model.init_args.encoder_from": str(FMR_SEED0_WEIGHTS)},
+        SELFSUP_TW100_BN, {"model.init_args.encoder_from": str(FMR_SEED0_WEIGHTS)}
     ),
     "model_D_bn_lr1e-3": Variant("dvds", overrides=FMR_OPTIMISATION),
     "aux_only_bn_lr1e-3": with_overrides(

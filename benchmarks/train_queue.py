@@ -671,20 +671,25 @@ def nice_group(pid: int, nice: int) -> bool:
 
 
 def start_runners(
-    runners: Sequence[Runner], checkout: Path, queue: Path, runs: Path, results: Path, whole: bool = True
+    runners: Sequence[Runner],
+    checkout: Path,
+    queue: Path,
+    runs: Path,
+    results: Path,
+    jobs: Collection[str] | None = None,
 ) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
     their pids.
 
     Args:
-        whole: ``runners`` are all of the queue's: refuse if any runner of ``runs`` runs. Otherwise (``start
-            --runner``) refuse only if one runs a job of ``runners``; the others go on.
+        jobs: ``None`` when ``runners`` are all of the queue's: refuse if any runner of ``runs`` runs. Otherwise
+            (``start --runner``: the named runners' jobs) refuse only if a runner runs one of them; the others go on.
 
     Raises:
-        SystemExit: If runners of ``runs`` (those of these jobs, unless ``whole``) are running already (``stop`` them
-            first).
+        SystemExit: If runners of ``runs`` (those running one of ``jobs``, if given) are running already (``stop``
+            them first).
     """
-    if running := runner_pids(runs, None if whole else [job for runner in runners for job in runner.only]):
+    if running := runner_pids(runs, jobs):
         raise SystemExit(f"runners of {runs} are running already (pids {running}): `train_queue.py stop` first")
     (runs / "logs").mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
@@ -797,13 +802,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         args.action = "run"
     if args.action in ("start", "stop"):
         runners = named_runners(load_runners(args.queue, load_jobs(args.queue)), args.runner)
+        jobs = None if args.runner is None else [job for runner in runners for job in runner.only]  # None: all
         if args.action == "stop":
-            jobs = None if args.runner is None else [job for runner in runners for job in runner.only]
             print(f"queue: stopped {len(stop_runners(args.runs, jobs=jobs))} processes of the runners of {args.runs}")
             return
         checkout = args.checkout or queue_worktree()
         queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
-        start_runners(runners, checkout, queue, args.runs, args.results, whole=args.runner is None)
+        start_runners(runners, checkout, queue, args.runs, args.results, jobs)
         return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":
