@@ -333,7 +333,8 @@ def restore(job: Job, runs: Path, results: Path) -> int:
     """Copy the committed result files of ``job`` back into its run folder where that folder lacks them (a new
     machine), and add to its JSONL logs the rows they lack (another machine's: :func:`merged_rows`); the scripts
     then skip the runs these logs list as finished, and the run in progress resumes from its kept checkpoints
-    (:func:`keep_resume`). Returns how many files were copied or extended."""
+    (:func:`keep_resume`). Metrics files that a run started again here moved aside stay out
+    (:func:`set_aside_here`). Returns how many files were copied or extended."""
     target, count = runs / job.id, 0
     for source in (results / job.id / "runs", results / job.id / "resume"):
         for path in source.rglob("*") if source.is_dir() else ():
@@ -343,11 +344,22 @@ def restore(job: Job, runs: Path, results: Path) -> int:
                 if rows != destination.read_text(encoding="utf-8"):
                     destination.write_text(rows, encoding="utf-8")
                     count += 1
-            elif path.is_file() and not destination.exists():
+            elif path.is_file() and not destination.exists() and not set_aside_here(path, destination):
                 destination.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(path, destination)
                 count += 1
     return count
+
+
+def set_aside_here(committed: Path, destination: Path) -> bool:
+    """Whether a run started again here moved ``committed``'s bytes aside (``<run>/abandoned/<n>/<name>``).
+
+    Until the next :func:`sync` drops them (:func:`drop_set_aside`), the committed results still hold the lost run's
+    metrics files; restored, they would be read as earlier segments of the new curve. A committed file of the same name
+    with other bytes (a segment the new run wrote on another machine) is not one of them.
+    """
+    moved = destination.parent.glob(f"abandoned/*/{destination.name}")
+    return committed.name.startswith("metrics") and any(m.read_bytes() == committed.read_bytes() for m in moved)
 
 
 def status_line(job: Job, results: Path, runs: Path | None = None) -> str:

@@ -341,6 +341,33 @@ def test_sync_drops_the_committed_copies_of_metrics_a_restarted_run_set_aside(tm
     assert set_aside_metrics(tmp_path / "empty") is None
 
 
+def test_restore_does_not_bring_back_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
+    """Session 30: a new machine restarted a run from scratch (its old metrics moved to ``abandoned/1/``), then the
+    runner was restarted before any sync; ``restore`` copied the committed old files back beside the new run's, so
+    its curve began with the lost run's steps. A committed file equal to a set-aside copy stays out; a committed
+    file of the same name with other bytes (a later segment of the new run, from another machine) comes back."""
+    from lcreg.resume import set_aside_metrics
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    committed = res / "j" / "runs" / "a" / "seed1"
+    committed.mkdir(parents=True)
+    for name in ("metrics.segment1.csv", "metrics.csv"):
+        (committed / name).write_text(f"lost run's {name}\n")
+    assert queue.restore(job, runs, res) == 2  # a new machine: the lost run's files come back ...
+    run_dir = runs / "j" / "a" / "seed1"
+    set_aside_metrics(run_dir)  # ... and the run, without checkpoints, starts again and moves them aside
+    (run_dir / "metrics.csv").write_text("new run\n")
+    assert queue.restore(job, runs, res) == 0  # the runner restarts before a sync
+    assert sorted(p.name for p in run_dir.glob("metrics*.csv")) == ["metrics.csv"]
+    (committed / "metrics.segment1.csv").write_text("new run, first segment, from another machine\n")
+    assert queue.restore(job, runs, res) == 1
+    assert (run_dir / "metrics.segment1.csv").read_text() == "new run, first segment, from another machine\n"
+
+
 def test_sync_keeps_a_report_regenerated_here_over_the_run_folders_older_copy(tmp_path: Path) -> None:
     """A report rebuilt in the results (``--report-only``, with the rows another machine added) is newer than the one
     the run folder wrote earlier; sync keeps it (session 19 found an 18-run report replaced by a stale 9-run one),
