@@ -239,33 +239,48 @@ def drop_set_aside(source: Path, target: Path) -> list[Path]:
 
 
 def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
-    """Keep the resume state of the run in progress: the checkpoint folder of the newest ``last.ckpt`` under ``source``.
+    """Keep the resume state of the runs in progress: the checkpoint folder of each ``last.ckpt`` under ``source``
+    whose run no JSONL row lists as finished (:func:`finished_runs`; a ``jobs = N`` runner trains N at once).
 
-    A job runs one run at a time, so the newest ``last.ckpt`` is the run in progress (or the last one finished, which
-    costs a copy and nothing else). Its folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state
-    names) replaces ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
-    the next machine (:func:`restore`) instead of starting again; a larger one removes ``target`` (its copy is of an
-    earlier run of the job, finished since). A done job keeps nothing; a run folder without any
-    ``last.ckpt`` (a new machine, before :func:`restore`) leaves the kept copy alone. Returns the files copied.
+    Each such folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state names) is kept in
+    ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on the next machine
+    (:func:`restore`) instead of starting again; the previous copy goes (its runs have finished since, or are kept
+    again). A done job keeps nothing; a run folder without any ``last.ckpt`` (a new machine, before :func:`restore`)
+    leaves the kept copy alone. Returns the files copied.
     """
     if done:
         shutil.rmtree(target, ignore_errors=True)
         return []
-    lasts = sorted(source.rglob("last.ckpt"), key=lambda path: path.stat().st_mtime) if source.is_dir() else []
+    lasts = sorted(source.rglob("last.ckpt")) if source.is_dir() else []
     if not lasts:  # e.g. a new machine before `run` restored the kept copy: keep it
         return []
-    folder = lasts[-1].parent
-    if sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
-        print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
-        shutil.rmtree(target, ignore_errors=True)  # the kept copy is of an earlier run, finished since
-        return []
+    finished = finished_runs(source)
     shutil.rmtree(target, ignore_errors=True)
     copied = []
-    for path in folder.glob("*.ckpt"):
-        destination = target / path.relative_to(source)
-        destination.parent.mkdir(parents=True, exist_ok=True)
-        copied.append(Path(shutil.copy2(path, destination)))
+    for folder in (last.parent for last in lasts if last.parent.parent.relative_to(source).as_posix() not in finished):
+        if sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
+            print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
+            continue
+        for path in folder.glob("*.ckpt"):
+            destination = target / path.relative_to(source)
+            destination.parent.mkdir(parents=True, exist_ok=True)
+            copied.append(Path(shutil.copy2(path, destination)))
     return copied
+
+
+def finished_runs(source: Path) -> set[str]:
+    """The run folders, relative to the job's folder ``source``, of the finished runs that its JSONL logs list.
+
+    A finished run's row names its ``metrics_csv`` (``<runs>/<job id>/<run folder>/metrics.csv``, on whichever
+    machine trained it); what follows the job id is the run folder.
+    """
+    marker, folders = f"/{source.name}/", set()
+    for log in source.rglob("*.jsonl"):
+        for row in ResultLog(log).rows:
+            metrics = str(row.get("metrics_csv") or "")
+            if marker in metrics:
+                folders.add(metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv"))
+    return folders
 
 
 def keep_best(source: Path, target: Path) -> list[Path]:

@@ -276,33 +276,39 @@ def test_a_job_with_a_test_command_tests_each_finished_run_once(tmp_path: Path) 
 def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Only the newest ``last.ckpt``'s folder is kept (the run in progress), it replaces the previous copy, it comes
-    back into an empty run folder before the job starts, and a done job or an oversized folder keeps nothing."""
-    import os
-
+    """The folders of the runs in progress are kept (not a finished run's: its row names it; session 30 found that
+    only the newest was kept while a ``jobs = 2`` runner trained two), they replace the previous copy, they come back
+    into an empty run folder before the job starts, and a done job or an oversized folder keeps nothing."""
     queue = load("train_queue")
     file = tmp_path / "q.toml"
     file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
     (job,) = queue.load_jobs(file)
     runs, res = tmp_path / "runs", tmp_path / "res"
-    finished, running = runs / "j" / "a" / "seed0" / "checkpoints", runs / "j" / "a" / "seed1" / "checkpoints"
-    for folder, stamp in ((finished, 1_000), (running, 2_000)):
+    for seed in range(3):
+        folder = runs / "j" / "a" / f"seed{seed}" / "checkpoints"
         folder.mkdir(parents=True)
         for name in ("last.ckpt", "step000100-val.ckpt"):
-            (folder / name).write_bytes(name.encode() + str(stamp).encode())
-            os.utime(folder / name, (stamp, stamp))
+            (folder / name).write_bytes(f"{name} {seed}".encode())
+    row = {"variant": "a", "seed": 0, "metrics_csv": "/elsewhere/runs/j/a/seed0/metrics.csv"}  # another machine's
+    (runs / "j" / "runs.jsonl").write_text(json.dumps(row) + "\n")
     queue.sync(job, runs, res)
     kept = res / "j" / "resume"
+    assert sorted(p.relative_to(kept).as_posix() for p in kept.rglob("*.ckpt")) == [
+        f"a/seed{seed}/checkpoints/{name}" for seed in (1, 2) for name in ("last.ckpt", "step000100-val.ckpt")
+    ]
+    fresh = tmp_path / "fresh"  # a new machine: an empty run folder
+    queue.sync(job, fresh, res)  # a sync there before `run` must not drop the kept copy
+    assert queue.restore(job, fresh, res) == 5  # four checkpoints and the JSONL log
+    assert (fresh / "j" / "a" / "seed2" / "checkpoints" / "last.ckpt").read_bytes() == b"last.ckpt 2"
+    monkeypatch.setattr(queue, "RESUME_MAX_BYTES", 40)  # seed 1: 32 bytes
+    (runs / "j" / "a" / "seed2" / "checkpoints" / "last.ckpt").write_bytes(b"x" * 20)  # seed 2's folder grows
+    queue.sync(job, runs, res)  # too large (e.g. DeepGMR): not kept, where seed 1's small folder still is
     assert sorted(p.relative_to(kept).as_posix() for p in kept.rglob("*.ckpt")) == [
         "a/seed1/checkpoints/last.ckpt",
         "a/seed1/checkpoints/step000100-val.ckpt",
     ]
-    fresh = tmp_path / "fresh"  # a new machine: an empty run folder
-    queue.sync(job, fresh, res)  # a sync there before `run` must not drop the kept copy
-    assert queue.restore(job, fresh, res) == 2
-    assert (fresh / "j" / "a" / "seed1" / "checkpoints" / "last.ckpt").read_bytes() == b"last.ckpt2000"
     monkeypatch.setattr(queue, "RESUME_MAX_BYTES", 10)
-    queue.sync(job, runs, res)  # too large (e.g. DeepGMR after IDAM): the kept copy, of a finished run, goes
+    queue.sync(job, runs, res)  # no folder small enough: the earlier copy goes
     assert not kept.exists()
     monkeypatch.undo()
     queue.sync(job, runs, res)
