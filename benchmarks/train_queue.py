@@ -284,22 +284,29 @@ def finished_runs(source: Path) -> set[str]:
 
 
 def keep_best(source: Path, target: Path) -> list[Path]:
-    """Export the selected checkpoint of every finished run in ``source/runs.jsonl`` as ``target/<variant>-seed<k>.pt``.
+    """Export the selected weights of every finished run in the job's logs as ``target/<variant>-seed<k>.pt``.
 
-    Run folders need not outlive a session, so the weights a job may ship are kept beside its committed logs (slim
-    inference weights, :func:`lcreg.weights.export.export_weights`, about 0.6 MB for DVDs). A run whose file exists
-    or whose checkpoint is gone is skipped. Returns the files written.
+    The logs are ``source/runs.jsonl`` (``learning_curves.py``: each row's ``best_checkpoint``) and a sweep's
+    ``source/<experiment>.jsonl`` (``lcreg reproduce``: each row's ``weights``, the tested ``selected_weights.pt``; a
+    variant such as ``idam/X`` is written ``idam_x``). Run folders need not outlive a session, so the weights a job
+    may ship or probe later are kept beside its committed logs (slim inference weights,
+    :func:`lcreg.weights.export.export_weights`, about 0.6 MB for DVDs). A run whose file exists or whose weights are
+    gone is skipped; weights over the file limit are reported and skipped. Returns the files written.
     """
+    from lcreg.weights import PretrainedSizeError
     from lcreg.weights.export import export_weights
 
     written = []
-    for row in ResultLog(source / "runs.jsonl").rows:
-        checkpoint = Path(row.get("best_checkpoint") or "")
-        name = f"{row.get('variant')}-seed{row.get('seed')}".lower()
-        if "variant" not in row or (target / f"{name}.pt").exists() or not checkpoint.is_file():
+    for row in (row for log in sorted(source.glob("*.jsonl")) for row in ResultLog(log).rows):
+        weights = Path(row.get("best_checkpoint") or row.get("weights") or "")
+        name = re.sub(r"[^a-z0-9._-]+", "_", f"{row.get('variant')}-seed{row.get('seed')}".lower())
+        if "variant" not in row or (target / f"{name}.pt").exists() or not weights.is_file():
             continue
         metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line(training_device())}
-        written.append(export_weights(checkpoint, name, target, metadata=metadata))
+        try:
+            written.append(export_weights(weights, name, target, metadata=metadata))
+        except PretrainedSizeError as error:  # e.g. iPCRNet's 16.9 MB: its test_command tests it instead
+            print(f"queue: {weights}: not kept ({error})", flush=True)
     return written
 
 

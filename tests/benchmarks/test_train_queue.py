@@ -245,6 +245,34 @@ def test_a_keep_best_job_keeps_the_selected_weights_of_each_finished_run(tmp_pat
     assert kept.stat().st_mtime_ns == before
 
 
+def test_keep_best_keeps_a_sweeps_selected_weights(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An ``lcreg reproduce`` sweep logs each finished run's tested ``selected_weights.pt`` as ``weights``; session 30
+    found IDAM's partial-cloud seed 0 gone with its machine before any probe could use it. Kept as
+    ``<variant>-seed<k>.pt`` with a file-safe name and the same tensors; weights over the file limit are skipped."""
+    import torch
+
+    import lcreg
+    from lcreg.baselines.idam import IDAM
+    from lcreg.weights.export import save
+
+    queue = load("train_queue")
+    source, target = tmp_path / "runs" / "j", tmp_path / "best"
+    model = IDAM(emb_dims=8, gnn_channels=(8,), hidden=4, num_iters=1)
+    weights = save(model, source / "runs" / "idam_X" / "seed1" / "selected_weights.pt")
+    rows = [{"variant": "idam/X", "seed": 1, "weights": str(weights)}, {"variant": "idam/X", "seed": 2}]
+    (source / "lc.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    assert queue.keep_best(source, target) == [target / "idam_x-seed1.pt"]
+    kept = lcreg.pretrained(target / "idam_x-seed1.pt")
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(kept.state_dict()[key], value, rtol=0, atol=0, msg=key)
+    assert queue.keep_best(source, target) == []  # kept once
+    (target / "idam_x-seed1.pt").unlink()
+    import lcreg.weights.export as export_module
+
+    monkeypatch.setattr(export_module, "MAX_FILE_BYTES", 100)
+    assert queue.keep_best(source, target) == [] and not (target / "idam_x-seed1.pt").exists()
+
+
 def test_a_job_with_a_test_command_tests_each_finished_run_once(tmp_path: Path) -> None:
     """Weights too large to keep (iPCRNet's) are lost with the run folder: ``test_command`` runs once per finished
     run at a sync, on its selected checkpoint, and what it writes under ``test/`` is kept; a failing test is retried."""
