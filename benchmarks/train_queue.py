@@ -242,11 +242,11 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     """Keep the resume state of the runs in progress: the checkpoint folder of each ``last.ckpt`` under ``source``
     whose run no JSONL row lists as finished (:func:`finished_runs`; a ``jobs = N`` runner trains N at once).
 
-    Each such folder (``last.ckpt`` and the selected checkpoint, which the callbacks' state names) is kept in
-    ``target`` when it is at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on the next machine
-    (:func:`restore`) instead of starting again; the previous copy goes (its runs have finished since, or are kept
-    again). A done job keeps nothing; a run folder without any ``last.ckpt`` (a new machine, before :func:`restore`)
-    leaves the kept copy alone. Returns the files copied.
+    Each such folder's :func:`resume_files` (``last.ckpt`` and the selected checkpoint its callbacks' state names)
+    are kept in ``target`` when they are at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
+    the next machine (:func:`restore`) instead of starting again; the previous copy goes (its runs have finished
+    since, or are kept again). A done job keeps nothing; a run folder without any ``last.ckpt`` (a new machine,
+    before :func:`restore`) leaves the kept copy alone. Returns the files copied.
     """
     if done:
         shutil.rmtree(target, ignore_errors=True)
@@ -258,14 +258,41 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     shutil.rmtree(target, ignore_errors=True)
     copied = []
     for folder in (last.parent for last in lasts if last.parent.parent.relative_to(source).as_posix() not in finished):
-        if sum(f.stat().st_size for f in folder.glob("*.ckpt")) > RESUME_MAX_BYTES:
+        files = resume_files(folder)
+        if sum(f.stat().st_size for f in files) > RESUME_MAX_BYTES:
             print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
             continue
-        for path in folder.glob("*.ckpt"):
+        for path in files:
             destination = target / path.relative_to(source)
             destination.parent.mkdir(parents=True, exist_ok=True)
             copied.append(Path(shutil.copy2(path, destination)))
     return copied
+
+
+def resume_files(folder: Path) -> list[Path]:
+    """``folder/last.ckpt`` and the checkpoints its ``ModelCheckpoint`` state names (the selected one): what resumes.
+
+    Other checkpoints in the folder are stale: selected on an earlier machine and restored with its kept copy, they are
+    unknown to the callback, which never deletes them (session 30 found two such copies doubling IDAM's resume state).
+    An unreadable ``last.ckpt`` keeps every checkpoint of the folder.
+    """
+    from lcreg.checkpoints import CheckpointError, read_checkpoint
+
+    last = folder / "last.ckpt"
+    try:
+        callbacks = read_checkpoint(last).get("callbacks") or {}
+    except CheckpointError:
+        return sorted(folder.glob("*.ckpt"))
+    named = set()
+    for key, state in callbacks.items():
+        if str(key).startswith("ModelCheckpoint") and isinstance(state, dict):
+            paths = [
+                state.get("best_model_path"),
+                state.get("kth_best_model_path"),
+                *(state.get("best_k_models") or ()),
+            ]
+            named |= {Path(str(path)).name for path in paths if path}
+    return [last, *sorted(p for name in named - {last.name} if (p := folder / name).is_file())]
 
 
 def finished_runs(source: Path) -> set[str]:

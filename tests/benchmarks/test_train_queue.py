@@ -375,6 +375,29 @@ def test_sync_drops_the_committed_copies_of_metrics_a_restarted_run_set_aside(tm
     assert set_aside_metrics(tmp_path / "empty") is None
 
 
+def test_only_the_checkpoints_the_run_resumes_from_are_kept(tmp_path: Path) -> None:
+    """``last.ckpt`` and the selected checkpoint its callback state names; a checkpoint selected on an earlier machine
+    and restored with the kept copy is unknown to the callback and stays behind (session 30: two such copies)."""
+    import torch
+
+    queue = load("train_queue")
+    folder = tmp_path / "runs" / "j" / "a" / "seed0" / "checkpoints"
+    folder.mkdir(parents=True)
+    state = {"best_model_path": "/another/machine/runs/j/a/seed0/checkpoints/step000200-val.ckpt"}
+    callbacks = {"EarlyStopping{'monitor': 'val/x'}": {}, "ModelCheckpoint{'monitor': 'val/x'}": state}
+    torch.save({"state_dict": {}, "callbacks": callbacks}, folder / "last.ckpt")
+    for name in ("step000100-val.ckpt", "step000200-val.ckpt"):  # the first: an earlier machine's selection
+        (folder / name).write_bytes(b"weights")
+    assert queue.resume_files(folder) == [folder / "last.ckpt", folder / "step000200-val.ckpt"]
+    kept = tmp_path / "res" / "resume"
+    assert sorted(p.name for p in queue.keep_resume(tmp_path / "runs" / "j", kept)) == [
+        "last.ckpt",
+        "step000200-val.ckpt",
+    ]
+    (folder / "last.ckpt").write_bytes(b"damaged")  # unreadable: every checkpoint is kept, as before
+    assert len(queue.resume_files(folder)) == 3
+
+
 def test_restore_does_not_bring_back_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
     """Session 30: a new machine restarted a run from scratch (its old metrics moved to ``abandoned/1/``), then the
     runner was restarted before any sync; ``restore`` copied the committed old files back beside the new run's, so
