@@ -512,9 +512,11 @@ PROGRESS_KEYS = ("val/rre_median_deg", "val/rre_clip5_deg", "val/recall_r2_t0p01
 
 def active_runs(job: Job, runs: Path, hours: float) -> list[Path]:
     """The ``metrics.csv`` files of ``job``'s run folder written in the last ``hours`` (its runs training now; a run
-    set aside as lost, under ``abandoned/``, is not one), oldest first."""
+    set aside as lost, under ``abandoned/``, or finished, :func:`finished_runs`, is not one), oldest first."""
     folder, since = runs / job.id, time.time() - 3600 * hours
     files = [f for f in folder.rglob("metrics.csv") if "abandoned" not in f.parts] if folder.is_dir() else []
+    finished = finished_runs(folder) if files else set()
+    files = [f for f in files if f.parent.relative_to(folder).as_posix() not in finished]
     return sorted((f for f in files if f.stat().st_mtime >= since), key=lambda f: f.stat().st_mtime)
 
 
@@ -526,8 +528,8 @@ def progress_cell(key: str, series: Series) -> str:
 
 
 def progress_table(jobs: Sequence[Job], runs: Path, hours: float = 3.0) -> str:
-    """Markdown: every run of ``jobs`` that logged in the last ``hours`` (:func:`active_runs`), with the runner
-    holding its job (a finished run of a held job is listed too: see when it last wrote), the step of its last
+    """Markdown: every run of ``jobs`` that logged in the last ``hours`` and has not finished (:func:`active_runs`),
+    with the runner holding its job, the step of its last
     validation and, for each of :data:`PROGRESS_KEYS`, the last value and the best so far (over the segments of a
     resumed run)."""
     header = ["job", "run", "held by", "written", "last validation", *(k.removeprefix("val/") for k in PROGRESS_KEYS)]

@@ -670,7 +670,8 @@ def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budg
 
 def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(tmp_path: Path) -> None:
     """Over the segments of a resumed run: the last validation and the best so far (the highest recall, the lowest
-    errors); a run that has not logged within ``hours`` and a run set aside as lost are left out."""
+    errors); a run that has not logged within ``hours``, a run set aside as lost and a finished run (its row in the
+    job's log; session 30 saw runs restored from the committed results listed as training) are left out."""
     queue = load("train_queue")
     file = tmp_path / "q.toml"
     file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
@@ -684,6 +685,9 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
         old.mkdir(parents=True)
         (old / "metrics.csv").write_text(head + "0,0,9.0,0.0,\n")
     os.utime(runs / "j" / "v" / "seed0" / "metrics.csv", (time.time() - 4 * 3600,) * 2)
+    (runs / "j" / "v" / "seed2").mkdir()
+    (runs / "j" / "v" / "seed2" / "metrics.csv").write_text(head + "0,0,1.0,0.9,\n")  # restored, recent, finished
+    (runs / "j" / "runs.jsonl").write_text(json.dumps({"metrics_csv": "/old/runs/j/v/seed2/metrics.csv"}) + "\n")
     table = queue.progress_table(queue.load_jobs(file), runs, hours=3.0)
     rows = [line for line in table.splitlines()[2:] if line]
     assert len(rows) == 1, table
