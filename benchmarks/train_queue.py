@@ -19,11 +19,12 @@ exits 0 its small result files are copied to ``<results>/<id>/`` and ``DONE.json
 written there, which marks the job done. ``sync`` copies the result files of unfinished jobs too, so finished runs
 of a long job can be committed as they land. Run folders need not outlive a session: before a job starts, the
 committed copies of its result logs are restored into an empty run folder, so its finished runs are skipped, and the
-run in progress when a session ended resumes from the checkpoints ``sync`` kept in ``<results>/<id>/resume/`` (when
-they are small enough, :data:`RESUME_MAX_BYTES`; otherwise it starts again). For a job with ``keep_best = true``
-``sync`` also writes the slim weights of each finished run's selected checkpoint to ``<results>/<id>/best/`` (the
-runs whose weights may ship). For a job with a ``test_command`` (``{checkpoint}``: a finished run's selected
-checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``) ``sync`` runs it once per finished run, so that a
+runs in progress when a session ended resume from the checkpoints ``sync`` kept in ``<results>/<id>/resume/`` (when
+they are small enough, :data:`RESUME_MAX_BYTES`; otherwise they start again). For a job with ``keep_best = true``
+``sync`` also writes the slim weights of each finished run's selected checkpoint (or a sweep's tested weights) to
+``<results>/<id>/best/`` (the runs whose weights may ship or be probed later). For a job with a ``test_command``
+(``{checkpoint}``: a finished run's selected checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``)
+``sync`` runs it once per finished run, so that a
 baseline's test outlives its run folder where its weights are too large to keep. Several runners may share a
 ``--runs`` folder (one thread each): a job runs in one of them at a time (:func:`job_lock`); the others skip it.
 The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``run --only <its jobs>``): ``start``
