@@ -24,9 +24,9 @@ they are small enough, :data:`RESUME_MAX_BYTES`; otherwise they start again). Fo
 ``sync`` also writes the slim weights of each finished run's selected checkpoint (or a sweep's tested weights) to
 ``<results>/<id>/best/`` (the runs whose weights may ship or be probed later). For a job with a ``test_command``
 (``{checkpoint}``: a finished run's selected checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``)
-``sync`` runs it once per finished run, so that a
-baseline's test outlives its run folder where its weights are too large to keep. Several runners may share a
-``--runs`` folder (one thread each): a job runs in one of them at a time (:func:`job_lock`); the others skip it.
+``sync`` runs it once per finished run, so that a baseline's test outlives its run folder where its weights are too
+large to keep. Several runners may share a ``--runs`` folder (one thread each): a job runs in one of them at a
+time (:func:`job_lock`); the others skip it.
 The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``run --only <its jobs>``): ``start``
 launches them in the background from a worktree at the current commit (so that code changed meanwhile does not
 disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
