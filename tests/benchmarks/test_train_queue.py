@@ -558,7 +558,7 @@ def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[st
         The queue file, the runs folder and the arguments of ``start``/``stop`` for them.
     """
     file = tmp_path / "q.toml"
-    sleep = "python -c 'import time; time.sleep(60)'"
+    sleep = "python -c 'import time; time.sleep(900)'"  # outlives a slow start on a busy machine; stopped by the test
     jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
     runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n'
     runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\n'
@@ -699,9 +699,12 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
-def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path) -> None:
+def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`--runner` pauses or starts one runner while the others train on; a runner is known by its jobs."""
     queue = load("train_queue")
+    # Session 30: at the default niceness, beside training runners given more CPU, the runners started so slowly
+    # that runner "two"'s 60 s job had ended before runner "one" was up.
+    monkeypatch.setattr(queue, "GROUP_NICE", 1)
     file, runs, args = sleeping_runners(tmp_path, two_jobs=1)
 
     def wait_for(count: int) -> list[int]:
