@@ -8,6 +8,8 @@
 
 Every (variant, seed) is one ``lcreg fit`` (:func:`lcreg.experiments.benchmarking.fit`) that first validates its
 initial weights (step 0), then validates every ``--val-every`` steps; checkpoints are chosen on ``val/rre_mean_deg``.
+The step-0 weights are a candidate too (since session 31; file ``step000000-...``): a run that never beats the weights
+it started from (a pretrained encoder that training only spoils) selects them, and its patience counts from them.
 Each run's ``metrics.csv`` (losses, the IC-LK Jacobian diagnostics ``train/j_*``, validation registration) is kept under
 ``--run-dir/<variant>/seed<k>``. Finished runs are listed in ``<run-dir>/runs.jsonl`` and skipped on a rerun, so a
 long study can be run in chunks.

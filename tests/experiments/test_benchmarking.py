@@ -262,6 +262,35 @@ def test_converge_stops_after_patience_validations_without_improvement(tmp_path:
         )
 
 
+def test_a_run_that_never_beats_its_starting_weights_selects_them(tmp_path: Path) -> None:
+    # lr 0: every validation repeats the step-0 score, so no trained checkpoint beats the starting weights (a
+    # pretrained encoder that training only spoils). They are selected, and patience counts from them.
+    run = converge_overrides(max_steps=20, val_every=1, patience=2, run_dir=tmp_path, name="c")
+    frozen = {"model.init_args.optimizer.init_args.lr": 0.0}
+    values = {**run, **TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), **frozen}
+    result = fit("dvds", values, validate_first=True, monitor=CONVERGE_METRIC)
+    assert result.best_checkpoint.name.startswith("step000000-") and result.best_checkpoint.is_file()
+    assert torch.load(result.best_checkpoint, map_location="cpu", weights_only=False)["global_step"] == 0
+    assert result.trainer.global_step == 2  # two validations without a gain over step 0, not over step 1
+    curve = read_metrics(Path(result.trainer.log_dir or "") / "metrics.csv")[CONVERGE_METRIC]
+    assert len(set(curve.values)) == 1  # the frozen weights really score the same at every validation
+    fresh = build("dvds", result.best_checkpoint, values={**TINY_DVDS, **frozen})
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), result.model.state_dict().values()))
+
+
+def test_a_run_that_beats_its_starting_weights_drops_the_step0_checkpoint(tmp_path: Path) -> None:
+    run = converge_overrides(max_steps=4, val_every=2, patience=50, run_dir=tmp_path, name="c")
+    result = fit(
+        "dvds", {**run, **TINY_DVDS, **synthetic_overrides(2, 32)}, validate_first=True, monitor=CONVERGE_METRIC
+    )
+    callback = result.trainer.checkpoint_callback
+    assert isinstance(callback, ModelCheckpoint) and len(callback.best_k_models) == 1
+    kept = sorted(p.name for p in result.best_checkpoint.parent.glob("step*.ckpt"))
+    assert kept == [result.best_checkpoint.name]  # top-1: the step-0 file went when a better one came, or stayed
+    curve = read_metrics(Path(result.trainer.log_dir or "") / "metrics.csv")[CONVERGE_METRIC]
+    assert float(callback.best_model_score or 0) == pytest.approx(min(curve.values), rel=1e-5)
+
+
 def test_converge_run_resumes_from_last_checkpoint_and_keeps_its_curve(tmp_path: Path) -> None:
     data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
 
