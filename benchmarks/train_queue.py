@@ -32,7 +32,8 @@ launches them in the background from a worktree at the current commit (so that c
 disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
 training processes (a run resumes from its ``last.ckpt``). ``--runner <names>`` restricts either to the named runners,
 the others go on (to pause one runner, or start one whose jobs changed, from a worktree at the current commit; a runner
-is known by its jobs: ``stop --runner`` ends every runner running one of that runner's jobs). ``runs`` tabulates every
+is known by the name ``start`` gives its command line, :func:`runs_as`, so a job moved to another runner's list does not
+make ``stop`` of that runner end its old one). ``runs`` tabulates every
 finished run of the committed results: the step at which it stopped, why, and the step its rule selected
 (:func:`runs_table`). ``progress`` shows the runs training now: each one's last validation and its best so far
 (:func:`progress_table`).
@@ -54,7 +55,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Collection, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -629,26 +630,38 @@ def run_job(
     return True
 
 
-def runner_pids(runs: Path, jobs: Collection[str] | None = None) -> list[int]:
+def runner_pids(runs: Path, runners: Sequence[Runner] | None = None) -> list[int]:
     """Pids of this machine's ``train_queue.py run`` processes whose ``--runs`` is ``runs`` (Linux ``/proc``); with
-    ``jobs``, only those whose ``--only`` names one of them (a job runs in one runner at a time: that runner)."""
+    ``runners``, only theirs (:func:`runs_as`)."""
     pids = []
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         with contextlib.suppress(OSError):
             argv = cmdline.read_bytes().decode(errors="replace").split("\0")
             if any(a.endswith("train_queue.py") for a in argv[1:2]) and "run" in argv and "--runs" in argv[:-1]:
                 if Path(argv[argv.index("--runs") + 1]).resolve() == runs.resolve():
-                    if jobs is None or not set(only_argument(argv)).isdisjoint(jobs):
+                    if runners is None or any(runs_as(argv, runner) for runner in runners):
                         pids.append(int(cmdline.parent.name))
     return sorted(pids)
 
 
-def only_argument(argv: Sequence[str]) -> list[str]:
-    """The job ids a command line's ``--only`` names (none without one)."""
-    if "--only" not in argv:
+def runs_as(argv: Sequence[str], runner: Runner) -> bool:
+    """Whether the ``run`` command line ``argv`` is ``runner``'s: ``start`` names it with ``--runner``.
+
+    Not by the jobs it runs: a job moved from one runner's list to another's (session 31) would make ``stop`` of the
+    second end the first, which still runs it. A command line without ``--runner`` (started before it was passed) is
+    the runner's when its ``--only`` names exactly the runner's jobs.
+    """
+    if names := option_values(argv, "--runner"):
+        return runner.name in names
+    return set(option_values(argv, "--only")) == set(runner.only)
+
+
+def option_values(argv: Sequence[str], option: str) -> list[str]:
+    """The values a command line gives ``option`` (``--only a b``: ``["a", "b"]``; none without it)."""
+    if option not in argv:
         return []
-    names = argv[argv.index("--only") + 1 :]
-    return list(itertools.takewhile(lambda a: not a.startswith("--"), names))
+    values = argv[argv.index(option) + 1 :]
+    return list(itertools.takewhile(lambda a: not a.startswith("--"), values))
 
 
 def descendants(pid: int) -> list[int]:
@@ -673,10 +686,10 @@ def alive(pid: int) -> bool:
     return False
 
 
-def stop_runners(runs: Path, grace_s: float = 60.0, jobs: Collection[str] | None = None) -> list[int]:
-    """SIGTERM the runners of ``runs`` (with ``jobs``: those running any of them) and their training processes
-    (Lightning stops at the step, exit 143), SIGKILL what is left after ``grace_s``. Returns the pids signalled."""
-    pids = [p for runner in runner_pids(runs, jobs) for p in (runner, *descendants(runner))]
+def stop_runners(runs: Path, grace_s: float = 60.0, runners: Sequence[Runner] | None = None) -> list[int]:
+    """SIGTERM the runners of ``runs`` (with ``runners``: those only) and their training processes (Lightning stops
+    at the step, exit 143), SIGKILL what is left after ``grace_s``. Returns the pids signalled."""
+    pids = [p for runner in runner_pids(runs, runners) for p in (runner, *descendants(runner))]
     for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
         for pid in pids:
             with contextlib.suppress(ProcessLookupError):
@@ -740,20 +753,20 @@ def start_runners(
     queue: Path,
     runs: Path,
     results: Path,
-    jobs: Collection[str] | None = None,
+    named: bool = False,
 ) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
-    their pids.
+    their pids. Each command line names its runner (``--runner``), by which ``stop`` finds it.
 
     Args:
-        jobs: ``None`` when ``runners`` are all of the queue's: refuse if any runner of ``runs`` runs. Otherwise
-            (``start --runner``: the named runners' jobs) refuse only if a runner runs one of them; the others go on.
+        named: ``runners`` are those named by ``start --runner``: refuse only if one of them runs; the others go on.
+            Otherwise they are all of the queue's: refuse if any runner of ``runs`` runs. Two runners never train
+            one job at once whatever their lists (the job's lock, :func:`holder`).
 
     Raises:
-        SystemExit: If runners of ``runs`` (those running one of ``jobs``, if given) are running already (``stop``
-            them first).
+        SystemExit: If runners of ``runs`` (of ``runners``, when ``named``) are running already (``stop`` them first).
     """
-    if running := runner_pids(runs, jobs):
+    if running := runner_pids(runs, runners if named else None):
         raise SystemExit(f"runners of {runs} are running already (pids {running}): `train_queue.py stop` first")
     (runs / "logs").mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
@@ -764,6 +777,7 @@ def start_runners(
         argv += ["--queue", str(queue.resolve())]
         argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
         argv += ["--jobs", str(runner.jobs)] if runner.jobs > 1 else []
+        argv += ["--runner", runner.name]
         with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
@@ -845,7 +859,8 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--runner",
         nargs="+",
         default=None,
-        help="start/stop: only these runners (by name); the others go on (default: all)",
+        help="start/stop: only these runners (by name); the others go on (default: all). run: the name of the "
+        "runner this is (start passes it; stop finds a runner by it)",
     )
     parser.add_argument(
         "--checkout",
@@ -866,13 +881,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         args.action = "run"
     if args.action in ("start", "stop"):
         runners = named_runners(load_runners(args.queue, load_jobs(args.queue)), args.runner)
-        jobs = None if args.runner is None else [job for runner in runners for job in runner.only]  # None: all
+        named = args.runner is not None
         if args.action == "stop":
-            print(f"queue: stopped {len(stop_runners(args.runs, jobs=jobs))} processes of the runners of {args.runs}")
+            stopped = stop_runners(args.runs, runners=runners if named else None)
+            print(f"queue: stopped {len(stopped)} processes of the runners of {args.runs}")
             return
         checkout = args.checkout or queue_worktree()
         queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
-        start_runners(runners, checkout, queue, args.runs, args.results, jobs)
+        start_runners(runners, checkout, queue, args.runs, args.results, named)
         return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":

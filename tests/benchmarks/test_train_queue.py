@@ -700,7 +700,7 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
 def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`--runner` pauses or starts one runner while the others train on; a runner is known by its jobs."""
+    """`--runner` pauses or starts one runner while the others train on; a runner is known by its name."""
     queue = load("train_queue")
     # Session 30: at the default niceness, beside training runners given more CPU, the runners started so slowly
     # that runner "two"'s 60 s job had ended before runner "one" was up.
@@ -719,7 +719,8 @@ def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, mon
     queue.main(["start", *args, "--runner", "two"])
     try:
         (two,) = wait_for(1)
-        assert queue.runner_pids(runs, ["c"]) == [two] and queue.runner_pids(runs, ["a", "b"]) == []
+        one_runner, two_runner = queue.load_runners(file, queue.load_jobs(file))
+        assert queue.runner_pids(runs, [two_runner]) == [two] and queue.runner_pids(runs, [one_runner]) == []
         with pytest.raises(SystemExit, match="running already"):
             queue.main(["start", *args, "--runner", "two"])
         with pytest.raises(SystemExit, match="running already"):  # all runners: refused while one runs
@@ -732,3 +733,42 @@ def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, mon
     finally:
         queue.stop_runners(runs, grace_s=10)
     assert queue.runner_pids(runs) == []
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
+def test_stop_runner_spares_a_runner_whose_job_moved_to_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Session 31: job "a" moves from runner "one"'s list to "two"'s while "one" still runs it; `stop --runner two`
+    must end "two" only (it ended "one" too when runners were known by their jobs)."""
+    queue = load("train_queue")
+    monkeypatch.setattr(queue, "GROUP_NICE", 1)
+    file, runs, args = sleeping_runners(tmp_path, two_jobs=1)
+    queue.main(["start", *args])
+    try:
+        for _ in range(1200):
+            if len(pids := queue.runner_pids(runs)) == 2 and all(map(queue.descendants, pids)):
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"expected 2 runners with their jobs, found {queue.runner_pids(runs)}")
+        text = file.read_text(encoding="utf-8")
+        file.write_text(text.replace('only = ["a", "b"]', 'only = ["b"]').replace('only = ["c"]', 'only = ["c", "a"]'))
+        one_runner, two_runner = queue.load_runners(file, queue.load_jobs(file))
+        (one,) = queue.runner_pids(runs, [one_runner])  # still known by the name that `start` gave it
+        (two,) = queue.runner_pids(runs, [two_runner])
+        queue.main(["stop", *args, "--runner", "two"])
+        assert queue.runner_pids(runs) == [one] and queue.alive(one) and not queue.alive(two)
+    finally:
+        queue.stop_runners(runs, grace_s=10)
+    assert queue.runner_pids(runs) == []
+
+
+def test_a_runner_is_known_by_the_name_start_gives_it_or_else_by_exactly_its_jobs() -> None:
+    queue = load("train_queue")
+    runner = queue.Runner("r4", ("x", "y"))
+    run = ["python", "train_queue.py", "run", "--only", "y", "x", "--runs", "/r"]
+    assert queue.runs_as([*run, "--runner", "r4"], runner)
+    assert not queue.runs_as([*run, "--runner", "r2"], runner)  # its jobs match, its name does not
+    assert queue.runs_as(run, runner)  # started before `start` named runners: the same jobs
+    assert not queue.runs_as(["train_queue.py", "run", "--only", "x", "z", "--runs", "/r"], runner)
+    assert queue.option_values(["a", "--only", "x", "y", "--jobs", "2"], "--only") == ["x", "y"]
+    assert queue.option_values(["a"], "--runner") == []
