@@ -79,7 +79,9 @@ reaches ICP's recall on the test pairs with starts); ``aux_only_bn_lr1e-3`` keep
 decoder and normal head; ``recon_sq_bn_lr1e-3`` is FMR-Net's whole training objective on DVDs' network, all but its
 decoder: the reconstruction alone, weight 1, with FMR-Net's squared Chamfer, no normal head, no gradient clipping
 (``aux_only_bn_lr1e-3``'s descriptor, started at the exact truth, keeps 70.5 % of the validation pairs within (2 deg,
-0.01), FMR-Net's 92-93 %: the objective's details or the decoder?). ``prnet`` is PRNet as in ``lcreg reproduce lc``
+0.01), FMR-Net's 92-93 %: the objective's details or the decoder?); ``recon_sq_bn_lr1e-3_mlpdec`` is the same with
+FMR-Net's MLP decoder too, so FMR-Net's objective and decoder on DVDs' encoder (does DVDs' code path give FMR-Net's
+descriptor?). ``prnet`` is PRNet as in ``lcreg reproduce lc``
 (``configs/models/prnet.yaml``, the DCP-family pairs of ``configs/data/dcp_protocol.yaml``, Adam lr 1e-3 at upstream's
 batch 36); ``prnet_lr2.2e-4`` scales that learning rate linearly to a batch of 8 (1e-3 x 8 / 36): at batch 8 and lr 1e-3
 every PRNet run of the converge budget got worse after a few hundred steps. ``dcp`` is DCP-v2 as in ``lcreg reproduce
@@ -199,6 +201,21 @@ def plus_terms(variant: Variant, *terms: Mapping[str, Any]) -> Variant:
 SELFSUP_TW100_BN = with_overrides(recipe_with(translation_weight=100.0), {"model.init_args.batch_norm": True})
 """The self-motion recipe, translation weighted 100, with FMR-Net's BatchNorm in the encoder (goal (c) probes)."""
 
+MLP_DECODER = {"model.init_args.decoder": "mlp", "model.init_args.decoder_hidden": [1024, 512, 256]}
+"""FMR-Net's decoder (widths 1024-512-256) in place of DVDs' FoldingNet."""
+RECON_SQ_BN = with_overrides(
+    Variant("dvds", overrides=FMR_OPTIMISATION),
+    {
+        "model.init_args.lambda_global": 0,
+        "model.init_args.loss_terms": [],
+        "model.init_args.lambda_normal": 0,
+        "model.init_args.lambda_recon": 1.0,
+        "model.init_args.squared_chamfer": True,
+        "trainer.gradient_clip_val": None,
+    },
+)
+"""FMR-Net's training objective on DVDs' network: its reconstruction alone (squared Chamfer, weight 1), optimiser."""
+
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -222,9 +239,7 @@ VARIANTS: dict[str, Variant] = {
     "selfsup_tw100_fine": recipe_with({**FINE_SELF_MOTION, "translation_weight": 100.0}, translation_weight=100.0),
     "selfsup_tw100_stat": plus_terms(recipe_with(translation_weight=100.0), STATIONARITY),
     "selfsup_tw100_bn": SELFSUP_TW100_BN,
-    "selfsup_tw100_bn_mlpdec": with_overrides(
-        SELFSUP_TW100_BN, {"model.init_args.decoder": "mlp", "model.init_args.decoder_hidden": [1024, 512, 256]}
-    ),
+    "selfsup_tw100_bn_mlpdec": with_overrides(SELFSUP_TW100_BN, MLP_DECODER),
     "selfsup_tw100_bn_fmrinit": with_overrides(
         SELFSUP_TW100_BN, {"model.init_args.encoder_from": str(FMR_SEED0_WEIGHTS)}
     ),
@@ -233,17 +248,8 @@ VARIANTS: dict[str, Variant] = {
         Variant("dvds", overrides=FMR_OPTIMISATION),
         {"model.init_args.lambda_global": 0, "model.init_args.loss_terms": []},
     ),
-    "recon_sq_bn_lr1e-3": with_overrides(
-        Variant("dvds", overrides=FMR_OPTIMISATION),
-        {
-            "model.init_args.lambda_global": 0,
-            "model.init_args.loss_terms": [],
-            "model.init_args.lambda_normal": 0,
-            "model.init_args.lambda_recon": 1.0,
-            "model.init_args.squared_chamfer": True,
-            "trainer.gradient_clip_val": None,
-        },
-    ),
+    "recon_sq_bn_lr1e-3": RECON_SQ_BN,
+    "recon_sq_bn_lr1e-3_mlpdec": with_overrides(RECON_SQ_BN, MLP_DECODER),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),

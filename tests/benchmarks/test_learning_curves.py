@@ -46,6 +46,15 @@ def test_variant_values_build_their_models() -> None:
     assert aux.hparams.batch_norm is True and aux.configure_optimizers().param_groups[0]["lr"] == pytest.approx(1e-3)
     assert aux.hparams.lambda_global == 0 and len(aux.loss_terms) == 0 and aux.decoder is not None
     assert (aux.hparams.lambda_recon, aux.hparams.lambda_normal) == (0.5, 0.1)
+    recon, recon_mlp = cli("recon_sq_bn_lr1e-3").model, cli("recon_sq_bn_lr1e-3_mlpdec").model
+    assert (recon.hparams.decoder, recon_mlp.hparams.decoder, recon_mlp.hparams.decoder_hidden) == (
+        "folding",
+        "mlp",
+        [1024, 512, 256],
+    )
+    for model in (recon, recon_mlp):  # FMR-Net's objective: its squared reconstruction alone, its optimiser
+        assert model.hparams.squared_chamfer and model.hparams.lambda_recon == 1.0 and len(model.loss_terms) == 0
+        assert model.hparams.lambda_global == 0 and model.hparams.lambda_normal == 0 and model.hparams.batch_norm
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
