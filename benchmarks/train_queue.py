@@ -260,7 +260,8 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     shutil.rmtree(target, ignore_errors=True)
     copied = []
     for folder in (last.parent for last in lasts if last.parent.parent.relative_to(source).as_posix() not in finished):
-        files = resume_files(folder)
+        last = folder / "last.ckpt"  # too large alone (a DVDs run's): not read for the checkpoints it names
+        files = [last] if last.stat().st_size > RESUME_MAX_BYTES else resume_files(folder)
         if sum(f.stat().st_size for f in files) > RESUME_MAX_BYTES:
             print(f"queue: {folder}: checkpoints over {RESUME_MAX_BYTES >> 20} MB, not kept for resuming", flush=True)
             continue
