@@ -10,6 +10,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 from tests.benchmarks.test_smoke import BENCHMARKS, load
@@ -700,6 +701,15 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
     assert cells[7] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
 
 
+def wait_for_runners(queue: ModuleType, runs: Path, count: int) -> list[int]:
+    """The pids of ``count`` runners of ``runs``, once each has started its job (a busy machine starts them slowly)."""
+    for _ in range(1200):
+        if len(pids := queue.runner_pids(runs)) == count and all(map(queue.descendants, pids)):
+            return pids
+        time.sleep(0.1)
+    pytest.fail(f"expected {count} runners with their jobs, found {queue.runner_pids(runs)}")
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc to find the runners")
 def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`--runner` pauses or starts one runner while the others train on; a runner is known by its name."""
@@ -709,18 +719,11 @@ def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, mon
     monkeypatch.setattr(queue, "GROUP_NICE", 1)
     file, runs, args = sleeping_runners(tmp_path, two_jobs=1)
 
-    def wait_for(count: int) -> list[int]:
-        for _ in range(1200):
-            if len(pids := queue.runner_pids(runs)) == count and all(map(queue.descendants, pids)):
-                return pids
-            time.sleep(0.1)
-        pytest.fail(f"expected {count} runners with their jobs, found {queue.runner_pids(runs)}")
-
     with pytest.raises(SystemExit, match="no runner 'three'"):
         queue.main(["start", *args, "--runner", "three"])
     queue.main(["start", *args, "--runner", "two"])
     try:
-        (two,) = wait_for(1)
+        (two,) = wait_for_runners(queue, runs, 1)
         one_runner, two_runner = queue.load_runners(file, queue.load_jobs(file))
         assert queue.runner_pids(runs, [two_runner]) == [two] and queue.runner_pids(runs, [one_runner]) == []
         with pytest.raises(SystemExit, match="running already"):
@@ -728,7 +731,7 @@ def test_start_and_stop_runner_act_on_the_named_runners_only(tmp_path: Path, mon
         with pytest.raises(SystemExit, match="running already"):  # all runners: refused while one runs
             queue.main(["start", *args])
         queue.main(["start", *args, "--runner", "one"])  # the other one starts beside it
-        (one,) = set(wait_for(2)) - {two}
+        (one,) = set(wait_for_runners(queue, runs, 2)) - {two}
         queue.main(["stop", *args, "--runner", "two"])
         assert queue.runner_pids(runs) == [one] and not queue.alive(two)
         assert queue.holder(queue.load_jobs(file)[0], runs) == one  # "one" trains on
@@ -746,12 +749,7 @@ def test_stop_runner_spares_a_runner_whose_job_moved_to_it(tmp_path: Path, monke
     file, runs, args = sleeping_runners(tmp_path, two_jobs=1)
     queue.main(["start", *args])
     try:
-        for _ in range(1200):
-            if len(pids := queue.runner_pids(runs)) == 2 and all(map(queue.descendants, pids)):
-                break
-            time.sleep(0.1)
-        else:
-            pytest.fail(f"expected 2 runners with their jobs, found {queue.runner_pids(runs)}")
+        wait_for_runners(queue, runs, 2)
         text = file.read_text(encoding="utf-8")
         file.write_text(text.replace('only = ["a", "b"]', 'only = ["b"]').replace('only = ["c"]', 'only = ["c", "a"]'))
         one_runner, two_runner = queue.load_runners(file, queue.load_jobs(file))
