@@ -1,4 +1,8 @@
-"""Lightning callbacks: latest-state checkpoint, RNG state, predictions, a time-based progress bar, a training clock."""
+"""Lightning callbacks and the step-0 candidate of a run's checkpoint selection.
+
+Callbacks: latest-state checkpoint, RNG state, predictions, a time-based progress bar, a training clock.
+:func:`validate_starting_weights` makes the weights a run starts from one of its checkpoints.
+"""
 
 from __future__ import annotations
 
@@ -10,15 +14,32 @@ from typing import Any
 
 import numpy as np
 import torch
-from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import BasePredictionWriter, Callback, Checkpoint, TQDMProgressBar
+from lightning.pytorch import LightningDataModule, LightningModule, Trainer
+from lightning.pytorch.callbacks import (
+    BasePredictionWriter,
+    Callback,
+    Checkpoint,
+    EarlyStopping,
+    ModelCheckpoint,
+    TQDMProgressBar,
+)
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from lcreg.types import RegistrationResult
 
-__all__ = ["LatestCheckpoint", "RngState", "TimedProgressBar", "TrainingClock", "TransformWriter"]
+__all__ = [
+    "LatestCheckpoint",
+    "RngState",
+    "TimedProgressBar",
+    "TrainingClock",
+    "TransformWriter",
+    "keep_initial_weights_as_candidate",
+    "restore_rng_states",
+    "rng_states",
+    "validate_starting_weights",
+]
 
 
 class LatestCheckpoint(Checkpoint):
@@ -146,6 +167,37 @@ def _validation_follows(trainer: Trainer) -> bool:
     return fetcher is not None and bool(trainer.fit_loop.epoch_loop._should_check_val_fx(fetcher))
 
 
+def rng_states() -> dict[str, Any]:
+    """The torch (CPU and, when initialised, CUDA), NumPy and Python RNG states, as a weights-only load reads them."""
+    key = np.random.get_state(legacy=False)
+    state: dict[str, Any] = {
+        "torch": torch.get_rng_state(),
+        "numpy": {
+            "key": torch.from_numpy(np.asarray(key["state"]["key"], dtype=np.int64)),
+            "pos": int(key["state"]["pos"]),
+            "has_gauss": int(key["has_gauss"]),
+            "gauss": float(key["gauss"]),
+        },
+        "python": random.getstate(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_states(state: dict[str, Any]) -> None:
+    """Set the RNG states saved by :func:`rng_states`."""
+    torch.set_rng_state(state["torch"])
+    numpy = state["numpy"]
+    np.random.set_state(
+        ("MT19937", numpy["key"].numpy().astype(np.uint32), numpy["pos"], numpy["has_gauss"], numpy["gauss"])
+    )
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
 class RngState(Callback):
     """Save the torch (CPU and CUDA), NumPy and Python RNG states in checkpoints; a resumed ``fit`` restores them.
 
@@ -159,20 +211,7 @@ class RngState(Callback):
 
     def state_dict(self) -> dict[str, Any]:
         """The current RNG states."""
-        key = np.random.get_state(legacy=False)
-        state: dict[str, Any] = {
-            "torch": torch.get_rng_state(),
-            "numpy": {
-                "key": torch.from_numpy(np.asarray(key["state"]["key"], dtype=np.int64)),
-                "pos": int(key["state"]["pos"]),
-                "has_gauss": int(key["has_gauss"]),
-                "gauss": float(key["gauss"]),
-            },
-            "python": random.getstate(),
-        }
-        if torch.cuda.is_available() and torch.cuda.is_initialized():
-            state["cuda"] = torch.cuda.get_rng_state_all()
-        return state
+        return rng_states()
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         """Keep the states until training starts."""
@@ -183,15 +222,7 @@ class RngState(Callback):
         state, self._pending = self._pending, None
         if not state:
             return
-        torch.set_rng_state(state["torch"])
-        numpy = state["numpy"]
-        np.random.set_state(
-            ("MT19937", numpy["key"].numpy().astype(np.uint32), numpy["pos"], numpy["has_gauss"], numpy["gauss"])
-        )
-        version, internal, gauss = state["python"]
-        random.setstate((version, tuple(internal), gauss))
-        if "cuda" in state and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["cuda"])
+        restore_rng_states(state)
 
 
 class TrainingClock(Callback):
@@ -307,3 +338,71 @@ class TimedProgressBar(TQDMProgressBar):
             return False
         self._last_refresh = now
         return True
+
+
+def validate_starting_weights(
+    trainer: Trainer, model: LightningModule, datamodule: LightningDataModule | None = None
+) -> Path | None:
+    """Validate the weights a run starts from and keep them as a candidate (:func:`keep_initial_weights_as_candidate`).
+
+    The RNG states are put back afterwards (validation draws from them, e.g. a data loader's seed), so the training
+    that follows draws the same random numbers as a run that did not validate first.
+
+    Args:
+        trainer: The trainer that will ``fit`` ``model``.
+        model: The model, with the weights it starts from.
+        datamodule: The run's data (validation split).
+
+    Returns:
+        The step-0 checkpoint written, or None when no callback took the weights.
+    """
+    state = rng_states()
+    trainer.validate(model, datamodule=datamodule, verbose=False)
+    restore_rng_states(state)
+    return keep_initial_weights_as_candidate(trainer)
+
+
+def keep_initial_weights_as_candidate(trainer: Trainer) -> Path | None:
+    """Make the weights just validated (before ``fit``) a candidate of the run's selection, as a step-0 checkpoint.
+
+    Lightning writes no checkpoint outside ``fit`` and starts its early stopping from no score, so without this a
+    run started from given weights (a pretrained encoder, say) selects its best *trained* checkpoint even when
+    validation never beat the starting point, and its patience counts from the first trained validation. Here
+    each ``ModelCheckpoint`` that monitors a logged metric gets the weights as a checkpoint named by its own
+    template (step 0) and scored with that metric, which a later checkpoint replaces only by beating it; each
+    ``EarlyStopping`` takes the score as its best so far. Nothing changes where the metric was not logged or is
+    not finite.
+
+    Args:
+        trainer: A trainer that has just run ``validate`` on the model it will ``fit``.
+
+    Returns:
+        The step-0 checkpoint written, or None when no callback took the weights.
+    """
+    metrics = dict(trainer.callback_metrics)
+    written: Path | None = None
+    for callback in getattr(trainer, "callbacks", []):
+        score = metrics.get(getattr(callback, "monitor", None) or "")
+        if score is None or not torch.isfinite(score):
+            continue
+        if isinstance(callback, EarlyStopping):
+            callback.best_score = score.detach().clone()
+            callback.wait_count = 0
+        elif isinstance(callback, ModelCheckpoint) and callback.save_top_k != 0:
+            name = callback.format_checkpoint_name({**metrics, "epoch": torch.tensor(0), "step": torch.tensor(0)})
+            trainer.save_checkpoint(name)
+            _add_candidate(callback, name, score.detach().clone())
+            written = Path(name)
+    return written
+
+
+def _add_candidate(callback: Any, path: str, score: torch.Tensor) -> None:
+    """Record checkpoint ``path`` with ``score`` in a ``ModelCheckpoint``'s top-k, as its own saves do."""
+    callback.best_k_models[path] = score
+    k = len(callback.best_k_models) if callback.save_top_k == -1 else callback.save_top_k
+    worst, best = (max, min) if callback.mode == "min" else (min, max)
+    if len(callback.best_k_models) >= k:
+        callback.kth_best_model_path = worst(callback.best_k_models, key=callback.best_k_models.get)
+        callback.kth_value = callback.best_k_models[callback.kth_best_model_path]
+    callback.best_model_path = best(callback.best_k_models, key=callback.best_k_models.get)
+    callback.best_model_score = callback.best_k_models[callback.best_model_path]

@@ -29,6 +29,10 @@ initialisation. ``fit`` then fine-tunes from them; a ``--ckpt_path`` replaces th
 the one the weights were exported with, except ``recall_thresholds`` and the arguments given on the command line
 (``--model.init_args.NAME``), which win. ``fit`` keeps the config's arguments (training settings are the run's).
 
+Starting point: ``fit --validate_first true`` validates the starting weights (untrained, or ``--weights``) before
+training and keeps them as a step-0 checkpoint that training must beat to be selected, and as the early-stopping
+baseline (``configs/dvds.yaml`` sets it).
+
 Resuming a run: ``lcreg fit --config X --ckpt_path last`` continues the latest run of that config where it stopped
 (killed, crashed or finished): ``last`` is the ``last.ckpt`` of the highest ``runs/<name>/version_<k>`` that has
 one (:mod:`lcreg.resume`), and the run keeps logging in that folder (the earlier ``metrics.csv`` is kept as
@@ -241,8 +245,20 @@ class LcregCLI(LightningCLI):
     _kept_metrics: Path | None = None  # the earlier metrics.csv of a resumed run (keep_previous_metrics)
 
     def before_fit(self) -> None:
-        """Say where the run logs and checkpoints (the folder changes with every run: ``version_<k>``)."""
+        """Say where the run logs and checkpoints (the folder changes with every run: ``version_<k>``).
+
+        With ``--validate_first true`` (and no ``--ckpt_path``: a resumed run did it when it started) validate the
+        starting weights and make them a candidate of the checkpoint selection and the early-stopping baseline
+        (:func:`lcreg.callbacks.validate_starting_weights`): the learning curve starts at step 0, and a run
+        that never beats its starting point (untrained or ``--weights``) selects it.
+        """
         rank_zero_info(f"lcreg: this run logs to {self.trainer.log_dir}")
+        if self._get(self.config, "validate_first") and not self._get(self.config, "ckpt_path"):
+            from lcreg.callbacks import validate_starting_weights
+
+            written = validate_starting_weights(self.trainer, self.model, self.datamodule)
+            if written is not None:
+                rank_zero_info(f"lcreg: the starting weights are a candidate of the selection: {written}")
 
     def after_fit(self) -> None:
         """A resumed run that logged nothing (resumed at its step cap) keeps its ``metrics.csv`` as it was."""
@@ -424,6 +440,14 @@ class LcregCLI(LightningCLI):
             ".pt file of `python -m lcreg.weights.export`; strict for the inference modules, training-only modules "
             "(decoder, normal head, loss terms) keep their initialisation; `fit` fine-tunes from them; a --ckpt_path "
             "replaces them",
+        )
+        parser.add_argument(
+            "--validate_first",
+            type=bool,
+            default=False,
+            help="fit: validate the starting weights before training (a step-0 row in metrics.csv) and keep them as a "
+            "checkpoint that training must beat to be selected (and the early-stopping baseline); not repeated when "
+            "resuming with --ckpt_path; ignored by the other subcommands",
         )
 
     def instantiate_classes(self) -> None:

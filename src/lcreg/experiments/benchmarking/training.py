@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from lcreg.callbacks import validate_starting_weights
 from lcreg.experiments.benchmarking.building import Values, build_cli_for
 from lcreg.experiments.benchmarking.measure import timed
 from lcreg.resume import TERMINATED_EXIT_CODE
@@ -29,7 +30,6 @@ __all__ = [
     "epoch_overrides",
     "fit",
     "fit_overrides",
-    "keep_initial_weights_as_candidate",
     "last_checkpoint",
     "training_loss",
 ]
@@ -139,54 +139,6 @@ def converge_overrides(
     return {**fit_overrides(max_steps, val_every, run_dir, name, seed), **fixed}
 
 
-def keep_initial_weights_as_candidate(trainer: Trainer) -> Path | None:
-    """Make the weights just validated (before ``fit``) a candidate of the run's selection, as a step-0 checkpoint.
-
-    Lightning writes no checkpoint outside ``fit`` and starts its early stopping from no score, so without this a
-    run started from given weights (a pretrained encoder, say) selects its best *trained* checkpoint even when
-    validation never beat the starting point, and its patience counts from the first trained validation. Here
-    each ``ModelCheckpoint`` that monitors a logged metric gets the weights as a checkpoint named by its own
-    template (step 0) and scored with that metric, which a later checkpoint replaces only by beating it; each
-    ``EarlyStopping`` takes the score as its best so far. Nothing changes where the metric was not logged or is
-    not finite.
-
-    Args:
-        trainer: A trainer that has just run ``validate`` on the model it will ``fit``.
-
-    Returns:
-        The step-0 checkpoint written, or None when no callback took the weights.
-    """
-    from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
-
-    metrics = dict(trainer.callback_metrics)
-    written: Path | None = None
-    for callback in getattr(trainer, "callbacks", []):
-        score = metrics.get(getattr(callback, "monitor", None) or "")
-        if score is None or not torch.isfinite(score):
-            continue
-        if isinstance(callback, EarlyStopping):
-            callback.best_score = score.detach().clone()
-            callback.wait_count = 0
-        elif isinstance(callback, ModelCheckpoint) and callback.save_top_k != 0:
-            name = callback.format_checkpoint_name({**metrics, "epoch": torch.tensor(0), "step": torch.tensor(0)})
-            trainer.save_checkpoint(name)
-            _add_candidate(callback, name, score.detach().clone())
-            written = Path(name)
-    return written
-
-
-def _add_candidate(callback: Any, path: str, score: torch.Tensor) -> None:
-    """Record checkpoint ``path`` with ``score`` in a ``ModelCheckpoint``'s top-k, as its own saves do."""
-    callback.best_k_models[path] = score
-    k = len(callback.best_k_models) if callback.save_top_k == -1 else callback.save_top_k
-    worst, best = (max, min) if callback.mode == "min" else (min, max)
-    if len(callback.best_k_models) >= k:
-        callback.kth_best_model_path = worst(callback.best_k_models, key=callback.best_k_models.get)
-        callback.kth_value = callback.best_k_models[callback.kth_best_model_path]
-    callback.best_model_path = best(callback.best_k_models, key=callback.best_k_models.get)
-    callback.best_model_score = callback.best_k_models[callback.best_model_path]
-
-
 def last_checkpoint(log_dir: str | Path) -> Path | None:
     """``<log_dir>/checkpoints/last.ckpt`` if a run in ``log_dir`` left one (the state to resume from)."""
     from lcreg.resume import LAST
@@ -240,7 +192,8 @@ def fit(
         validate_first: Validate the initial weights before training, so the run's ``metrics.csv`` starts with a
             step-0 validation row (learning curves start at the untrained model), and make those weights a candidate
             of the checkpoint selection and the early-stopping baseline
-            (:func:`keep_initial_weights_as_candidate`): a run that never beats its starting point selects it.
+            (:func:`~lcreg.callbacks.validate_starting_weights`): a run that never beats its starting point selects it;
+            the training draws the same random numbers as without it.
             Not repeated when resuming.
         monitor: The metric the checkpoint callback must select on (:data:`CONVERGE_METRIC` with
             :func:`converge_overrides`).
@@ -274,8 +227,7 @@ def fit(
     else:  # from scratch: a lost run's curve in this folder is not an earlier segment of this one
         set_aside_metrics(log_dir)
         if validate_first:
-            cli.trainer.validate(cli.model, datamodule=cli.datamodule, verbose=False)
-            keep_initial_weights_as_candidate(cli.trainer)
+            validate_starting_weights(cli.trainer, cli.model, cli.datamodule)
     clock = next(c for c in getattr(cli.trainer, "callbacks", []) if isinstance(c, TrainingClock))  # LcregCLI's
     run = partial(cli.trainer.fit, cli.model, datamodule=cli.datamodule, ckpt_path=start)
     try:
