@@ -143,6 +143,35 @@ def test_reconstruction_term_is_the_chamfer_of_both_decodings(
     torch.testing.assert_close(losses["recon"].double(), torch.tensor(expected, dtype=torch.float64), rtol=1e-4, atol=0)
 
 
+def test_fmr_nets_objective_and_decoder_on_dvds_is_fmr_net_without_batch_norm(batch: RegistrationBatch) -> None:
+    """The goal (c) control ``recon_sq_bn_lr1e-3_mlpdec`` (docs/results/converge): DVDs with FMR-Net's reconstruction
+    (squared Chamfer, weight 1, no other term) and decoder, given FMR-Net's weights, has FMR-Net's loss and encoder
+    gradients. With BatchNorm the two differ by design: DVDs normalises ``[X, Y, W(X)]`` as one batch, FMR-Net each
+    cloud's batch alone."""
+    from lcreg.baselines.fmr import FMRNet
+
+    widths = {"encoder_channels": (16, 32), "decoder_hidden": (32, 16)}
+    torch.manual_seed(0)
+    fmr = FMRNet(**widths, decoder_points=64, batch_norm=False).train()  # type: ignore[arg-type]
+    dvds = DVDs(
+        **widths,  # type: ignore[arg-type]
+        batch_norm=False,
+        decoder="mlp",
+        decoder_grid_size=8,
+        lambda_global=0.0,
+        lambda_normal=0.0,
+        lambda_recon=1.0,
+        squared_chamfer=True,
+        loss_terms=[],
+    ).train()
+    dvds.load_state_dict(fmr.state_dict())  # strict: the same modules, names and shapes
+    losses = [m.training_losses(m.training_forward(batch), batch)["loss"] for m in (fmr, dvds)]
+    torch.testing.assert_close(losses[1], losses[0], rtol=1e-6, atol=0)
+    grads = [torch.autograd.grad(loss, list(m.encoder.parameters())) for loss, m in zip(losses, (fmr, dvds))]
+    for theirs, ours in zip(*grads, strict=True):
+        torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-8)
+
+
 def test_the_decoder_is_foldingnet_or_fmr_nets_mlp(batch: RegistrationBatch) -> None:
     """``decoder="mlp"`` swaps FoldingNet for FMR-Net's decoder (grid_size**2 points, the encoder's BatchNorm); the
     decoder trains only, so neither is in an exported file; anything else is refused, naming the argument."""
