@@ -137,12 +137,15 @@ PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_cur
 class Runner:
     """One CPU runner of ``start``: ``run --section cpu --only <only>`` (its jobs, in order), and why. ``jobs`` > 1
     adds ``run --jobs <jobs>``: a sweep of its jobs (:data:`PARALLEL_COMMANDS`) trains that many runs at once, each
-    on its own thread, so a job of many runs gets that many shares of the cores."""
+    on its own thread, so a job of many runs gets that many shares of the cores. ``shares`` sets the runner's CPU
+    weight in one-job runners' shares instead (default: ``jobs``): the queue file's priorities, e.g. more for the
+    run a session can finish (:func:`runner_nice`)."""
 
     name: str
     only: tuple[str, ...]
     why: str = ""
     jobs: int = 1
+    shares: int | None = None
 
 
 def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
@@ -163,8 +166,9 @@ def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
         unknown = set(runner.only) - known
         if not runner.only or unknown:
             raise ValueError(f"{path}: runner {runner.name!r} names no job or unknown ones: {sorted(unknown)}")
-        if not isinstance(runner.jobs, int) or isinstance(runner.jobs, bool) or runner.jobs < 1:
-            raise ValueError(f"{path}: runner {runner.name!r}: jobs must be an integer >= 1, got {runner.jobs!r}")
+        for field, value in (("jobs", runner.jobs), ("shares", 1 if runner.shares is None else runner.shares)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{path}: runner {runner.name!r}: {field} must be an integer >= 1, got {value!r}")
     if len({r.name for r in runners}) != len(runners) or len(set(listed)) != len(listed):
         raise ValueError(f"{path}: runner names and the jobs they list must be unique")
     return runners
@@ -732,6 +736,11 @@ def group_nice(nice: int, jobs: int) -> int:
     return min(range(len(SCHED_WEIGHTS)), key=lambda n: (abs(SCHED_WEIGHTS[n] - target), -n))
 
 
+def runner_nice(runner: Runner) -> int:
+    """The niceness of ``runner``'s scheduling group: ``shares`` (default ``jobs``) one-job runners' weight."""
+    return group_nice(GROUP_NICE, runner.jobs if runner.shares is None else runner.shares)
+
+
 def nice_group(pid: int, nice: int) -> bool:
     """Set the niceness of the Linux autogroup of session leader ``pid``; returns whether the kernel has one.
 
@@ -783,7 +792,7 @@ def start_runners(
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
             )
-        nice_group(process.pid, group_nice(GROUP_NICE, runner.jobs))
+        nice_group(process.pid, runner_nice(runner))
         runs_at_once = f" ({runner.jobs} runs at once)" if runner.jobs > 1 else ""
         print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}{runs_at_once}", flush=True)
         pids.append(process.pid)

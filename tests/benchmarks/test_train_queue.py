@@ -534,6 +534,8 @@ def test_committed_runners_list_known_jobs_once() -> None:
         ('[[runner]]\nname = "a"\nonly = ["j"]\nthreads = 2\n', "unexpected keyword"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = 0\n', "jobs must be an integer >= 1"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = "2"\n', "jobs must be an integer >= 1"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\nshares = 0\n', "shares must be an integer >= 1"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\nshares = 2.5\n', "shares must be an integer >= 1"),
     ],
 )
 def test_bad_runner_tables_are_refused(tmp_path: Path, tables: str, message: str) -> None:
@@ -552,10 +554,15 @@ def test_a_runner_of_n_runs_at_once_gets_n_shares_of_the_cpu() -> None:
         assert 0.8 < weight[queue.group_nice(19, jobs)] / (jobs * weight[19]) < 1.25
     assert queue.group_nice(1, 2) == 0  # never below 0
     assert queue.group_nice(5, 1) == 5
+    # A runner's shares (the queue file's priorities) replace its jobs as the weight: 22 shares is niceness 5.
+    assert queue.runner_nice(queue.Runner("r", ("j",), jobs=3)) == queue.group_nice(19, 3)
+    assert queue.runner_nice(queue.Runner("r", ("j",), jobs=3, shares=22)) == 5
+    assert queue.runner_nice(queue.Runner("r", ("j",), shares=1)) == 19
 
 
 def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[str]]:
-    """A queue of three sleeping jobs: runner "one" runs a then b, runner "two" (``jobs = two_jobs``) runs c.
+    """A queue of three sleeping jobs: runner "one" runs a then b, runner "two" (``jobs = two_jobs``, twice as many
+    shares) runs c.
 
     Returns:
         The queue file, the runs folder and the arguments of ``start``/``stop`` for them.
@@ -564,7 +571,7 @@ def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[st
     sleep = "python -c 'import time; time.sleep(900)'"  # outlives a slow start on a busy machine; stopped by the test
     jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
     runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n'
-    runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\n'
+    runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\nshares = {2 * two_jobs}\n'
     file.write_text("\n".join(jobs) + runners)
     runs, res = tmp_path / "runs", tmp_path / "res"
     args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
@@ -609,7 +616,7 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
             assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)  # own work comes first
             assert all(niceness(c) in (min(own + 15, 19), None) for c in queue.descendants(pid))
             if Path("/proc/self/autogroup").is_file():  # sessions are shared first: the runner's session is niced too,
-                group = str(queue.group_nice(1, 2) if b"--jobs" in argv else 1)  # two runs at once: two shares
+                group = str(queue.group_nice(1, 4) if b"--jobs" in argv else 1)  # two runs at once, four shares
                 assert Path(f"/proc/{pid}/autogroup").read_text().split()[-1] == group
         assert {queue.holder(job, runs) for job in queue.load_jobs(file)} == {*pids, None}  # a and c run, b waits
         with pytest.raises(SystemExit, match="running already"):
