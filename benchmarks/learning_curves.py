@@ -250,6 +250,9 @@ VARIANTS: dict[str, Variant] = {
     ),
     "recon_sq_bn_lr1e-3": RECON_SQ_BN,
     "recon_sq_bn_lr1e-3_mlpdec": with_overrides(RECON_SQ_BN, MLP_DECODER),
+    "recon_sq_bn_lr1e-3_mlpdec_percloud": with_overrides(
+        RECON_SQ_BN, {**MLP_DECODER, "model.init_args.norm_batch": "per_cloud"}
+    ),
     "selfsup_frac50": recipe_with(sample_fraction=0.5),
     "pcrnet": Variant("pcrnet"),
     "pcrnet_idinit": Variant("pcrnet", overrides={"model.init_args.identity_init": True}),

@@ -52,7 +52,10 @@ def test_variant_values_build_their_models() -> None:
         "mlp",
         [1024, 512, 256],
     )
-    for model in (recon, recon_mlp):  # FMR-Net's objective: its squared reconstruction alone, its optimiser
+    per_cloud = cli("recon_sq_bn_lr1e-3_mlpdec_percloud").model  # the same, each cloud's batch normalised alone
+    assert (recon_mlp.hparams.norm_batch, per_cloud.hparams.norm_batch) == ("joint", "per_cloud")
+    assert per_cloud.hparams.decoder == "mlp" and per_cloud.hparams.decoder_hidden == [1024, 512, 256]
+    for model in (recon, recon_mlp, per_cloud):  # FMR-Net's objective: its squared reconstruction alone, its optimiser
         assert model.hparams.squared_chamfer and model.hparams.lambda_recon == 1.0 and len(model.loss_terms) == 0
         assert model.hparams.lambda_global == 0 and model.hparams.lambda_normal == 0 and model.hparams.batch_norm
     only = cli("self_motion_only").model

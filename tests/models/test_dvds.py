@@ -143,33 +143,47 @@ def test_reconstruction_term_is_the_chamfer_of_both_decodings(
     torch.testing.assert_close(losses["recon"].double(), torch.tensor(expected, dtype=torch.float64), rtol=1e-4, atol=0)
 
 
-def test_fmr_nets_objective_and_decoder_on_dvds_is_fmr_net_without_batch_norm(batch: RegistrationBatch) -> None:
+@pytest.mark.parametrize(("batch_norm", "norm_batch"), [(False, "joint"), (True, "per_cloud")])
+def test_fmr_nets_objective_and_decoder_on_dvds_is_fmr_net(
+    batch: RegistrationBatch, batch_norm: bool, norm_batch: str
+) -> None:
     """The goal (c) control ``recon_sq_bn_lr1e-3_mlpdec`` (docs/results/converge): DVDs with FMR-Net's reconstruction
     (squared Chamfer, weight 1, no other term) and decoder, given FMR-Net's weights, has FMR-Net's loss and encoder
-    gradients. With BatchNorm the two differ by design: DVDs normalises ``[X, Y, W(X)]`` as one batch, FMR-Net each
-    cloud's batch alone."""
+    gradients: without BatchNorm whatever ``norm_batch``, with it when each cloud's batch is normalised alone as
+    FMR-Net does (``norm_batch="per_cloud"``). The default ``"joint"`` normalises ``[X, Y, W(X)]`` together."""
     from lcreg.baselines.fmr import FMRNet
 
     widths = {"encoder_channels": (16, 32), "decoder_hidden": (32, 16)}
     torch.manual_seed(0)
-    fmr = FMRNet(**widths, decoder_points=64, batch_norm=False).train()  # type: ignore[arg-type]
-    dvds = DVDs(
-        **widths,  # type: ignore[arg-type]
-        batch_norm=False,
-        decoder="mlp",
-        decoder_grid_size=8,
-        lambda_global=0.0,
-        lambda_normal=0.0,
-        lambda_recon=1.0,
-        squared_chamfer=True,
-        loss_terms=[],
-    ).train()
-    dvds.load_state_dict(fmr.state_dict())  # strict: the same modules, names and shapes
-    losses = [m.training_losses(m.training_forward(batch), batch)["loss"] for m in (fmr, dvds)]
-    torch.testing.assert_close(losses[1], losses[0], rtol=1e-6, atol=0)
-    grads = [torch.autograd.grad(loss, list(m.encoder.parameters())) for loss, m in zip(losses, (fmr, dvds))]
-    for theirs, ours in zip(*grads, strict=True):
-        torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-8)
+    fmr = FMRNet(**widths, decoder_points=64, batch_norm=batch_norm).train()  # type: ignore[arg-type]
+    recon_only = {"lambda_global": 0.0, "lambda_normal": 0.0, "lambda_recon": 1.0, "squared_chamfer": True}
+
+    def dvds(norm: str) -> DVDs:
+        model = DVDs(
+            **widths,  # type: ignore[arg-type]
+            **recon_only,  # type: ignore[arg-type]
+            batch_norm=batch_norm,
+            decoder="mlp",
+            decoder_grid_size=8,
+            loss_terms=[],
+            norm_batch=norm,  # type: ignore[arg-type]
+        )
+        model.load_state_dict(fmr.state_dict())  # strict: the same modules, names and shapes
+        return model.train()
+
+    def loss_and_grads(model: RegistrationModule) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        loss = model.training_losses(model.training_forward(batch), batch)["loss"]
+        return loss, torch.autograd.grad(loss, list(model.encoder.parameters()))
+
+    theirs, ours = loss_and_grads(fmr), loss_and_grads(dvds(norm_batch))
+    torch.testing.assert_close(ours[0], theirs[0], rtol=1e-6, atol=0)
+    for expected, got in zip(theirs[1], ours[1], strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-8)
+    if batch_norm:  # the joint batch's statistics include W(X): another function
+        joint = loss_and_grads(dvds("joint"))[1]
+        assert not all(torch.allclose(a, b, rtol=1e-3, atol=1e-6) for a, b in zip(theirs[1], joint, strict=True))
+    with pytest.raises(ValueError, match="`norm_batch` must be 'joint' or 'per_cloud'"):
+        dvds("separate")
 
 
 def test_the_decoder_is_foldingnet_or_fmr_nets_mlp(batch: RegistrationBatch) -> None:

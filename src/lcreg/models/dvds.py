@@ -5,7 +5,7 @@ Registration (Section IV, Algorithm 1): a PointNet global descriptor ``psi`` and
 pose; per batch:
 
 1. ``psi`` frozen (eval mode, no graph): IC-LK estimates ``W`` for each pair.
-2. ``psi`` trainable, ``W`` held fixed (one train-mode encoder pass over ``[X, Y, W(X)]``):
+2. ``psi`` trainable, ``W`` held fixed (one train-mode encoder pass over ``[X, Y, W(X)]``; ``norm_batch``):
    ``L_p = ||psi(W(X)) - psi(Y)||_2 + LC`` (batch mean of the L2 norm, not squared; LC = symmetric KL of
    :class:`lcreg.nn.local_consistency.LocalConsistency`, injected like on every host:
    ``loss_terms=[LocalConsistencyLoss(...)]``, ``configs/lc.yaml``),
@@ -72,6 +72,11 @@ class DVDs(LucasKanadeModule):
         squared_chamfer: The reconstruction term's Chamfer distance averages squared nearest-neighbour distances
             (FMR-Net's reconstruction loss) instead of distances (default, the paper's ``L_CD``).
         diagnostics_every_n_steps: Period of the gradient-norm diagnostics (0: never).
+        norm_batch: How the loss encodes ``X``, ``Y`` and ``W(X)`` in training: ``"joint"`` (default), one encoder pass
+            over ``[X, Y, W(X)]``, so BatchNorm normalises the three with the same batch statistics (the global
+            residual compares like with like); ``"per_cloud"``, one pass per cloud, each batch normalised alone as
+            FMR-Net does (with FMR-Net's objective and decoder this is FMR-Net's loss and gradients, BatchNorm
+            included). The same function without BatchNorm.
         **kwargs: :class:`~lcreg.models.lucas_kanade.LucasKanadeModule` arguments (``eval_iterations``,
             ``voxel_grid``) and components (``optimizer``, ``lr_scheduler``, ``loss_terms`` such as
             ``[LocalConsistencyLoss()]``, ``refiner``).
@@ -82,6 +87,7 @@ class DVDs(LucasKanadeModule):
         **LucasKanadeModule.inference_hparams,
         "lambda_recon": 0.0,
         "lambda_normal": 0.0,
+        "norm_batch": "joint",
     }
 
     def __init__(
@@ -102,6 +108,7 @@ class DVDs(LucasKanadeModule):
         squared_chamfer: bool = False,
         diagnostics_every_n_steps: int = 50,
         decoder: Literal["folding", "mlp"] = "folding",
+        norm_batch: Literal["joint", "per_cloud"] = "joint",
         **kwargs: Any,
     ) -> None:
         super().__init__(
@@ -120,6 +127,9 @@ class DVDs(LucasKanadeModule):
             )
         if decoder not in ("folding", "mlp"):
             raise ValueError(f"`decoder` must be 'folding' or 'mlp', got {decoder!r}")
+        if norm_batch not in ("joint", "per_cloud"):
+            raise ValueError(f"`norm_batch` must be 'joint' or 'per_cloud', got {norm_batch!r}")
+        self.norm_batch = norm_batch
         k = self.encoder.feature_dim
         self.lambda_recon = lambda_recon
         self.lambda_normal = lambda_normal
@@ -154,7 +164,9 @@ class DVDs(LucasKanadeModule):
         x, y = batch.points_src, batch.points_ref
         b = x.shape[0]
         moved = se3.transform_points(result.transform_ref_src.detach(), x)
-        if y.shape[1] == x.shape[1]:
+        if self.norm_batch == "per_cloud":
+            f_x, f_y, f_wx = self.encoder(x), self.encoder(y), self.encoder(moved)
+        elif y.shape[1] == x.shape[1]:
             f_x, f_y, f_wx = self.encoder(torch.cat([x, y, moved])).split(b)
         else:
             f_x, f_wx = self.encoder(torch.cat([x, moved])).split(b)
