@@ -216,6 +216,23 @@ RECON_SQ_BN = with_overrides(
 )
 """FMR-Net's training objective on DVDs' network: its reconstruction alone (squared Chamfer, weight 1), optimiser."""
 
+
+def recon_mlp_with_recipe_terms(scale: float) -> Variant:
+    """FMR-Net's objective and decoder on DVDs (``recon_sq_bn_lr1e-3_mlpdec``) plus the recipe's terms of
+    ``selfsup_tw100`` (global residual, LC, self-motion with translation weight 100, normals), each at ``scale``
+    times its weight in the recipe (1, 1, 1, 0.1).
+    """
+    terms = [
+        {"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss", "init_args": {"weight": scale}},
+        {
+            "class_path": "lcreg.models.loss_terms.SelfMotionLoss",
+            "init_args": {**SELF_MOTION_TW100["init_args"], "weight": scale},
+        },
+    ]
+    weights = {"model.init_args.lambda_global": scale, "model.init_args.lambda_normal": 0.1 * scale}
+    return with_overrides(RECON_SQ_BN, {**MLP_DECODER, **weights, "model.init_args.loss_terms": terms})
+
+
 VARIANTS: dict[str, Variant] = {
     "model_A": Variant("dvds", ("ablation/model_A.yaml",)),
     "model_D": Variant("dvds"),
@@ -250,6 +267,8 @@ VARIANTS: dict[str, Variant] = {
     ),
     "recon_sq_bn_lr1e-3": RECON_SQ_BN,
     "recon_sq_bn_lr1e-3_mlpdec": with_overrides(RECON_SQ_BN, MLP_DECODER),
+    "recon_mlp_recipe0.1": recon_mlp_with_recipe_terms(0.1),
+    "recon_mlp_recipe0.01": recon_mlp_with_recipe_terms(0.01),
     "recon_sq_bn_lr1e-3_mlpdec_percloud": with_overrides(
         RECON_SQ_BN, {**MLP_DECODER, "model.init_args.norm_batch": "per_cloud"}
     ),

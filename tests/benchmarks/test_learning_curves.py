@@ -58,6 +58,15 @@ def test_variant_values_build_their_models() -> None:
     for model in (recon, recon_mlp, per_cloud):  # FMR-Net's objective: its squared reconstruction alone, its optimiser
         assert model.hparams.squared_chamfer and model.hparams.lambda_recon == 1.0 and len(model.loss_terms) == 0
         assert model.hparams.lambda_global == 0 and model.hparams.lambda_normal == 0 and model.hparams.batch_norm
+    for scale in (0.1, 0.01):  # the control's objective plus the recipe's terms at a fraction of their weights
+        reg = cli(f"recon_mlp_recipe{scale}").model
+        assert [(type(t).__name__, t.weight) for t in reg.loss_terms] == [
+            ("LocalConsistencyLoss", scale),
+            ("SelfMotionLoss", scale),
+        ]
+        assert reg.loss_terms[1].translation_weight == 100.0 and reg.hparams.decoder == "mlp"
+        assert (reg.hparams.lambda_global, reg.hparams.lambda_normal) == (scale, pytest.approx(0.1 * scale))
+        assert reg.hparams.squared_chamfer and reg.hparams.lambda_recon == 1.0 and reg.hparams.batch_norm
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
