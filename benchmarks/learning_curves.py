@@ -222,13 +222,8 @@ def recon_mlp_with_recipe_terms(scale: float) -> Variant:
     ``selfsup_tw100`` (global residual, LC, self-motion with translation weight 100, normals), each at ``scale``
     times its weight in the recipe (1, 1, 1, 0.1).
     """
-    terms = [
-        {"class_path": "lcreg.models.loss_terms.LocalConsistencyLoss", "init_args": {"weight": scale}},
-        {
-            "class_path": "lcreg.models.loss_terms.SelfMotionLoss",
-            "init_args": {**SELF_MOTION_TW100["init_args"], "weight": scale},
-        },
-    ]
+    recipe = recipe_with(translation_weight=100.0).overrides["model.init_args.loss_terms"]  # LC, self-motion
+    terms = [{**term, "init_args": {**term.get("init_args", {}), "weight": scale}} for term in recipe]
     weights = {"model.init_args.lambda_global": scale, "model.init_args.lambda_normal": 0.1 * scale}
     return with_overrides(RECON_SQ_BN, {**MLP_DECODER, **weights, "model.init_args.loss_terms": terms})
 

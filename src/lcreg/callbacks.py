@@ -36,8 +36,6 @@ __all__ = [
     "TrainingClock",
     "TransformWriter",
     "keep_initial_weights_as_candidate",
-    "restore_rng_states",
-    "rng_states",
     "validate_starting_weights",
 ]
 
@@ -167,7 +165,7 @@ def _validation_follows(trainer: Trainer) -> bool:
     return fetcher is not None and bool(trainer.fit_loop.epoch_loop._should_check_val_fx(fetcher))
 
 
-def rng_states() -> dict[str, Any]:
+def _rng_states() -> dict[str, Any]:
     """The torch (CPU and, when initialised, CUDA), NumPy and Python RNG states, as a weights-only load reads them."""
     key = np.random.get_state(legacy=False)
     state: dict[str, Any] = {
@@ -185,8 +183,8 @@ def rng_states() -> dict[str, Any]:
     return state
 
 
-def restore_rng_states(state: dict[str, Any]) -> None:
-    """Set the RNG states saved by :func:`rng_states`."""
+def _restore_rng_states(state: dict[str, Any]) -> None:
+    """Set the RNG states saved by :func:`_rng_states`."""
     torch.set_rng_state(state["torch"])
     numpy = state["numpy"]
     np.random.set_state(
@@ -211,7 +209,7 @@ class RngState(Callback):
 
     def state_dict(self) -> dict[str, Any]:
         """The current RNG states."""
-        return rng_states()
+        return _rng_states()
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         """Keep the states until training starts."""
@@ -222,7 +220,7 @@ class RngState(Callback):
         state, self._pending = self._pending, None
         if not state:
             return
-        restore_rng_states(state)
+        _restore_rng_states(state)
 
 
 class TrainingClock(Callback):
@@ -356,9 +354,9 @@ def validate_starting_weights(
     Returns:
         The step-0 checkpoint written, or None when no callback took the weights.
     """
-    state = rng_states()
+    state = _rng_states()
     trainer.validate(model, datamodule=datamodule, verbose=False)
-    restore_rng_states(state)
+    _restore_rng_states(state)
     return keep_initial_weights_as_candidate(trainer)
 
 
