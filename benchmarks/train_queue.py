@@ -25,8 +25,9 @@ they are small enough, :data:`RESUME_MAX_BYTES`; otherwise they start again). Fo
 ``<results>/<id>/best/`` (the runs whose weights may ship or be probed later). For a job with a ``test_command``
 (``{checkpoint}``: a finished run's selected checkpoint, ``{out}``: ``<results>/<id>/test/<variant>-seed<k>``)
 ``sync`` runs it once per finished run, so that a baseline's test outlives its run folder where its weights are too
-large to keep. Several runners may share a ``--runs`` folder (one thread each): a job runs in one of them at a
-time (:func:`job_lock`); the others skip it.
+large to keep; a ``val_command`` likewise (``{out}``: ``<results>/<id>/val/<variant>-seed<k>``), for the validation
+measurement a job's rule reads (e.g. its selected weights at the exact truth). Several runners may share a ``--runs``
+folder (one thread each): a job runs in one of them at a time (:func:`job_lock`); the others skip it.
 The queue file's ``[[runner]]`` tables name the session's CPU runners (each a ``run --only <its jobs>``): ``start``
 launches them in the background from a worktree at the current commit (so that code changed meanwhile does not
 disturb them), each logging to ``<runs>/logs/<name>.log``; ``stop`` ends the runners of a ``--runs`` folder and their
@@ -105,11 +106,13 @@ class Job:
     gpu_hours: float = 0.0
     keep_best: bool = False
     test_command: str | None = None
+    val_command: str | None = None
 
-    def test_argv(self, checkpoint: Path, out: Path) -> list[str]:
-        """:attr:`test_command` for one finished run (``{checkpoint}``, ``{out}``: the path stem of its outputs), run by
-        this interpreter as :meth:`executable` runs the job's command."""
-        words = shlex.split((self.test_command or "").format(checkpoint=checkpoint, out=out))
+    def follow_up_argv(self, kind: str, checkpoint: Path, out: Path) -> list[str]:
+        """The job's ``<kind>_command`` (:data:`FOLLOW_UPS`) for one finished run (``{checkpoint}``, ``{out}``: the path
+        stem of its outputs), run by this interpreter as :meth:`executable` runs the job's command."""
+        command = getattr(self, f"{kind}_command") or ""
+        words = shlex.split(command.format(checkpoint=checkpoint, out=out))
         return [*INTERPRETERS.get(words[0], words[:1]), *words[1:]]
 
     def argv(self, runs: Path, results: Path) -> list[str]:
@@ -127,6 +130,10 @@ class Job:
         return [*head, *words[1:], *parallel]
 
 
+FOLLOW_UPS = ("val", "test")
+"""What a job may run on each finished run's selected checkpoint at a sync, in this order (:func:`keep_follow_ups`):
+``val_command`` (a validation measurement its rule reads, e.g. the fixed point of ``lk_fixed_point.py``) writes under
+``<results>/<id>/val/``, ``test_command`` (the one test) under ``test/``."""
 INTERPRETERS = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}
 """How a command's first word runs: ``python`` is this interpreter, ``lcreg`` its ``lcreg.__main__``."""
 PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_curves.py"])
@@ -200,7 +207,8 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
 
     Also keeps the resume state of the run in progress unless the job is ``done`` (default: its ``DONE.json``
     exists; :func:`keep_resume`), for a ``keep_best`` job the slim weights of every finished run's selected
-    checkpoint (:func:`keep_best`), and for a job with a ``test_command`` every finished run's test (:func:`keep_test`).
+    checkpoint (:func:`keep_best`), and for a job with a ``val_command`` or ``test_command`` every finished run's
+    validation measurement or test (:func:`keep_follow_ups`).
     """
     source, target, count = runs / job.id, results / job.id / "runs", 0
     for pattern in RESULT_FILES:
@@ -217,7 +225,8 @@ def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
     drop_set_aside(source, target)
     done = (results / job.id / "DONE.json").is_file() if done is None else done
     count += len(keep_resume(source, results / job.id / "resume", done=done))
-    count += len(keep_test(job, source, results / job.id / "test")) if job.test_command else 0
+    for kind in (kind for kind in FOLLOW_UPS if getattr(job, f"{kind}_command")):
+        count += len(keep_follow_ups(job, kind, source, results / job.id / kind))
     return count + (len(keep_best(source, results / job.id / "best")) if job.keep_best else 0)
 
 
@@ -344,13 +353,15 @@ def keep_best(source: Path, target: Path) -> list[Path]:
     return written
 
 
-def keep_test(job: Job, source: Path, target: Path) -> list[Path]:
-    """Run ``job.test_command`` once for every finished run in ``source/runs.jsonl`` whose selected checkpoint exists
-    and whose ``target/<variant>-seed<k>.md`` does not; returns the files the commands wrote under ``target``.
+def keep_follow_ups(job: Job, kind: str, source: Path, target: Path) -> list[Path]:
+    """Run the job's ``<kind>_command`` (:data:`FOLLOW_UPS`) once for every finished run in ``source/runs.jsonl`` whose
+    selected checkpoint exists and whose ``target/<variant>-seed<k>.md`` does not; returns the files the commands wrote
+    under ``target``.
 
     For jobs whose selected weights are too large to keep (:func:`keep_best`; iPCRNet's slim weights are 16.9 MB), the
-    test result is what outlives the run folder. A failing command is reported and leaves no ``.md``, so the next
-    sync tries again.
+    test result is what outlives the run folder; a ``val_command`` measures what a job's rule reads as soon as a run
+    finishes, without a hand-run watcher. A failing command is reported and leaves no ``.md``, so the next sync tries
+    again.
     """
     target.mkdir(parents=True, exist_ok=True)
     before, env = set(target.iterdir()), {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -359,10 +370,10 @@ def keep_test(job: Job, source: Path, target: Path) -> list[Path]:
         out = target / f"{row.get('variant')}-seed{row.get('seed')}".lower()
         if "variant" not in row or out.with_suffix(".md").exists() or not checkpoint.is_file():
             continue
-        argv = ["nice", "-n", "5", *job.test_argv(checkpoint, out)]
-        print(f"queue: {job.id}: test {shlex.join(argv)}", flush=True)
+        argv = ["nice", "-n", "5", *job.follow_up_argv(kind, checkpoint, out)]
+        print(f"queue: {job.id}: {kind} {shlex.join(argv)}", flush=True)
         if (code := subprocess.run(argv, cwd=REPO, env=env).returncode) != 0:
-            print(f"queue: {job.id}: test of {out.name} exited {code}; tried again at the next sync", flush=True)
+            print(f"queue: {job.id}: {kind} of {out.name} exited {code}; tried again at the next sync", flush=True)
             out.with_suffix(".md").unlink(missing_ok=True)
     return sorted(set(target.iterdir()) - before)
 

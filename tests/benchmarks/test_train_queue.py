@@ -37,10 +37,15 @@ def test_committed_queue_jobs_are_valid_and_their_arguments_parse(tmp_path: Path
         args = load(script.stem).parse(argv[2:])
         assert args.patience is not None and args.val_pairs > 1, f"{job.id}: queued runs use the converge budget"
         if job.test_command:  # the test of each finished run: on the test split, the selected checkpoint, kept outputs
-            words = job.test_argv(tmp_path / "best.ckpt", tmp_path / "out")
+            words = job.follow_up_argv("test", tmp_path / "best.ckpt", tmp_path / "out")
             test = load(Path(words[1]).stem).parse(words[2:])
             assert test.split == "test" and test.ckpt == [str(tmp_path / "best.ckpt")], job.id
             assert str(test.out) == str(tmp_path / "out") + ".md" and test.pairs_csv, job.id
+        if job.val_command:  # what a rule reads: on validation pairs only, never a test look
+            words = job.follow_up_argv("val", tmp_path / "best.ckpt", tmp_path / "out")
+            val = load(Path(words[1]).stem).parse(words[2:])
+            assert val.split == "val" and val.ckpt == [str(tmp_path / "best.ckpt")], job.id
+            assert str(val.out) == str(tmp_path / "out") + ".md", job.id
 
 
 def test_queue_refuses_bad_files(tmp_path: Path) -> None:
@@ -274,32 +279,37 @@ def test_keep_best_keeps_a_sweeps_selected_weights(tmp_path: Path, monkeypatch: 
     assert queue.keep_best(source, target) == [] and not (target / "idam_x-seed1.pt").exists()
 
 
-def test_a_job_with_a_test_command_tests_each_finished_run_once(tmp_path: Path) -> None:
-    """Weights too large to keep (iPCRNet's) are lost with the run folder: ``test_command`` runs once per finished
-    run at a sync, on its selected checkpoint, and what it writes under ``test/`` is kept; a failing test is retried."""
+@pytest.mark.parametrize("kind", ["val", "test"])
+def test_a_job_with_a_follow_up_command_runs_it_on_each_finished_run_once(tmp_path: Path, kind: str) -> None:
+    """Weights too large to keep (iPCRNet's) are lost with the run folder, and a rule reads a measurement of each run's
+    selected weights (its fixed point): ``test_command`` / ``val_command`` runs once per finished run at a sync, on its
+    selected checkpoint, and what it writes under ``test/`` / ``val/`` is kept; a failing command is retried."""
     queue = load("train_queue")
     writer = "import sys, pathlib; pathlib.Path(sys.argv[2] + '.md').write_text(sys.argv[1])"
     file = tmp_path / "q.toml"
     file.write_text(
         queue.SMOKE_QUEUE.replace(
-            "cpu_hours = 0.01", f'cpu_hours = 0.01\ntest_command = """python -c "{writer}" {{checkpoint}} {{out}}"""'
+            "cpu_hours = 0.01", f'cpu_hours = 0.01\n{kind}_command = """python -c "{writer}" {{checkpoint}} {{out}}"""'
         )
     )
     (job,) = queue.load_jobs(file)
     runs, res = tmp_path / "runs", tmp_path / "res"
     queue.main(["run", "--queue", str(file), "--runs", str(runs), "--results", str(res)])
     rows = [json.loads(line) for line in (runs / "smoke" / "runs.jsonl").read_text().splitlines()]
-    tests = res / "smoke" / "test"
-    assert sorted(p.name for p in tests.iterdir()) == sorted(f"{r['variant']}-seed{r['seed']}.md".lower() for r in rows)
+    outputs = res / "smoke" / kind
+    expected = sorted(f"{r['variant']}-seed{r['seed']}.md".lower() for r in rows)
+    assert sorted(p.name for p in outputs.iterdir()) == expected
+    assert not (res / "smoke" / ({"val", "test"} - {kind}).pop()).exists()
     (row,) = [r for r in rows if r["variant"] == "selfsup"]
-    assert (tests / "selfsup-seed0.md").read_text() == row["best_checkpoint"]
-    before = (tests / "selfsup-seed0.md").stat().st_mtime_ns
-    assert queue.keep_test(job, runs / "smoke", tests) == []  # tested once
-    assert (tests / "selfsup-seed0.md").stat().st_mtime_ns == before
-    failing = dataclasses.replace(job, test_command='python -c "import sys; sys.exit(3)" {checkpoint} {out}')
-    (tests / "selfsup-seed0.md").unlink()
-    assert queue.keep_test(failing, runs / "smoke", tests) == [] and not (tests / "selfsup-seed0.md").exists()
-    assert queue.keep_test(job, runs / "smoke", tests) == [tests / "selfsup-seed0.md"]  # the next sync tries again
+    assert (outputs / "selfsup-seed0.md").read_text() == row["best_checkpoint"]
+    before = (outputs / "selfsup-seed0.md").stat().st_mtime_ns
+    assert queue.keep_follow_ups(job, kind, runs / "smoke", outputs) == []  # run once
+    assert (outputs / "selfsup-seed0.md").stat().st_mtime_ns == before
+    failing = dataclasses.replace(job, **{f"{kind}_command": 'python -c "import sys; sys.exit(3)" {checkpoint} {out}'})
+    (outputs / "selfsup-seed0.md").unlink()
+    assert queue.keep_follow_ups(failing, kind, runs / "smoke", outputs) == []
+    assert not (outputs / "selfsup-seed0.md").exists()
+    assert queue.keep_follow_ups(job, kind, runs / "smoke", outputs) == [outputs / "selfsup-seed0.md"]  # tried again
 
 
 def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
