@@ -217,15 +217,25 @@ RECON_SQ_BN = with_overrides(
 """FMR-Net's training objective on DVDs' network: its reconstruction alone (squared Chamfer, weight 1), optimiser."""
 
 
-def recon_mlp_with_recipe_terms(scale: float) -> Variant:
+RECIPE_TERMS = ("global", "lc", "self_motion", "normal")
+"""The recipe's terms beyond FMR-Net's reconstruction, by name (:func:`recon_mlp_with_recipe_terms`)."""
+
+
+def recon_mlp_with_recipe_terms(scale: float, terms: Sequence[str] = RECIPE_TERMS) -> Variant:
     """FMR-Net's objective and decoder on DVDs (``recon_sq_bn_lr1e-3_mlpdec``) plus the recipe's terms of
-    ``selfsup_tw100`` (global residual, LC, self-motion with translation weight 100, normals), each at ``scale``
-    times its weight in the recipe (1, 1, 1, 0.1).
+    ``selfsup_tw100`` named in ``terms`` (:data:`RECIPE_TERMS`: global residual, LC, self-motion with translation
+    weight 100, normals), each at ``scale`` times its weight in the recipe (1, 1, 1, 0.1); the others off.
     """
-    recipe = recipe_with(translation_weight=100.0).overrides["model.init_args.loss_terms"]  # LC, self-motion
-    terms = [{**term, "init_args": {**term.get("init_args", {}), "weight": scale}} for term in recipe]
-    weights = {"model.init_args.lambda_global": scale, "model.init_args.lambda_normal": 0.1 * scale}
-    return with_overrides(RECON_SQ_BN, {**MLP_DECODER, **weights, "model.init_args.loss_terms": terms})
+    if unknown := set(terms) - set(RECIPE_TERMS):
+        raise ValueError(f"unknown recipe terms {sorted(unknown)}; known: {RECIPE_TERMS}")
+    lc, self_motion = recipe_with(translation_weight=100.0).overrides["model.init_args.loss_terms"]
+    kept = [term for name, term in (("lc", lc), ("self_motion", self_motion)) if name in terms]
+    weighted = [{**term, "init_args": {**term.get("init_args", {}), "weight": scale}} for term in kept]
+    weights = {
+        "model.init_args.lambda_global": scale if "global" in terms else 0,
+        "model.init_args.lambda_normal": 0.1 * scale if "normal" in terms else 0,
+    }
+    return with_overrides(RECON_SQ_BN, {**MLP_DECODER, **weights, "model.init_args.loss_terms": weighted})
 
 
 VARIANTS: dict[str, Variant] = {
@@ -264,6 +274,7 @@ VARIANTS: dict[str, Variant] = {
     "recon_sq_bn_lr1e-3_mlpdec": with_overrides(RECON_SQ_BN, MLP_DECODER),
     "recon_mlp_recipe0.1": recon_mlp_with_recipe_terms(0.1),
     "recon_mlp_recipe0.01": recon_mlp_with_recipe_terms(0.01),
+    **{f"recon_mlp_{name}0.1": recon_mlp_with_recipe_terms(0.1, (name,)) for name in RECIPE_TERMS},
     "recon_sq_bn_lr1e-3_mlpdec_percloud": with_overrides(
         RECON_SQ_BN, {**MLP_DECODER, "model.init_args.norm_batch": "per_cloud"}
     ),
