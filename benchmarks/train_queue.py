@@ -36,8 +36,8 @@ the others go on (to pause one runner, or start one whose jobs changed, from a w
 is known by the name ``start`` gives its command line, :func:`runs_as`, so a job moved to another runner's list does not
 make ``stop`` of that runner end its old one). ``runs`` tabulates every
 finished run of the committed results: the step at which it stopped, why, and the step its rule selected
-(:func:`runs_table`). ``progress`` shows the runs training now: each one's last validation and its best so far
-(:func:`progress_table`).
+(:func:`runs_table`). ``progress`` shows the runs training now: each one's last validation, its best so far and the step
+by which it stops unless a validation improves (:func:`progress_table`, :func:`stop_bound`).
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import tomllib
+import yaml
 
 from lcreg.experiments.benchmarking import (
     CONVERGE_METRIC,
@@ -545,12 +546,46 @@ def progress_cell(key: str, series: Series) -> str:
     return f"{last} (best {series.values[best]:.4g} @ {series.steps[best]})"
 
 
+def stop_bound(folder: Path, metrics: dict[str, Series]) -> str:
+    """The step by which the run in ``folder`` stops unless a validation improves, from its ``config.yaml`` (the
+    trainer's ``EarlyStopping`` monitor, mode, ``min_delta`` and patience, ``val_check_interval``, ``min_steps`` and
+    ``max_steps``) and its validations so far: ``"<step> (patience <p> after <best step>)"``, or ``"<cap> (cap)"`` when
+    the patience would outlast the cap; ``"–"`` without a config or a step cap.
+
+    As Lightning's ``EarlyStopping``: a validation improves on the best when it is better by more than ``min_delta``,
+    and the run stops at the ``patience``-th validation after the best (``patience * val_check_interval`` steps); the
+    validation of the starting weights (step 0, :func:`lcreg.callbacks.validate_starting_weights`) does not count.
+    """
+    config = folder / "config.yaml"
+    trainer = (yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("trainer", {}) if config.is_file() else {}
+    cap, interval = trainer.get("max_steps") or -1, trainer.get("val_check_interval")
+    stopping = [
+        c.get("init_args", {}) for c in trainer.get("callbacks") or () if "EarlyStopping" in str(c.get("class_path"))
+    ]
+    series = metrics.get(stopping[0].get("monitor", "")) if stopping else None
+    if not isinstance(interval, int) or series is None or not len(series.steps):
+        return "–" if cap < 0 else f"{cap} (cap)"
+    sign = 1.0 if stopping[0].get("mode", "min") == "min" else -1.0
+    delta, patience = float(stopping[0].get("min_delta", 0.0)), int(stopping[0].get("patience", 3))
+    best_step, best = None, float("inf")
+    for step, value in zip(series.steps, series.values, strict=True):
+        if (step > 0 or interval == 1) and sign * value < best - delta:
+            best_step, best = int(step), sign * float(value)
+    if best_step is None:
+        return "–" if cap < 0 else f"{cap} (cap)"
+    bound = max(best_step + patience * interval + 1, trainer.get("min_steps") or 0)
+    if 0 <= cap <= bound:
+        return f"{cap} (cap)"
+    return f"{bound} (patience {patience} after {best_step})"
+
+
 def progress_table(jobs: Sequence[Job], runs: Path, hours: float = 3.0) -> str:
     """Markdown: every run of ``jobs`` that logged in the last ``hours`` and has not finished (:func:`active_runs`),
-    with the runner holding its job, the step of its last
-    validation and, for each of :data:`PROGRESS_KEYS`, the last value and the best so far (over the segments of a
-    resumed run)."""
-    header = ["job", "run", "held by", "written", "last validation", *(k.removeprefix("val/") for k in PROGRESS_KEYS)]
+    with the runner holding its job, the step of its last validation, the step by which it stops unless a validation
+    improves (:func:`stop_bound`) and, for each of :data:`PROGRESS_KEYS`, the last value and the best so far (over the
+    segments of a resumed run)."""
+    keys = [k.removeprefix("val/") for k in PROGRESS_KEYS]
+    header = ["job", "run", "held by", "written", "last validation", "stops by (unless it improves)", *keys]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for job in jobs:
         pid = holder(job, runs)
@@ -563,7 +598,8 @@ def progress_table(jobs: Sequence[Job], runs: Path, hours: float = 3.0) -> str:
             held = "–" if pid is None else f"pid {pid}"
             step = "none yet" if last is None else f"step {last}"
             written = f"{(time.time() - path.stat().st_mtime) / 60:.0f} min ago"
-            lines.append("| " + " | ".join([job.id, run, held, written, step, *cells]) + " |")
+            stops = stop_bound(path.parent, metrics)
+            lines.append("| " + " | ".join([job.id, run, held, written, step, stops, *cells]) + " |")
     return "\n".join(lines) + "\n"
 
 

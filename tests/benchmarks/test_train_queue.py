@@ -12,9 +12,12 @@ import time
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
+import torch
 from tests.benchmarks.test_smoke import BENCHMARKS, load
 
+from lcreg.experiments.benchmarking import Series
 from lcreg.experiments.reproduce.command import build_parser
 
 pytestmark = pytest.mark.usefixtures("isolated_cli")
@@ -712,10 +715,43 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
     rows = [line for line in table.splitlines()[2:] if line]
     assert len(rows) == 1, table
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
-    assert cells[:3] == ["j", "v/seed1", "–"] and cells[4] == "step 99"
-    assert cells[5] == "0.8 @ 99 (best 0.5 @ 49)"  # median RRE: lowest is best
-    assert cells[6] == "–"  # clip5 not logged
-    assert cells[7] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
+    assert cells[:3] == ["j", "v/seed1", "–"] and cells[4:6] == ["step 99", "–"]  # no config.yaml: no bound
+    assert cells[6] == "0.8 @ 99 (best 0.5 @ 49)"  # median RRE: lowest is best
+    assert cells[7] == "–"  # clip5 not logged
+    assert cells[8] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
+
+
+def test_stop_bound_is_where_lightnings_early_stopping_ends_the_run(tmp_path: Path) -> None:
+    """The step by which a run stops unless it improves, checked against Lightning's own ``EarlyStopping`` fed the
+    same validations (the step-0 validation of the starting weights does not count; ``min_delta``; the step cap)."""
+    from lightning.pytorch.callbacks import EarlyStopping
+
+    queue = load("train_queue")
+    values = {0: 0.1, 49: 0.9, 99: 0.7, 149: 0.65, 199: 0.8, 249: 0.66, 299: 0.75}  # step 0 best, never counted
+
+    def config(mode: str, delta: float, cap: int) -> dict[str, Series]:
+        stopping = {"monitor": "val/m", "mode": mode, "min_delta": delta, "patience": 3}
+        callbacks = [{"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stopping}]
+        trainer = {"max_steps": cap, "val_check_interval": 50, "callbacks": callbacks}
+        (tmp_path / "config.yaml").write_text(json.dumps({"trainer": trainer}))  # JSON is YAML
+        sign = 1.0 if mode == "min" else -1.0
+        return {"val/m": Series(np.array(list(values)), sign * np.array(list(values.values())))}
+
+    def lightning_stop(mode: str, delta: float) -> int | None:
+        stop = EarlyStopping("val/m", min_delta=delta, patience=3, mode=mode)
+        sign = 1.0 if mode == "min" else -1.0
+        for step, value in list(values.items())[1:]:
+            if stop._evaluate_stopping_criteria(torch.tensor(sign * value))[0]:
+                return step + 1
+        return None
+
+    for mode, delta in (("min", 0.0), ("max", 0.0), ("min", 0.06)):
+        expected = lightning_stop(mode, delta)
+        best = {0.0: 149, 0.06: 99}[delta]
+        assert expected == best + 3 * 50 + 1  # 300 for the best at 149; 250 when 0.65 is not better by 0.06
+        assert queue.stop_bound(tmp_path, config(mode, delta, 3000)) == f"{expected} (patience 3 after {best})"
+    assert queue.stop_bound(tmp_path, config("min", 0.0, 260)) == "260 (cap)"
+    assert queue.stop_bound(tmp_path / "none", {}) == "–"
 
 
 def wait_for_runners(queue: ModuleType, runs: Path, count: int) -> list[int]:
