@@ -369,13 +369,14 @@ def keep_follow_ups(job: Job, kind: str, source: Path, target: Path) -> list[Pat
     for row in ResultLog(source / "runs.jsonl").rows if (source / "runs.jsonl").is_file() else ():
         checkpoint = Path(row.get("best_checkpoint") or "")
         out = target / f"{row.get('variant')}-seed{row.get('seed')}".lower()
-        if "variant" not in row or out.with_suffix(".md").exists() or not checkpoint.is_file():
+        report = out.parent / f"{out.name}.md"  # not with_suffix: a variant may hold a dot (recon_mlp_recipe0.1)
+        if "variant" not in row or report.exists() or not checkpoint.is_file():
             continue
         argv = ["nice", "-n", "5", *job.follow_up_argv(kind, checkpoint, out)]
         print(f"queue: {job.id}: {kind} {shlex.join(argv)}", flush=True)
         if (code := subprocess.run(argv, cwd=REPO, env=env).returncode) != 0:
             print(f"queue: {job.id}: {kind} of {out.name} exited {code}; tried again at the next sync", flush=True)
-            out.with_suffix(".md").unlink(missing_ok=True)
+            report.unlink(missing_ok=True)
     return sorted(set(target.iterdir()) - before)
 
 

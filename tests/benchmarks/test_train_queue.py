@@ -313,6 +313,14 @@ def test_a_job_with_a_follow_up_command_runs_it_on_each_finished_run_once(tmp_pa
     assert queue.keep_follow_ups(failing, kind, runs / "smoke", outputs) == []
     assert not (outputs / "selfsup-seed0.md").exists()
     assert queue.keep_follow_ups(job, kind, runs / "smoke", outputs) == [outputs / "selfsup-seed0.md"]  # tried again
+    # A variant whose name holds a dot (session 33: recon_mlp_recipe0.1 was measured again at every sync).
+    dotted = {**row, "variant": "recon_x0.1"}
+    with (runs / "smoke" / "runs.jsonl").open("a") as log:
+        log.write(json.dumps(dotted) + "\n")
+    assert queue.keep_follow_ups(job, kind, runs / "smoke", outputs) == [outputs / "recon_x0.1-seed0.md"]
+    (outputs / "recon_x0.1-seed0.md").write_text("kept")
+    assert queue.keep_follow_ups(job, kind, runs / "smoke", outputs) == []
+    assert (outputs / "recon_x0.1-seed0.md").read_text() == "kept"  # not measured again
 
 
 def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
