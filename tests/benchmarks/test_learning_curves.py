@@ -67,21 +67,22 @@ def test_variant_values_build_their_models() -> None:
         assert reg.loss_terms[1].translation_weight == 100.0 and reg.hparams.decoder == "mlp"
         assert (reg.hparams.lambda_global, reg.hparams.lambda_normal) == (scale, pytest.approx(0.1 * scale))
         assert reg.hparams.squared_chamfer and reg.hparams.lambda_recon == 1.0 and reg.hparams.batch_norm
-    on = {}  # each of the recipe's terms alone at 0.1 of its weight (which term biases the descriptor)
-    for name in ("global", "lc", "self_motion", "normal"):
-        one = cli(f"recon_mlp_{name}0.1").model
-        assert one.hparams.decoder == "mlp" and one.hparams.squared_chamfer and one.hparams.lambda_recon == 1.0
-        weights = {"global": one.hparams.lambda_global, "normal": one.hparams.lambda_normal}
-        weights |= {
-            "lc" if type(t).__name__ == "LocalConsistencyLoss" else "self_motion": t.weight for t in one.loss_terms
+    for scale in (0.1, 0.01):  # each of the recipe's terms alone at a fraction of its weight (which term biases)
+        on = {}
+        for name in ("global", "lc", "self_motion", "normal"):
+            one = cli(f"recon_mlp_{name}{scale}").model
+            assert one.hparams.decoder == "mlp" and one.hparams.squared_chamfer and one.hparams.lambda_recon == 1.0
+            weights = {"global": one.hparams.lambda_global, "normal": one.hparams.lambda_normal}
+            weights |= {
+                "lc" if type(t).__name__ == "LocalConsistencyLoss" else "self_motion": t.weight for t in one.loss_terms
+            }
+            on[name] = {term: weight for term, weight in weights.items() if weight}
+        assert on == {
+            "global": {"global": scale},
+            "lc": {"lc": scale},
+            "self_motion": {"self_motion": scale},
+            "normal": {"normal": pytest.approx(0.1 * scale)},
         }
-        on[name] = {term: weight for term, weight in weights.items() if weight}
-    assert on == {
-        "global": {"global": 0.1},
-        "lc": {"lc": 0.1},
-        "self_motion": {"self_motion": 0.1},
-        "normal": {"normal": pytest.approx(0.01)},
-    }
     only = cli("self_motion_only").model
     assert [(type(t).__name__, t.name) for t in only.loss_terms] == [("SelfMotionLoss", "self_motion")]
     assert only.hparams.lambda_global == 0 and only.hparams.lambda_recon == 0
