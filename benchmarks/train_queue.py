@@ -554,8 +554,10 @@ def stop_bound(folder: Path, metrics: dict[str, Series]) -> str:
     the patience would outlast the cap; ``"–"`` without a config or a step cap.
 
     As Lightning's ``EarlyStopping``: a validation improves on the best when it is better by more than ``min_delta``,
-    and the run stops at the ``patience``-th validation after the best (``patience * val_check_interval`` steps); the
-    validation of the starting weights (step 0, :func:`lcreg.callbacks.validate_starting_weights`) does not count.
+    and the run stops at the ``patience``-th validation after the best (validations at steps ``k *
+    val_check_interval - 1``). The validation of the starting weights (step 0) counts, as
+    :func:`lcreg.callbacks.keep_initial_weights_as_candidate` makes it the early stopping's first score (runs started
+    before session 31 did not have that; for them a step-0 best understates the bound).
     """
     config = folder / "config.yaml"
     trainer = (yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("trainer", {}) if config.is_file() else {}
@@ -570,11 +572,12 @@ def stop_bound(folder: Path, metrics: dict[str, Series]) -> str:
     delta, patience = float(stopping[0].get("min_delta", 0.0)), int(stopping[0].get("patience", 3))
     best_step, best = None, float("inf")
     for step, value in zip(series.steps, series.values, strict=True):
-        if (step > 0 or interval == 1) and sign * value < best - delta:
+        if sign * value < best - delta:
             best_step, best = int(step), sign * float(value)
     if best_step is None:
         return "–" if cap < 0 else f"{cap} (cap)"
-    bound = max(best_step + patience * interval + 1, trainer.get("min_steps") or 0)
+    first_after = ((best_step + 1) // interval + 1) * interval - 1  # the first validation after the best
+    bound = max(first_after + (patience - 1) * interval + 1, trainer.get("min_steps") or 0)
     if 0 <= cap <= bound:
         return f"{cap} (cap)"
     return f"{bound} (patience {patience} after {best_step})"

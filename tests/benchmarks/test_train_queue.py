@@ -731,13 +731,14 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
 
 def test_stop_bound_is_where_lightnings_early_stopping_ends_the_run(tmp_path: Path) -> None:
     """The step by which a run stops unless it improves, checked against Lightning's own ``EarlyStopping`` fed the
-    same validations (the step-0 validation of the starting weights does not count; ``min_delta``; the step cap)."""
+    same validations: the step-0 validation of the starting weights is its first score
+    (``keep_initial_weights_as_candidate``), ``min_delta`` counts, the step cap bounds it."""
     from lightning.pytorch.callbacks import EarlyStopping
 
     queue = load("train_queue")
-    values = {0: 0.1, 49: 0.9, 99: 0.7, 149: 0.65, 199: 0.8, 249: 0.66, 299: 0.75}  # step 0 best, never counted
+    trained = {49: 0.9, 99: 0.7, 149: 0.65, 199: 0.8, 249: 0.66, 299: 0.75, 349: 0.9, 399: 0.9}
 
-    def config(mode: str, delta: float, cap: int) -> dict[str, Series]:
+    def series(values: dict[int, float], mode: str, delta: float, cap: int) -> dict[str, Series]:
         stopping = {"monitor": "val/m", "mode": mode, "min_delta": delta, "patience": 3}
         callbacks = [{"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stopping}]
         trainer = {"max_steps": cap, "val_check_interval": 50, "callbacks": callbacks}
@@ -745,20 +746,26 @@ def test_stop_bound_is_where_lightnings_early_stopping_ends_the_run(tmp_path: Pa
         sign = 1.0 if mode == "min" else -1.0
         return {"val/m": Series(np.array(list(values)), sign * np.array(list(values.values())))}
 
-    def lightning_stop(mode: str, delta: float) -> int | None:
+    def lightning_stop(values: dict[int, float], mode: str, delta: float) -> int:
         stop = EarlyStopping("val/m", min_delta=delta, patience=3, mode=mode)
         sign = 1.0 if mode == "min" else -1.0
-        for step, value in list(values.items())[1:]:
-            if stop._evaluate_stopping_criteria(torch.tensor(sign * value))[0]:
-                return step + 1
-        return None
+        steps = [
+            step for step, value in values.items() if stop._evaluate_stopping_criteria(torch.tensor(sign * value))[0]
+        ]
+        return steps[0] + 1
 
-    for mode, delta in (("min", 0.0), ("max", 0.0), ("min", 0.06)):
-        expected = lightning_stop(mode, delta)
-        best = {0.0: 149, 0.06: 99}[delta]
-        assert expected == best + 3 * 50 + 1  # 300 for the best at 149; 250 when 0.65 is not better by 0.06
-        assert queue.stop_bound(tmp_path, config(mode, delta, 3000)) == f"{expected} (patience 3 after {best})"
-    assert queue.stop_bound(tmp_path, config("min", 0.0, 260)) == "260 (cap)"
+    cases = [  # (step-0 value, mode, min_delta, the best step)
+        (0.95, "min", 0.0, 149),
+        (0.95, "max", 0.0, 149),
+        (0.95, "min", 0.06, 99),  # 0.65 is not better than 0.7 by more than 0.06
+        (0.1, "min", 0.0, 0),  # the starting weights stay the best: stop at the third validation, step 149
+    ]
+    for start, mode, delta, best in cases:
+        values = {0: start, **trained}
+        expected = lightning_stop(values, mode, delta)
+        assert expected == (150 if best == 0 else best + 3 * 50 + 1)
+        assert queue.stop_bound(tmp_path, series(values, mode, delta, 3000)) == f"{expected} (patience 3 after {best})"
+    assert queue.stop_bound(tmp_path, series({0: 0.95, **trained}, "min", 0.0, 260)) == "260 (cap)"
     assert queue.stop_bound(tmp_path / "none", {}) == "–"
 
 
