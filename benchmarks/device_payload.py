@@ -3,6 +3,8 @@
     python benchmarks/device_payload.py [--root ../shared/data/modelnet40_mini] [--out .carry] [--no-wheels]
     python benchmarks/device_payload.py --unpack .carry --to ../shared/data   # on the device (device_chunk.sh)
     python benchmarks/device_payload.py --smoke     # pack and unpack a small generated folder (checks the script)
+    python benchmarks/device_payload.py --slim lc_dcp_prnet_converge   # before the device calls, when over the limit
+    python benchmarks/device_payload.py --unslim                       # after them, before any commit
 
 The device receives the working tree (at most 64 MiB with the carried paths) and nothing beside it: not ``../shared``,
 and its Python lacks jsonargparse. This writes
@@ -14,6 +16,12 @@ and its Python lacks jsonargparse. This writes
 * ``<out>/wheels/``: jsonargparse and its ``signatures`` extras at this environment's versions, for Python 3.12;
 
 and prints the size of what would travel (tracked and untracked files not ignored, plus ``<out>``) against the limit.
+
+``docs/results/`` outgrew that limit (73 MB tracked in session 34). ``--slim JOB ...`` takes it out of the git index
+but for ``docs/results/converge/<JOB>`` (the finished rows that ``device_chunk.sh`` restores, so that the device does
+not train them again) and names it in ``.git/info/exclude``: the working tree is untouched, only what travels
+shrinks. ``--unslim`` puts the index back as ``HEAD`` has it (``git reset -- docs/results``) and drops the exclude
+line. Between the two, ``git status`` shows ``docs/results`` as staged deletions: commit nothing in between.
 On the device ``--unpack`` (standard library only) restores the folders under ``--to`` and checks each file's SHA-256
 against the manifest, so the device trains on the same bytes as the developer machine. Then
 ``benchmarks/device_chunk.sh`` runs a queue job there (``device.run("bash benchmarks/device_chunk.sh <job>
@@ -42,6 +50,10 @@ LIMIT_BYTES = 64 * 2**20
 """What may travel to the device with one call (the ``device`` tool's limit)."""
 WHEELS = ("jsonargparse", "docstring-parser", "typeshed-client")
 """Packages missing on the device image (``lcreg.cli`` needs ``jsonargparse[signatures]``)."""
+RESULTS = "docs/results"
+"""The tracked folder that ``--slim`` keeps from travelling, but for the named jobs' results in ``converge/``."""
+SLIM_EXCLUDE = f"/{RESULTS}/"
+"""The line ``--slim`` adds to ``.git/info/exclude`` (and ``--unslim`` removes)."""
 PLATFORM = ["--python-version", "3.12", "--implementation", "cp", "--platform", "manylinux2014_x86_64"]
 
 
@@ -123,6 +135,45 @@ def travelling_bytes(repo: Path, carried: Path) -> int:
     )
 
 
+def _git(repo: Path, *args: str) -> str:
+    """Run ``git -C repo args`` and return its standard output."""
+    return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout
+
+
+def _exclude_file(repo: Path) -> Path:
+    """``repo``'s ``.git/info/exclude`` (also from a worktree)."""
+    path = Path(_git(repo, "rev-parse", "--git-path", "info/exclude").strip())
+    return path if path.is_absolute() else repo / path
+
+
+def slim_index(repo: Path, keep: list[str]) -> None:
+    """Keep :data:`RESULTS` from travelling but ``<RESULTS>/converge/<job>`` for each job of ``keep`` (see above).
+
+    Raises:
+        PayloadError: If a job of ``keep`` has no results folder.
+    """
+    missing = [job for job in keep if not (repo / RESULTS / "converge" / job).is_dir()]
+    if missing:
+        raise PayloadError(f"--slim: no {RESULTS}/converge/<job> folder for {', '.join(missing)}")
+    _git(repo, "rm", "-r", "-q", "--cached", "--ignore-unmatch", "--", RESULTS)
+    if keep:
+        _git(repo, "add", "-f", "--", *(f"{RESULTS}/converge/{job}" for job in keep))
+    exclude = _exclude_file(repo)
+    lines = exclude.read_text().splitlines() if exclude.is_file() else []
+    if SLIM_EXCLUDE not in lines:
+        exclude.parent.mkdir(parents=True, exist_ok=True)
+        exclude.write_text("\n".join([*lines, SLIM_EXCLUDE]) + "\n")
+
+
+def unslim_index(repo: Path) -> None:
+    """Undo :func:`slim_index`: :data:`RESULTS`'s index entries as ``HEAD`` has them, the exclude line gone."""
+    _git(repo, "reset", "-q", "--", RESULTS)
+    exclude = _exclude_file(repo)
+    if exclude.is_file():
+        lines = [line for line in exclude.read_text().splitlines() if line != SLIM_EXCLUDE]
+        exclude.write_text("".join(f"{line}\n" for line in lines))
+
+
 def download_wheels(out: Path) -> list[Path]:
     """``pip download`` :data:`WHEELS` at this environment's versions (pure Python wheels) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -140,7 +191,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--unpack", type=Path, metavar="CARRY", help="restore the packed folders of CARRY (device)")
     parser.add_argument("--to", type=Path, default=ROOT.parent / "shared" / "data", help="where --unpack restores")
     parser.add_argument("--smoke", action="store_true", help="pack and unpack a small generated folder (temp folders)")
+    parser.add_argument("--slim", nargs="*", metavar="JOB", help=f"keep {RESULTS} from travelling but these jobs'")
+    parser.add_argument("--unslim", action="store_true", help="undo --slim (before any commit)")
     args = parser.parse_args(argv)
+    if args.unslim:
+        unslim_index(ROOT)
+        print(f"{RESULTS}: index as HEAD has it; {SLIM_EXCLUDE} no longer excluded")
+        return 0
+    if args.slim is not None:
+        slim_index(ROOT, args.slim)
+        travels = travelling_bytes(ROOT, args.out)
+        print(f"one device call sends {travels / 2**20:.1f} MiB of {LIMIT_BYTES / 2**20:.0f} MiB; run --unslim after")
+        return 0 if travels <= LIMIT_BYTES else 1
     if args.unpack is not None:
         if not args.unpack.is_dir():
             parser.error(f"--unpack {str(args.unpack)!r} is not a folder (the .carry/ written by this script)")
@@ -161,7 +223,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     travels = travelling_bytes(ROOT, args.out)
     print(f"one device call sends {travels / 2**20:.1f} MiB of {LIMIT_BYTES / 2**20:.0f} MiB (tree + {args.out})")
-    return 0 if travels <= LIMIT_BYTES else 1
+    if travels > LIMIT_BYTES:
+        print(f"over the limit: --slim <the chunk's jobs> keeps {RESULTS} but their results from travelling")
+        return 1
+    return 0
 
 
 def _smoke_folder() -> Path:

@@ -157,3 +157,39 @@ def test_device_chunk_runs_plus_joined_groups_at_once_and_packs_their_results(tm
         names = sorted(archive.getnames())
     assert "a/runs/rows.jsonl" in names and "b/runs/rows.jsonl" in names and "c/runs/rows.jsonl" in names
     assert not any(name.endswith(".ckpt") for name in names)
+
+
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout
+
+
+def _travelling(repo: Path) -> set[str]:
+    return set(_git(repo, "ls-files", "--cached", "--others", "--exclude-standard").split())
+
+
+def test_slim_keeps_results_but_the_named_jobs_from_travelling_and_unslim_restores_the_index(tmp_path: Path) -> None:
+    payload = load("device_payload")
+    repo = tmp_path / "repo"
+    files = ["src/a.py", "docs/results/converge/job_a/runs.jsonl", "docs/results/converge/job_b/runs.jsonl"]
+    files.append("docs/results/reproduce/big.jsonl")
+    for name in files:
+        (repo / name).parent.mkdir(parents=True, exist_ok=True)
+        (repo / name).write_text(name)
+    _git(tmp_path, "init", "-q", str(repo))
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "all")
+    (repo / "docs/results/converge/job_a/new.md").write_text("a row since")  # a result not yet committed
+
+    payload.slim_index(repo, ["job_a"])
+    assert _travelling(repo) == {
+        "src/a.py",
+        "docs/results/converge/job_a/runs.jsonl",
+        "docs/results/converge/job_a/new.md",
+    }
+    assert all((repo / name).is_file() for name in files)  # the working tree is untouched
+
+    payload.unslim_index(repo)
+    assert _git(repo, "status", "--porcelain") == "?? docs/results/converge/job_a/new.md\n"
+    assert payload.SLIM_EXCLUDE not in (repo / ".git/info/exclude").read_text()
+    with pytest.raises(payload.PayloadError, match="job_c"):
+        payload.slim_index(repo, ["job_c"])
