@@ -275,6 +275,7 @@ VARIANTS: dict[str, Variant] = {
     "recon_mlp_recipe0.1": recon_mlp_with_recipe_terms(0.1),
     "recon_mlp_recipe0.01": recon_mlp_with_recipe_terms(0.01),
     **{f"recon_mlp_{n}{x}": recon_mlp_with_recipe_terms(x, (n,)) for n in RECIPE_TERMS for x in (0.1, 0.01)},
+    "recon_mlp_global1": recon_mlp_with_recipe_terms(1.0, ("global",)),
     "recon_sq_bn_lr1e-3_mlpdec_percloud": with_overrides(
         RECON_SQ_BN, {**MLP_DECODER, "model.init_args.norm_batch": "per_cloud"}
     ),
