@@ -122,22 +122,18 @@ def unpack_all(carry: Path, to: Path) -> list[Path]:
     return [path for folder in folders for path in unpack_dataset(folder, to / folder.name)]
 
 
+def _git(repo: Path, *args: str) -> str:
+    """Run ``git -C repo args`` and return its standard output."""
+    return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout
+
+
 def travelling_bytes(repo: Path, carried: Path) -> int:
     """Bytes that one ``device`` call sends: ``repo``'s tracked and untracked-not-ignored files, plus ``carried``."""
-    listing = subprocess.run(
-        ["git", "-C", str(repo), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        check=True,
-        capture_output=True,
-    ).stdout.decode()
+    listing = _git(repo, "ls-files", "-z", "--cached", "--others", "--exclude-standard")
     files = [repo / name for name in listing.split("\0") if name]
     return sum(p.stat().st_size for p in files if p.is_file()) + sum(
         p.stat().st_size for p in carried.rglob("*") if p.is_file()
     )
-
-
-def _git(repo: Path, *args: str) -> str:
-    """Run ``git -C repo args`` and return its standard output."""
-    return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout
 
 
 def _exclude_file(repo: Path) -> Path:
