@@ -21,7 +21,9 @@ and prints the size of what would travel (tracked and untracked files not ignore
 but for ``docs/results/converge/<JOB>`` (the finished rows that ``device_chunk.sh`` restores, so that the device does
 not train them again) and names it in ``.git/info/exclude``: the working tree is untouched, only what travels
 shrinks. ``--unslim`` puts the index back as ``HEAD`` has it (``git reset -- docs/results``) and drops the exclude
-line. Between the two, ``git status`` shows ``docs/results`` as staged deletions: commit nothing in between.
+line. Between the two, ``git status`` shows ``docs/results`` as staged deletions, so ``--slim`` also installs a
+``pre-commit`` hook that refuses every commit until ``--unslim`` removes it (``--slim`` refuses to run where the
+repository has a ``pre-commit`` hook of its own).
 On the device ``--unpack`` (standard library only) restores the folders under ``--to`` and checks each file's SHA-256
 against the manifest, so the device trains on the same bytes as the developer machine. Then
 ``benchmarks/device_chunk.sh`` runs a queue job there (``device.run("bash benchmarks/device_chunk.sh <job>
@@ -54,6 +56,13 @@ RESULTS = "docs/results"
 """The tracked folder that ``--slim`` keeps from travelling, but for the named jobs' results in ``converge/``."""
 SLIM_EXCLUDE = f"/{RESULTS}/"
 """The line ``--slim`` adds to ``.git/info/exclude`` (and ``--unslim`` removes)."""
+SLIM_HOOK = f"""#!/bin/sh
+# written by benchmarks/device_payload.py --slim, removed by --unslim
+echo "{RESULTS} is out of the git index for a device call: run python benchmarks/device_payload.py --unslim" >&2
+echo "before committing, or the commit deletes {RESULTS} from git" >&2
+exit 1
+"""
+"""The ``pre-commit`` hook that :func:`slim_index` installs and :func:`unslim_index` removes."""
 PLATFORM = ["--python-version", "3.12", "--implementation", "cp", "--platform", "manylinux2014_x86_64"]
 
 
@@ -136,25 +145,32 @@ def travelling_bytes(repo: Path, carried: Path) -> int:
     )
 
 
-def _exclude_file(repo: Path) -> Path:
-    """``repo``'s ``.git/info/exclude`` (also from a worktree)."""
-    path = Path(_git(repo, "rev-parse", "--git-path", "info/exclude").strip())
+def _git_path(repo: Path, name: str) -> Path:
+    """``repo``'s ``.git/<name>`` (also from a worktree)."""
+    path = Path(_git(repo, "rev-parse", "--git-path", name).strip())
     return path if path.is_absolute() else repo / path
 
 
 def slim_index(repo: Path, keep: list[str]) -> None:
-    """Keep :data:`RESULTS` from travelling but ``<RESULTS>/converge/<job>`` for each job of ``keep`` (see above).
+    """Keep :data:`RESULTS` from travelling but ``<RESULTS>/converge/<job>`` for each job of ``keep`` (see above),
+    and refuse commits (:data:`SLIM_HOOK`) until :func:`unslim_index`.
 
     Raises:
-        PayloadError: If a job of ``keep`` has no results folder.
+        PayloadError: If a job of ``keep`` has no results folder, or ``repo`` has a ``pre-commit`` hook of its own.
     """
     missing = [job for job in keep if not (repo / RESULTS / "converge" / job).is_dir()]
     if missing:
         raise PayloadError(f"--slim: no {RESULTS}/converge/<job> folder for {', '.join(missing)}")
+    hook = _git_path(repo, "hooks/pre-commit")
+    if hook.exists() and hook.read_text(errors="replace") != SLIM_HOOK:
+        raise PayloadError(f"--slim: {hook} is a pre-commit hook of its own; --slim would replace its guard there")
+    hook.parent.mkdir(parents=True, exist_ok=True)
+    hook.write_text(SLIM_HOOK)
+    hook.chmod(0o755)
     _git(repo, "rm", "-r", "-q", "--cached", "--ignore-unmatch", "--", RESULTS)
     if keep:
         _git(repo, "add", "-f", "--", *(f"{RESULTS}/converge/{job}" for job in keep))
-    exclude = _exclude_file(repo)
+    exclude = _git_path(repo, "info/exclude")
     lines = exclude.read_text().splitlines() if exclude.is_file() else []
     if SLIM_EXCLUDE not in lines:
         exclude.parent.mkdir(parents=True, exist_ok=True)
@@ -162,9 +178,13 @@ def slim_index(repo: Path, keep: list[str]) -> None:
 
 
 def unslim_index(repo: Path) -> None:
-    """Undo :func:`slim_index`: :data:`RESULTS`'s index entries as ``HEAD`` has them, the exclude line gone."""
+    """Undo :func:`slim_index`: :data:`RESULTS`'s index entries as ``HEAD`` has them, the exclude line and
+    the commit guard gone (a ``pre-commit`` hook it did not write is left)."""
     _git(repo, "reset", "-q", "--", RESULTS)
-    exclude = _exclude_file(repo)
+    hook = _git_path(repo, "hooks/pre-commit")
+    if hook.is_file() and hook.read_text(errors="replace") == SLIM_HOOK:
+        hook.unlink()
+    exclude = _git_path(repo, "info/exclude")
     if exclude.is_file():
         lines = [line for line in exclude.read_text().splitlines() if line != SLIM_EXCLUDE]
         exclude.write_text("".join(f"{line}\n" for line in lines))

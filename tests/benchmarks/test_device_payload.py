@@ -193,3 +193,47 @@ def test_slim_keeps_results_but_the_named_jobs_from_travelling_and_unslim_restor
     assert payload.SLIM_EXCLUDE not in (repo / ".git/info/exclude").read_text()
     with pytest.raises(payload.PayloadError, match="job_c"):
         payload.slim_index(repo, ["job_c"])
+
+
+def _repo_with_results(tmp_path: Path) -> Path:
+    repo = tmp_path / "repo"
+    for name in ["src/a.py", "docs/results/converge/job_a/runs.jsonl", "docs/results/reproduce/big.jsonl"]:
+        (repo / name).parent.mkdir(parents=True, exist_ok=True)
+        (repo / name).write_text(name)
+    _git(tmp_path, "init", "-q", str(repo))
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "all")
+    return repo
+
+
+def _commit(repo: Path) -> subprocess.CompletedProcess[str]:
+    argv = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "next"]
+    return subprocess.run(argv, capture_output=True, text=True)
+
+
+def test_no_commit_while_slim_so_results_are_never_committed_as_deleted(tmp_path: Path) -> None:
+    payload = load("device_payload")
+    repo = _repo_with_results(tmp_path)
+    (repo / "src/a.py").write_text("changed")
+
+    payload.slim_index(repo, ["job_a"])
+    refused = _commit(repo)
+    assert refused.returncode != 0 and "--unslim" in refused.stderr
+    assert "docs/results/reproduce/big.jsonl" in _git(repo, "ls-tree", "-r", "--name-only", "HEAD")
+
+    payload.unslim_index(repo)
+    assert _commit(repo).returncode == 0
+    assert "docs/results/reproduce/big.jsonl" in _git(repo, "ls-tree", "-r", "--name-only", "HEAD")
+    assert not (repo / ".git/hooks/pre-commit").exists()
+
+
+def test_slim_refuses_a_repository_with_its_own_pre_commit_hook(tmp_path: Path) -> None:
+    payload = load("device_payload")
+    repo = _repo_with_results(tmp_path)
+    hook = repo / ".git/hooks/pre-commit"
+    hook.write_text("#!/bin/sh\nexit 0\n")
+    with pytest.raises(payload.PayloadError, match="pre-commit"):
+        payload.slim_index(repo, ["job_a"])
+    assert _git(repo, "status", "--porcelain") == ""  # the index untouched
+    payload.unslim_index(repo)
+    assert hook.read_text() == "#!/bin/sh\nexit 0\n"  # --unslim leaves a hook it did not write
