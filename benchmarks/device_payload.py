@@ -163,7 +163,7 @@ def slim_index(repo: Path, keep: list[str]) -> None:
         raise PayloadError(f"--slim: no {RESULTS}/converge/<job> folder for {', '.join(missing)}")
     hook = _git_path(repo, "hooks/pre-commit")
     if hook.exists() and hook.read_text(errors="replace") != SLIM_HOOK:
-        raise PayloadError(f"--slim: {hook} is a pre-commit hook of its own; --slim would replace its guard there")
+        raise PayloadError(f"--slim: {hook} is a pre-commit hook of its own; move it aside first")
     hook.parent.mkdir(parents=True, exist_ok=True)
     hook.write_text(SLIM_HOOK)
     hook.chmod(0o755)

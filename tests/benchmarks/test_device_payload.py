@@ -163,21 +163,29 @@ def _git(repo: Path, *args: str) -> str:
     return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout
 
 
-def _travelling(repo: Path) -> set[str]:
-    return set(_git(repo, "ls-files", "--cached", "--others", "--exclude-standard").split())
+RESULT_FILES = ["src/a.py", "docs/results/converge/job_a/runs.jsonl", "docs/results/reproduce/big.jsonl"]
 
 
-def test_slim_keeps_results_but_the_named_jobs_from_travelling_and_unslim_restores_the_index(tmp_path: Path) -> None:
-    payload = load("device_payload")
+def _repo_with_results(tmp_path: Path, files: list[str] = RESULT_FILES) -> Path:
+    """A repository whose one commit holds ``files`` (each file's text its name)."""
     repo = tmp_path / "repo"
-    files = ["src/a.py", "docs/results/converge/job_a/runs.jsonl", "docs/results/converge/job_b/runs.jsonl"]
-    files.append("docs/results/reproduce/big.jsonl")
     for name in files:
         (repo / name).parent.mkdir(parents=True, exist_ok=True)
         (repo / name).write_text(name)
     _git(tmp_path, "init", "-q", str(repo))
     _git(repo, "add", ".")
     _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "all")
+    return repo
+
+
+def _travelling(repo: Path) -> set[str]:
+    return set(_git(repo, "ls-files", "--cached", "--others", "--exclude-standard").split())
+
+
+def test_slim_keeps_results_but_the_named_jobs_from_travelling_and_unslim_restores_the_index(tmp_path: Path) -> None:
+    payload = load("device_payload")
+    files = [*RESULT_FILES, "docs/results/converge/job_b/runs.jsonl"]
+    repo = _repo_with_results(tmp_path, files)
     (repo / "docs/results/converge/job_a/new.md").write_text("a row since")  # a result not yet committed
 
     payload.slim_index(repo, ["job_a"])
@@ -193,17 +201,6 @@ def test_slim_keeps_results_but_the_named_jobs_from_travelling_and_unslim_restor
     assert payload.SLIM_EXCLUDE not in (repo / ".git/info/exclude").read_text()
     with pytest.raises(payload.PayloadError, match="job_c"):
         payload.slim_index(repo, ["job_c"])
-
-
-def _repo_with_results(tmp_path: Path) -> Path:
-    repo = tmp_path / "repo"
-    for name in ["src/a.py", "docs/results/converge/job_a/runs.jsonl", "docs/results/reproduce/big.jsonl"]:
-        (repo / name).parent.mkdir(parents=True, exist_ok=True)
-        (repo / name).write_text(name)
-    _git(tmp_path, "init", "-q", str(repo))
-    _git(repo, "add", ".")
-    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "all")
-    return repo
 
 
 def _commit(repo: Path) -> subprocess.CompletedProcess[str]:
