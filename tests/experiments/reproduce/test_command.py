@@ -212,6 +212,42 @@ def test_partial_crops_every_cloud_of_a_sweep_and_keys_its_runs_apart_from_full_
     assert calls == [("idam", 0)]  # the full-cloud run is another run
 
 
+def test_points_resizes_every_run_and_keeps_its_runs_and_folders_apart(tmp_path: Path) -> None:
+    """``--points 96 --partial prnet``: the workers of ``--jobs`` train at 96 points, cropped to 72 (0.75 of 96)."""
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    main([*args, "--points", "96", "--partial", "prnet", "--jobs", "2"])
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert (row["num_points"], row["points_per_cloud"]) == (96, 72)
+    assert "2 steps × 2 pairs × 96 points" in row["budget"]
+    run_dir = Path(row["metrics_csv"]).parent
+    while run_dir.name != "seed0":
+        run_dir = run_dir.parent
+    assert run_dir.parent.name == "idam_X_96pts"
+    assert "num_points: 96" in (Path(row["metrics_csv"]).parent / "config.yaml").read_text()
+    assert "× 96 points" in (tmp_path / "lc.md").read_text()  # the report's budget line names the size
+    # The budget's own size is another run, in another folder; a rerun at 96 points skips its finished run.
+    calls: list[tuple[str, int]] = []
+    crop = DataChoice(None, partial="prnet")
+    run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), crop, tmp_path), _fake_train(calls))
+    run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), crop, tmp_path, points=96), _fake_train(calls))
+    assert calls == [("idam", 0)]
+    own = Sweep(LC.select(["idam/X"]), "smoke", (0,), crop, tmp_path)
+    assert own.run_dir(LC.variant("idam/X"), 0).parent.name == "idam_X"
+    with pytest.raises(ValueError, match="positive integer, got 0"):
+        LC.with_points(0)
+
+
+def test_points_is_refused_where_it_means_nothing(tmp_path: Path, capsys) -> None:
+    out = ["--out", str(tmp_path / "out")]
+    assert "--points applies to ablation, lc (training sweeps); runtime sets its own data" in _error(
+        ["runtime", "--budget", "smoke", "--points", "64", *out], capsys
+    )
+    assert "--points must be at least 3 (points per cloud), got 2" in _error(
+        ["lc", "--budget", "smoke", "--points", "2", *out], capsys
+    )
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_budget_lr_trains_at_that_lr_and_keys_its_runs_apart(tmp_path: Path) -> None:
     """``RunBudget.lr`` (PRNet's ``converge``: upstream's lr scaled to batch 8); budgets without it keep their keys."""
     from dataclasses import replace

@@ -116,6 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
         "PRNet's and IDAM's 768 of 1024)",
     )
     parser.add_argument(
+        "--points",
+        type=int,
+        help="ablation, lc: points per cloud of every run instead of the budget's (e.g. a method's own size where "
+        "the budget reduced it); its runs get their own rows and folders (default: the budget's)",
+    )
+    parser.add_argument(
         "--only",
         nargs="+",
         default=[],
@@ -203,10 +209,13 @@ def reproduce(
     if args.jobs < 1 or (args.jobs > 1 and not isinstance(experiment, Experiment)):
         raise ReproduceUsageError(f"--jobs must be >= 1 (above 1 only for {', '.join(EXPERIMENTS)}), got {args.jobs}")
     out = Path(args.out or f"runs/reproduce/{args.budget}")
-    if args.partial != "none" and not isinstance(experiment, Experiment):
-        raise ReproduceUsageError(
-            f"--partial applies to {', '.join(EXPERIMENTS)} (training sweeps); {args.experiment} sets its own data"
-        )
+    for option, value in (("--partial", args.partial != "none"), ("--points", args.points is not None)):
+        if value and not isinstance(experiment, Experiment):
+            raise ReproduceUsageError(
+                f"{option} applies to {', '.join(EXPERIMENTS)} (training sweeps); {args.experiment} sets its own data"
+            )
+    if args.points is not None and args.points < 3:
+        raise ReproduceUsageError(f"--points must be at least 3 (points per cloud), got {args.points}")
     if isinstance(experiment, RuntimeExperiment):
         data = _data(args.budget, args.root, args.protocol or "unseen_categories")
         return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
@@ -215,7 +224,7 @@ def reproduce(
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
     data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep)
-    sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem)
+    sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem, points=args.points)
     failure = None
     if args.report_only:
         log = sweep.open_log()
@@ -239,7 +248,8 @@ def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
     """The arguments every ``--jobs`` worker repeats."""
     protocol = ["--protocol", args.protocol] if args.protocol else []
     crop = ["--partial", args.partial, "--partial-keep", str(args.partial_keep)] if args.partial != "none" else []
-    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop]
+    size = [] if args.points is None else ["--points", str(args.points)]
+    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size]
 
 
 def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]:

@@ -108,6 +108,20 @@ class Experiment:
         """The budget of ``variant`` under ``preset``."""
         return self.budgets[preset][variant.budget_group]
 
+    def with_points(self, points: int) -> Experiment:
+        """The experiment with every budget of every preset at ``points`` points per cloud.
+
+        The budgets' descriptions (and so the JSONL keys of the runs) name the new size, so these runs never count
+        as runs of the budgets' own size.
+
+        Raises:
+            ValueError: If ``points`` is not a positive integer.
+        """
+        if isinstance(points, bool) or not isinstance(points, int) or points < 1:
+            raise ValueError(f"points per cloud must be a positive integer, got {points!r}")
+        budgets = {p: {g: replace(b, points=points) for g, b in groups.items()} for p, groups in self.budgets.items()}
+        return replace(self, budgets=budgets)
+
     def select(self, patterns: Sequence[str]) -> Experiment:
         """The experiment restricted to the variants whose key matches a pattern (``fnmatch``; none: all).
 

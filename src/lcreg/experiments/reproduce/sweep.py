@@ -123,10 +123,23 @@ class Sweep(PresetRun):
     """
 
     experiment: Experiment
+    points: int | None = None
+    """Points per cloud of every run instead of its budget's (``None``: the budget's); set at construction, it
+    resizes :attr:`experiment`'s budgets (:meth:`Experiment.with_points`) and gives the runs their own folders."""
+
+    def __post_init__(self) -> None:
+        if self.points is not None:
+            object.__setattr__(self, "experiment", self.experiment.with_points(self.points))
 
     def run_dir(self, variant: Variant, seed: int) -> Path:
-        """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``."""
-        return self.out / "runs" / self.preset / self.experiment.name / variant.key.replace("/", "_") / f"seed{seed}"
+        """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``.
+
+        With :attr:`points` the variant's folder is ``<variant>_<points>pts``: a run of another size never resumes
+        from the checkpoint of the budget's own size.
+        """
+        size = "" if self.points is None else f"_{self.points}pts"
+        folder = variant.key.replace("/", "_") + size
+        return self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
         """The :data:`KEY_FIELDS` of a run."""
