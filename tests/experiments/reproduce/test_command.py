@@ -233,8 +233,9 @@ def test_points_resizes_every_run_and_keeps_its_runs_and_folders_apart(tmp_path:
     assert calls == [("idam", 0)]
     own = Sweep(LC.select(["idam/X"]), "smoke", (0,), crop, tmp_path)
     assert own.run_dir(LC.variant("idam/X"), 0).parent.name == "idam_X"
-    with pytest.raises(ValueError, match="positive integer, got 0"):
-        LC.with_points(0)
+    for bad in (0, 2):
+        with pytest.raises(ValueError, match=f"integer of at least 3, got {bad}"):
+            LC.with_points(bad)
 
 
 def test_points_is_refused_where_it_means_nothing(tmp_path: Path, capsys) -> None:
@@ -242,7 +243,7 @@ def test_points_is_refused_where_it_means_nothing(tmp_path: Path, capsys) -> Non
     assert "--points applies to ablation, lc (training sweeps); runtime sets its own data" in _error(
         ["runtime", "--budget", "smoke", "--points", "64", *out], capsys
     )
-    assert "--points must be at least 3 (points per cloud), got 2" in _error(
+    assert "--points: points per cloud must be an integer of at least 3, got 2" in _error(
         ["lc", "--budget", "smoke", "--points", "2", *out], capsys
     )
     assert not list(tmp_path.iterdir())

@@ -214,8 +214,6 @@ def reproduce(
             raise ReproduceUsageError(
                 f"{option} applies to {', '.join(EXPERIMENTS)} (training sweeps); {args.experiment} sets its own data"
             )
-    if args.points is not None and args.points < 3:
-        raise ReproduceUsageError(f"--points must be at least 3 (points per cloud), got {args.points}")
     if isinstance(experiment, RuntimeExperiment):
         data = _data(args.budget, args.root, args.protocol or "unseen_categories")
         return _time(RuntimeRun(experiment, args.budget, _seeds(args.seeds), data, out, stem), args, command, progress)
@@ -224,7 +222,11 @@ def reproduce(
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
     data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep)
-    sweep = Sweep(experiment, args.budget, _seeds(args.seeds), data, out, stem, points=args.points)
+    seeds = _seeds(args.seeds)
+    try:
+        sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points)
+    except ValueError as err:  # Experiment.with_points owns the bound on --points
+        raise ReproduceUsageError(f"--points: {err}") from None
     failure = None
     if args.report_only:
         log = sweep.open_log()

@@ -115,10 +115,10 @@ class Experiment:
         as runs of the budgets' own size.
 
         Raises:
-            ValueError: If ``points`` is not a positive integer.
+            ValueError: If ``points`` is not an integer of at least 3 (the fewest a rigid pose can be solved from).
         """
-        if isinstance(points, bool) or not isinstance(points, int) or points < 1:
-            raise ValueError(f"points per cloud must be a positive integer, got {points!r}")
+        if isinstance(points, bool) or not isinstance(points, int) or points < 3:
+            raise ValueError(f"points per cloud must be an integer of at least 3, got {points!r}")
         budgets = {p: {g: replace(b, points=points) for g, b in groups.items()} for p, groups in self.budgets.items()}
         return replace(self, budgets=budgets)
 
