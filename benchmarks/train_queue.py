@@ -4,7 +4,8 @@
     python benchmarks/train_queue.py run --section cpu --runs /work/runs/converge    # one thread, nice, in order
     python benchmarks/train_queue.py run --section gpu --max-minutes 9                # resumable chunks on a GPU
     python benchmarks/train_queue.py sync                                             # copy finished rows to commit
-    python benchmarks/train_queue.py start --runs /work/runs/converge                 # the file's CPU runners, detached
+    python benchmarks/train_queue.py start --runs /work/runs/converge --commit        # the CPU runners, detached:
+                                                                 # each syncs and commits its job every 10 minutes
     python benchmarks/train_queue.py stop --runs /work/runs/converge                  # end them and their training
     python benchmarks/train_queue.py start --runs /work/runs/converge --runner r3     # one runner, the others go on
     python benchmarks/train_queue.py runs --out docs/results/converge/runs.md         # every finished run's stop
@@ -647,13 +648,36 @@ def holder(job: Job, runs: Path) -> int | None:
         return None
 
 
+@dataclass(frozen=True)
+class Keeping:
+    """How a runner keeps a job's results while it trains (``run --sync-every``, ``--commit``).
+
+    Attributes:
+        sync_every_min: Minutes between two :func:`sync` calls while the job's process runs (``None``: only when it
+            ends). Session 36 ended with a run 1,760 steps in whose resume state no sync had kept: a new machine
+            started it again from step 0.
+        commit: After every sync, commit the job's results folder (:func:`commit_results`), so that a session
+            that ends without warning loses at most ``sync_every_min`` of any run.
+    """
+
+    sync_every_min: float | None = None
+    commit: bool = False
+
+
 def run_job(
-    job: Job, runs: Path, results: Path, max_minutes: float | None, jobs: int = 1, lock_fd: int | None = None
+    job: Job,
+    runs: Path,
+    results: Path,
+    max_minutes: float | None,
+    jobs: int = 1,
+    lock_fd: int | None = None,
+    keeping: Keeping = Keeping(),
 ) -> bool:
     """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done.
 
     ``jobs``: runs at once of an ``lcreg reproduce`` or ``learning_curves.py`` job (:meth:`Job.executable`), each on
-    one thread. ``lock_fd``: the descriptor of :func:`job_lock`, inherited by the job's process.
+    one thread. ``lock_fd``: the descriptor of :func:`job_lock`, inherited by the job's process. ``keeping``: the
+    syncs (and commits) while it trains and when it ends.
     """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     argv = ["nice", "-n", "5", *job.executable(runs, results, jobs)]
@@ -662,27 +686,79 @@ def run_job(
         print(f"queue: {job.id}: {restored} result files restored from {results / job.id / 'runs'}", flush=True)
     print(f"queue: {job.id}: {shlex.join(argv)}", flush=True)
     start = time.monotonic()
-    try:
-        code = subprocess.run(
-            argv,
-            cwd=REPO,
-            env=env,
-            timeout=None if max_minutes is None else max_minutes * 60,
-            pass_fds=() if lock_fd is None else (lock_fd,),
-        ).returncode
-    except subprocess.TimeoutExpired:
+    process = subprocess.Popen(argv, cwd=REPO, env=env, pass_fds=() if lock_fd is None else (lock_fd,))
+    code = wait_keeping(process, job, runs, results, None if max_minutes is None else start + 60 * max_minutes, keeping)
+    if code is None:
         print(f"queue: {job.id}: stopped at the time limit ({max_minutes:.2g} min); resumes next call", flush=True)
-        sync(job, runs, results)
+        keep(job, runs, results, keeping, "time limit")
         return False
     copied = sync(job, runs, results, done=code == 0)
     if code != 0:
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
+        if keeping.commit:
+            commit_results(results, job.id, f"exit code {code}")
         return False
     # The wall time of this last call only (earlier calls of a resumed job are in its rows' own training times).
     machine = machine_line(training_device())
     done = {"last_call_s": round(time.monotonic() - start, 1), "machine": machine, "files": copied}
     (results / job.id / "DONE.json").write_text(json.dumps(done) + "\n", encoding="utf-8")
     print(f"queue: {job.id}: done, last call {done['last_call_s']:.0f} s", flush=True)
+    if keeping.commit:
+        commit_results(results, job.id, "done")
+    return True
+
+
+def wait_keeping(
+    process: subprocess.Popen[bytes], job: Job, runs: Path, results: Path, deadline: float | None, keeping: Keeping
+) -> int | None:
+    """Wait for the job's ``process``, keeping its results every ``keeping.sync_every_min`` meanwhile; returns its
+    exit code, or ``None`` when ``deadline`` (``time.monotonic()``) came first (the process is then killed)."""
+    every = None if keeping.sync_every_min is None else 60 * keeping.sync_every_min
+    while True:
+        left = None if deadline is None else deadline - time.monotonic()
+        waits = [w for w in (left, every) if w is not None]
+        try:
+            return process.wait(timeout=max(min(waits), 0) if waits else None)
+        except subprocess.TimeoutExpired:
+            if deadline is not None and time.monotonic() >= deadline:
+                process.kill()
+                process.wait()
+                return None
+            keep(job, runs, results, keeping, "in training")
+
+
+def keep(job: Job, runs: Path, results: Path, keeping: Keeping, why: str) -> None:
+    """:func:`sync` the job, then commit its results folder when ``keeping.commit``."""
+    copied = sync(job, runs, results)
+    print(f"queue: {job.id}: {copied} result files synced ({why})", flush=True)
+    if keeping.commit:
+        commit_results(results, job.id, why)
+
+
+def commit_results(results: Path, job_id: str, why: str) -> bool:
+    """Commit ``results/<job_id>`` alone in the git checkout that holds it, when it changed; returns whether it did.
+
+    Only that folder goes into the commit (``git commit -- <folder>``): whatever else is staged or edited in the
+    checkout (a session's code) stays as it was. A failure (no git checkout, the index locked by another git
+    command at that moment) is reported and the job trains on; the next sync commits again.
+    """
+    folder = (results / job_id).resolve()
+    git = ["git", "-C", str(folder.parent)]
+
+    def call(*words: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*git, *words], capture_output=True, text=True)
+
+    steps = (("add", "-A", "--", str(folder)), ("diff", "--cached", "--quiet", "--", str(folder)))
+    if (added := call(*steps[0])).returncode != 0:
+        print(f"queue: {job_id}: not committed ({added.stderr.strip() or 'git add failed'})", flush=True)
+        return False
+    if call(*steps[1]).returncode == 0:  # nothing new since the last commit
+        return False
+    message = f"Queue results: {job_id} ({why}; committed by its runner)"
+    if (made := call("commit", "-q", "-m", message, "--", str(folder))).returncode != 0:
+        print(f"queue: {job_id}: not committed ({made.stderr.strip() or 'git commit failed'})", flush=True)
+        return False
+    print(f"queue: {job_id}: committed ({why})", flush=True)
     return True
 
 
@@ -767,6 +843,8 @@ def queue_worktree() -> Path:
     return tree
 
 
+START_SYNC_MIN = 10.0
+"""Minutes between a started runner's syncs of the job it trains (``start --sync-every``; :class:`Keeping`)."""
 RUNNER_NICE = 10
 """Niceness ``start`` adds to a runner; its training runs 5 nicer still (:func:`run_job`), so that the session's own
 work (tests, CI) gets the cores first."""
@@ -815,6 +893,7 @@ def start_runners(
     runs: Path,
     results: Path,
     named: bool = False,
+    keeping: Keeping = Keeping(),
 ) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
     their pids. Each command line names its runner (``--runner``), by which ``stop`` finds it.
@@ -823,6 +902,7 @@ def start_runners(
         named: ``runners`` are those named by ``start --runner``: refuse only if one of them runs; the others go on.
             Otherwise they are all of the queue's: refuse if any runner of ``runs`` runs. Two runners never train
             one job at once whatever their lists (the job's lock, :func:`holder`).
+        keeping: Passed to each runner as ``run --sync-every`` and ``--commit``.
 
     Raises:
         SystemExit: If runners of ``runs`` (of ``runners``, when ``named``) are running already (``stop`` them first).
@@ -839,6 +919,8 @@ def start_runners(
         argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
         argv += ["--jobs", str(runner.jobs)] if runner.jobs > 1 else []
         argv += ["--runner", runner.name]
+        argv += [] if keeping.sync_every_min is None else ["--sync-every", f"{keeping.sync_every_min:g}"]
+        argv += ["--commit"] if keeping.commit else []
         with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
@@ -924,6 +1006,19 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "runner this is (start passes it; stop finds a runner by it)",
     )
     parser.add_argument(
+        "--sync-every",
+        type=float,
+        default=None,
+        metavar="MINUTES",
+        help="run: sync each job's results every MINUTES while it trains, not only when it ends (start: default "
+        f"{START_SYNC_MIN:g})",
+    )
+    parser.add_argument(
+        "--commit",
+        action="store_true",
+        help="run, sync, start: commit each job's results folder (alone) after every sync that changed it",
+    )
+    parser.add_argument(
         "--checkout",
         type=Path,
         default=None,
@@ -949,7 +1044,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             return
         checkout = args.checkout or queue_worktree()
         queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
-        start_runners(runners, checkout, queue, args.runs, args.results, named)
+        keeping = Keeping(START_SYNC_MIN if args.sync_every is None else args.sync_every, args.commit)
+        start_runners(runners, checkout, queue, args.runs, args.results, named, keeping)
         return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":
@@ -970,6 +1066,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     for job in jobs:
         if args.action == "sync":
             print(f"queue: {job.id}: {sync(job, args.runs, args.results)} result files copied")
+            if args.commit:
+                commit_results(args.results, job.id, "sync")
         elif selected(job, args) and not (args.results / job.id / "DONE.json").is_file():
             minutes = None if deadline is None else (deadline - time.monotonic()) / 60
             if minutes is not None and minutes <= 0:
@@ -979,7 +1077,8 @@ def main(argv: Sequence[str] | None = None) -> None:
                 if lock_fd is None:
                     print(f"queue: {job.id}: another runner holds {args.runs / job.id}.lock; skipped", flush=True)
                     continue
-                if not run_job(job, args.runs, args.results, minutes, args.jobs, lock_fd):
+                keeping = Keeping(args.sync_every, args.commit)
+                if not run_job(job, args.runs, args.results, minutes, args.jobs, lock_fd, keeping):
                     sys.exit(1)
     if args.action == "sync":
         (args.results / "runs.md").write_text(runs_table(load_jobs(args.queue), args.results), encoding="utf-8")

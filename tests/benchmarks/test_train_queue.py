@@ -80,6 +80,61 @@ def test_run_marks_only_a_successful_job_done(tmp_path: Path) -> None:
     queue.main(["run", "--only", "ok", *args])  # a done job is not run again (its folder exists: mkdir would fail)
 
 
+def git(repo: Path, *words: str) -> str:
+    import subprocess
+
+    return subprocess.run(["git", "-C", str(repo), *words], capture_output=True, text=True, check=True).stdout
+
+
+def test_a_job_is_synced_and_committed_while_it_trains_and_nothing_else_is_committed(tmp_path: Path) -> None:
+    """Session 36 ended with a run 1,760 steps in that no sync had kept (the next machine started it from step 0):
+    ``--sync-every`` keeps a training job's rows and resume state meanwhile, and ``--commit`` commits its results
+    folder alone, leaving the session's own staged and unstaged edits out of the commits."""
+    queue = load("train_queue")
+    repo = tmp_path / "repo"
+    results = repo / "results"
+    results.mkdir(parents=True)
+    git(repo, "init", "-q")
+    git(repo, "config", "user.email", "t@example.com")
+    git(repo, "config", "user.name", "t")
+    (repo / "code.py").write_text("x = 1\n")
+    git(repo, "add", "code.py")
+    git(repo, "commit", "-q", "-m", "code")
+    (repo / "code.py").write_text("x = 2\n")  # a session's edit, staged, and one not staged
+    git(repo, "add", "code.py")
+    (repo / "notes.txt").write_text("draft\n")
+    marker = tmp_path / "committed"
+    script = tmp_path / "job.py"  # a finished run's row and a run in progress; it ends once a sync has committed them
+    script.write_text(
+        "import json, pathlib, subprocess, sys, time\n"
+        "runs = pathlib.Path(sys.argv[1])\n"
+        "(runs / 'a/seed1/checkpoints').mkdir(parents=True)\n"
+        "(runs / 'runs.jsonl').write_text(json.dumps({'variant': 'a', 'seed': 0}) + '\\n')\n"
+        "(runs / 'a/seed1/checkpoints/last.ckpt').write_bytes(b'state')\n"
+        f"git = ['git', '-C', {str(repo)!r}, 'log', '--format=%s']\n"
+        "log = lambda: subprocess.run(git, capture_output=True).stdout\n"
+        "start = time.monotonic()\n"
+        "while b'in training' not in log() and time.monotonic() - start < 60:\n"
+        "    time.sleep(0.2)\n"
+        f"pathlib.Path({str(marker)!r}).write_bytes(log())\n"
+    )
+    file = tmp_path / "q.toml"
+    file.write_text(f'[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "python {script} {{runs}}"\n')
+    args = ["--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(results)]
+    queue.main(["run", "--sync-every", "0.02", "--commit", *args])
+    assert b"Queue results: j (in training; committed by its runner)" in marker.read_bytes()  # before it ended
+    log = git(repo, "log", "--format=%s", "--name-only")
+    assert "results/j/runs/runs.jsonl" in log and "results/j/resume/a/seed1/checkpoints/last.ckpt" in log
+    assert git(repo, "log", "-1", "--format=%s") == "Queue results: j (done; committed by its runner)\n"
+    kept = git(repo, "ls-tree", "-r", "--name-only", "HEAD", "results").split()
+    assert kept == ["results/j/DONE.json", "results/j/runs/runs.jsonl"]  # a done job keeps no resume state
+    assert git(repo, "log", "--format=%s", "--", "code.py") == "code\n" and "notes.txt" not in log.split()
+    assert git(repo, "diff", "--cached", "--name-only") == "code.py\n"  # still staged, not committed
+    assert git(repo, "status", "--porcelain", "--", "results") == ""  # every result file is committed
+    assert not queue.commit_results(results, "j", "sync")  # nothing new: no empty commit
+    assert not queue.commit_results(tmp_path / "not-a-repo", "j", "sync")  # reported, not raised
+
+
 def test_done_names_the_gpu_that_trained_on_a_gpu_machine(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # Session 17: a job trained on a lent H100 wrote "x86_64 (cpu)" into DONE.json (the default device of the header).
     queue = load("train_queue")
@@ -633,6 +688,7 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
         argvs = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in pids]
         assert sorted(b"--jobs" in argv for argv in argvs) == [False, True]  # runner "two" runs 2 runs at once
         assert all(argv[argv.index(b"--jobs") + 1] == b"2" for argv in argvs if b"--jobs" in argv)
+        assert all(argv[argv.index(b"--sync-every") + 1] == b"10" and b"--commit" not in argv for argv in argvs)
         for pid, argv in zip(pids, argvs, strict=True):  # the runner nice 10, its training 5 more: the session's
             assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)  # own work comes first
             assert all(niceness(c) in (min(own + 15, 19), None) for c in queue.descendants(pid))
