@@ -748,11 +748,10 @@ def commit_results(results: Path, job_id: str, why: str) -> bool:
     def call(*words: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([*git, *words], capture_output=True, text=True)
 
-    steps = (("add", "-A", "--", str(folder)), ("diff", "--cached", "--quiet", "--", str(folder)))
-    if (added := call(*steps[0])).returncode != 0:
+    if (added := call("add", "-A", "--", str(folder))).returncode != 0:
         print(f"queue: {job_id}: not committed ({added.stderr.strip() or 'git add failed'})", flush=True)
         return False
-    if call(*steps[1]).returncode == 0:  # nothing new since the last commit
+    if call("diff", "--cached", "--quiet", "--", str(folder)).returncode == 0:  # nothing new since the last commit
         return False
     message = f"Queue results: {job_id} ({why}; committed by its runner)"
     if (made := call("commit", "-q", "-m", message, "--", str(folder))).returncode != 0:
