@@ -219,13 +219,51 @@ def test_jsonargparse_exposes_base_and_own_arguments(cls: type) -> None:
     dests = {action.dest for action in parser._actions}
     own = "data.root" if cls is ModelNet40DataModule else "data.num_train"
     assert {"data.batch_size", "data.num_points", "data.partial_keep", "data.seed", own} <= dests
-    args = ["--data.batch_size=8", "--data.partial=prnet", "--data.partial_keep=700"]
+    args = ["--data.batch_size=8", "--data.partial=prnet", "--data.partial_keep=700", "--data.train_objects=0.5"]
     if cls is ModelNet40DataModule:
         args.append("--data.root=/somewhere")
     dm = parser.instantiate(parser.parse_args(args)).data
     assert isinstance(dm, cls)
     assert dm.batch_size == 8 and dm.pair_protocol.partial_keep == 700 and dm.pair_protocol.num_kept == 700
-    assert dm.hparams["batch_size"] == 8
+    assert dm.hparams["batch_size"] == 8 and dm.train_objects == 0.5
+
+
+def _training_objects(dm: SyntheticDataModule) -> list[bytes]:
+    dm.setup("fit")
+    assert dm.train_set is not None
+    return [points.numpy().tobytes() for points in dm.train_set.points]
+
+
+def test_train_objects_trains_on_a_nested_seeded_subset_and_leaves_validation_and_test_alone() -> None:
+    full = _small_module()
+    every = _training_objects(full)
+    half, quarter = _training_objects(_small_module(train_objects=0.5)), _training_objects(_small_module(train_objects=3))
+    assert (len(every), len(half), len(quarter)) == (12, 6, 3)
+    assert set(quarter) < set(half) < set(every)  # one permutation per seed: the subsets are nested
+    assert [obj for obj in every if obj in half] == half  # in their original order
+    assert half == _training_objects(_small_module(train_objects=6))  # a fraction and its count agree
+    assert half == _training_objects(_small_module(train_objects=0.5))  # seeded: the same subset every time
+    assert half != _training_objects(_small_module(train_objects=0.5, seed=99))
+    tiny = _training_objects(_small_module(train_objects=0.01))
+    assert tiny == _training_objects(_small_module(train_objects=1)) and len(tiny) == 1  # at least one object
+    subset = _small_module(train_objects=0.5)
+    subset.setup()
+    full.setup()
+    assert subset.val_set is not None and full.val_set is not None and subset.test_set is not None
+    assert torch.equal(subset.val_set.points, full.val_set.points)
+    assert full.test_set is not None and torch.equal(subset.test_set.points, full.test_set.points)
+    assert len(subset.train_dataloader()) == 6 // 4  # the loader trains on the subset (drop_last)
+
+
+@pytest.mark.parametrize("value", [0, -2, 0.0, 1.5, -0.5, True, "3"])
+def test_train_objects_refuses_what_is_not_a_count_or_a_fraction(value: object) -> None:
+    with pytest.raises(ValueError, match="`train_objects`"):
+        _small_module(train_objects=value)
+
+
+def test_train_objects_above_the_training_objects_is_an_error_naming_both() -> None:
+    with pytest.raises(ValueError, match=r"`train_objects` \(13\) exceeds the 12 training objects"):
+        _small_module(train_objects=13).setup("fit")
 
 
 class _TranslationModel(L.LightningModule):

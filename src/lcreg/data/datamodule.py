@@ -38,6 +38,8 @@ __all__ = [
 _SEED_HIGH = 2**62
 SYNTHETIC_TEST_SEED_OFFSET = 1_000_003
 """The synthetic test shapes use ``shape_seed + SYNTHETIC_TEST_SEED_OFFSET``, so they differ from the train shapes."""
+TRAIN_SUBSET_SEED_OFFSET = 2_000_003
+"""The ``train_objects`` subset is drawn with ``seed + TRAIN_SUBSET_SEED_OFFSET`` (a stream apart from the carve-out)."""
 
 
 class PairDataset(Dataset[dict[str, torch.Tensor]]):
@@ -147,6 +149,19 @@ def _check_pairs_per_object(value: Any, name: str = "pairs_per_object", minimum:
     return value
 
 
+def _check_train_objects(value: Any) -> int | float | None:
+    """``train_objects``: ``None``, an int count ``>= 1`` or a float fraction in ``(0, 1]`` (else a ``ValueError``)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"`train_objects` must be an int count, a float fraction or None, got {value!r}")
+    if isinstance(value, int) and value < 1:
+        raise ValueError(f"`train_objects` as a count must be >= 1, got {value!r}")
+    if isinstance(value, float) and not 0.0 < value <= 1.0:
+        raise ValueError(f"`train_objects` as a fraction must be in (0, 1], got {value!r}")
+    return value
+
+
 class PairDataModule(ResumableTrainingOrder, LightningDataModule):
     """Base DataModule: pair protocol options, validation carving and loaders.
 
@@ -170,10 +185,15 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         val_pairs_per_object: Validation pairs drawn from every validation object (each with its own fixed
             motion and samplings). 1 is one pair per object; more make checkpoint selection and early stopping
             steadier on a small split (``modelnet40_mini``: 78 objects) without taking objects from training.
+        train_objects: Train on a seeded subset of the training objects (after the validation objects are carved
+            out): an int count or a float fraction of them (rounded, at least one). ``None`` (default) keeps all.
+            Validation and test objects do not change, and for one ``seed`` a smaller subset lies inside a larger
+            one, so runs at several sizes measure how the error scales with the training data.
         seed: Seed of the validation carve-out and base seed of the deterministic val/test pairs.
 
     Raises:
-        ValueError: On invalid protocol options or ``val_fraction``/``batch_size``/``num_workers``.
+        ValueError: On invalid protocol options or ``val_fraction``/``batch_size``/``num_workers``/
+            ``train_objects`` (in :meth:`setup` also a ``train_objects`` count above the training objects).
         DatasetLayoutError: In :meth:`setup`, when a split it builds has no objects.
     """
 
@@ -192,11 +212,13 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         normalize: bool = True,
         val_fraction: float = 0.1,
         val_pairs_per_object: int = 1,
+        train_objects: int | float | None = None,
         seed: int = 1234,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.val_pairs_per_object = _check_pairs_per_object(val_pairs_per_object, "val_pairs_per_object")
+        self.train_objects = _check_train_objects(train_objects)
         _check_pairs_per_object(batch_size, "batch_size")  # '2' and 2.5 too: one line naming the argument
         _check_pairs_per_object(num_workers, "num_workers", minimum=0)
         if not 0.0 <= val_fraction < 1.0:
@@ -240,6 +262,27 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         val_idx, train_idx = np.sort(perm[:num_val]), np.sort(perm[num_val:])
         return objects.subset(train_idx), objects.subset(val_idx)
 
+    def keep_training_objects(self, objects: ObjectSet) -> ObjectSet:
+        """The ``train_objects`` subset of the training objects (all of them when it is ``None``).
+
+        The subset is the first ``n`` of one permutation seeded by ``seed``, in their original order, so the subsets
+        of one seed are nested.
+
+        Raises:
+            ValueError: If a ``train_objects`` count exceeds the training objects.
+        """
+        total = len(objects)
+        if self.train_objects is None:
+            return objects
+        if isinstance(self.train_objects, int):
+            if self.train_objects > total:
+                raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects")
+            count = self.train_objects
+        else:
+            count = max(1, round(self.train_objects * total))
+        generator = torch.Generator().manual_seed(self.seed + TRAIN_SUBSET_SEED_OFFSET)
+        return objects.subset(np.sort(torch.randperm(total, generator=generator).numpy()[:count]))
+
     def setup(self, stage: str | None = None) -> None:
         """Build the datasets needed by ``stage`` (``fit``/``validate`` need train+val, ``test``/``predict`` test)."""
         if stage in (None, "fit", "validate") and (self.train_set is None or self.val_set is None):
@@ -248,6 +291,7 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
                 train, val = objects["train"], objects["val"]
             else:
                 train, val = self.split_train_val(objects["train"])
+            train = self.keep_training_objects(train)
             self._check_not_empty(train, "train")
             self._check_not_empty(val, "validation")
             self.train_set = PairDataset.from_objects(train, self.pair_protocol, deterministic=False, seed=self.seed)

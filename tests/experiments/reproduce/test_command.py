@@ -212,6 +212,21 @@ def test_partial_crops_every_cloud_of_a_sweep_and_keys_its_runs_apart_from_full_
     assert calls == [("idam", 0)]  # the full-cloud run is another run
 
 
+def test_train_objects_trains_every_run_of_a_sweep_on_the_subset_and_keys_its_runs_apart(tmp_path: Path) -> None:
+    """``--train-objects 0.5``: the workers of ``--jobs`` get it too; the key names it, full data keeps its key."""
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    main([*args, "--train-objects", "0.5", "--jobs", "2"])
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert row["data"].endswith(", training objects: 0.5")
+    config = (Path(row["metrics_csv"]).parent / "config.yaml").read_text()
+    assert "train_objects: 0.5" in config
+    assert "train_objects" not in str(DataChoice("/m").overrides(RunBudget(steps=2, points=128, batch=2)))
+    assert DataChoice("/m", train_objects=100).describe() == "ModelNet40 /m, unseen objects, training objects: 100"
+    calls: list[tuple[str, int]] = []
+    run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
+    assert calls == [("idam", 0)]  # the run on all the training objects is another run
+
+
 def test_points_resizes_every_run_and_keeps_its_runs_and_folders_apart(tmp_path: Path) -> None:
     """``--points 96 --partial prnet``: the workers of ``--jobs`` train at 96 points, cropped to 72 (0.75 of 96)."""
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]

@@ -180,6 +180,8 @@ class DataChoice:
             (:class:`~lcreg.data.datamodule.PairDataModule`).
         partial_keep: Points a crop keeps: a fraction of the budget's points (PRNet and IDAM keep 0.75: 768 of
             1024) or a count.
+        train_objects: Train on a seeded subset of the training objects: a count or a fraction of them
+            (``PairDataModule``'s ``train_objects``); ``None``: all. Validation and test pairs stay the same.
     """
 
     root: str | None
@@ -187,12 +189,14 @@ class DataChoice:
     workers: int | None = 0
     partial: str = "none"
     partial_keep: int | float = 0.75
+    train_objects: int | float | None = None
 
     def overrides(self, budget: RunBudget) -> Values:
         """Data values of a run: the budget's points and batch, the fixed pair seed, the loader workers."""
         shared = {
             **cli_args("data", {"val_pairs_per_object": budget.val_pairs if budget.val_pairs > 1 else None}),
             **self._crop(),
+            **cli_args("data", {"train_objects": self.train_objects}),
         }
         if self.root is None:
             return {**synthetic_overrides(SMOKE_PAIRS, budget.points or 128, budget.batch or 2), **shared}
@@ -208,6 +212,8 @@ class DataChoice:
     def describe(self) -> str:
         """One line for tables and the JSONL key (full clouds: the same line as before crops existed)."""
         crop = "" if self.partial == "none" else f", partial: {self.partial} crop keeping {self.partial_keep:g}"
+        if self.train_objects is not None:
+            crop += f", training objects: {self.train_objects:g}"
         if self.root is None:
             shapes = f"embedded synthetic shapes ({SMOKE_PAIRS} validation and test pairs; smoke: numbers mean nothing)"
             return shapes + crop

@@ -116,6 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
         "PRNet's and IDAM's 768 of 1024)",
     )
     parser.add_argument(
+        "--train-objects",
+        type=_count_or_fraction,
+        help="ablation, lc: train on a seeded subset of the training objects, a count or a fraction (e.g. 0.5); "
+        "validation and test pairs stay the same (default: all; the JSONL key names it)",
+    )
+    parser.add_argument(
         "--points",
         type=int,
         help="ablation, lc: points per cloud of every run instead of the budget's (e.g. a method's own size where "
@@ -146,7 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _count_or_fraction(text: str) -> int | float:
-    """``--partial-keep``: ``"768"`` is a count, ``"0.75"`` a fraction (the data module checks the range)."""
+    """``--partial-keep``, ``--train-objects``: ``"768"`` is a count, ``"0.75"`` a fraction (the data module checks
+    the range)."""
     try:
         return int(text)
     except ValueError:
@@ -167,17 +174,22 @@ def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperimen
 
 
 def _data(
-    preset: Preset, root: str, protocol: str | None, partial: str = "none", partial_keep: int | float = 0.75
+    preset: Preset,
+    root: str,
+    protocol: str | None,
+    partial: str = "none",
+    partial_keep: int | float = 0.75,
+    train_objects: int | float | None = None,
 ) -> DataChoice:
     if preset == "smoke":
-        return DataChoice(None, partial=partial, partial_keep=partial_keep)
+        return DataChoice(None, partial=partial, partial_keep=partial_keep, train_objects=train_objects)
     if not Path(root).expanduser().is_dir():
         raise ReproduceUsageError(
             f"ModelNet40 not found at {root!r}: pass --root DIR (official modelnet40_ply_hdf5_2048 layout)"
         )
     workers = None if preset == "paper" else 0  # the GPU machine of `paper` has cores to spare for loading
     resolved = str(Path(root).expanduser().resolve())
-    return DataChoice(resolved, protocol or "unseen_objects", workers, partial, partial_keep)
+    return DataChoice(resolved, protocol or "unseen_objects", workers, partial, partial_keep, train_objects)
 
 
 def _seeds(seeds: Sequence[int]) -> tuple[int, ...]:
@@ -209,7 +221,12 @@ def reproduce(
     if args.jobs < 1 or (args.jobs > 1 and not isinstance(experiment, Experiment)):
         raise ReproduceUsageError(f"--jobs must be >= 1 (above 1 only for {', '.join(EXPERIMENTS)}), got {args.jobs}")
     out = Path(args.out or f"runs/reproduce/{args.budget}")
-    for option, value in (("--partial", args.partial != "none"), ("--points", args.points is not None)):
+    chosen = (
+        ("--partial", args.partial != "none"),
+        ("--points", args.points is not None),
+        ("--train-objects", args.train_objects is not None),
+    )
+    for option, value in chosen:
         if value and not isinstance(experiment, Experiment):
             raise ReproduceUsageError(
                 f"{option} applies to {', '.join(EXPERIMENTS)} (training sweeps); {args.experiment} sets its own data"
@@ -221,7 +238,7 @@ def reproduce(
         data = _data(args.budget, args.root, "unseen_categories")
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
-    data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep)
+    data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep, args.train_objects)
     seeds = _seeds(args.seeds)
     try:
         sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points)
@@ -251,7 +268,8 @@ def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
     protocol = ["--protocol", args.protocol] if args.protocol else []
     crop = ["--partial", args.partial, "--partial-keep", str(args.partial_keep)] if args.partial != "none" else []
     size = [] if args.points is None else ["--points", str(args.points)]
-    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size]
+    subset = [] if args.train_objects is None else ["--train-objects", str(args.train_objects)]
+    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size, *subset]
 
 
 def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]:
