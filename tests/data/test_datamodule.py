@@ -237,7 +237,8 @@ def _training_objects(dm: SyntheticDataModule) -> list[bytes]:
 def test_train_objects_trains_on_a_nested_seeded_subset_and_leaves_validation_and_test_alone() -> None:
     full = _small_module()
     every = _training_objects(full)
-    half, quarter = _training_objects(_small_module(train_objects=0.5)), _training_objects(_small_module(train_objects=3))
+    half = _training_objects(_small_module(train_objects=0.5))
+    quarter = _training_objects(_small_module(train_objects=3))
     assert (len(every), len(half), len(quarter)) == (12, 6, 3)
     assert set(quarter) < set(half) < set(every)  # one permutation per seed: the subsets are nested
     assert [obj for obj in every if obj in half] == half  # in their original order

@@ -39,7 +39,7 @@ _SEED_HIGH = 2**62
 SYNTHETIC_TEST_SEED_OFFSET = 1_000_003
 """The synthetic test shapes use ``shape_seed + SYNTHETIC_TEST_SEED_OFFSET``, so they differ from the train shapes."""
 TRAIN_SUBSET_SEED_OFFSET = 2_000_003
-"""The ``train_objects`` subset is drawn with ``seed + TRAIN_SUBSET_SEED_OFFSET`` (a stream apart from the carve-out)."""
+"""The ``train_objects`` subset is drawn with ``seed + TRAIN_SUBSET_SEED_OFFSET``, a stream apart from the carve-out."""
 
 
 class PairDataset(Dataset[dict[str, torch.Tensor]]):

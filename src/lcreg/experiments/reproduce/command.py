@@ -152,8 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _count_or_fraction(text: str) -> int | float:
-    """``--partial-keep``, ``--train-objects``: ``"768"`` is a count, ``"0.75"`` a fraction (the data module checks
-    the range)."""
+    """``--partial-keep``, ``--train-objects``: ``"768"`` is a count, ``"0.75"`` a fraction (checked downstream)."""
     try:
         return int(text)
     except ValueError:
