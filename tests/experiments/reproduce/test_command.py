@@ -220,6 +220,8 @@ def test_train_objects_trains_every_run_of_a_sweep_on_the_subset_and_keys_its_ru
     assert row["data"].endswith(", training objects: 0.5")
     config = (Path(row["metrics_csv"]).parent / "config.yaml").read_text()
     assert "train_objects: 0.5" in config
+    # Its own folder: it never resumes from an unfinished run of all the objects (as --points, `<variant>_<N>pts`).
+    assert Path(row["metrics_csv"]).parent.parent.parent.name == "idam_X_train0.5"
     assert "train_objects" not in str(DataChoice("/m").overrides(RunBudget(steps=2, points=128, batch=2)))
     assert DataChoice("/m", train_objects=100).describe() == "ModelNet40 /m, unseen objects, training objects: 100"
     calls: list[tuple[str, int]] = []

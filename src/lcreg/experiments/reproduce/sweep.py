@@ -134,11 +134,13 @@ class Sweep(PresetRun):
     def run_dir(self, variant: Variant, seed: int) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``.
 
-        With :attr:`points` the variant's folder is ``<variant>_<points>pts``: a run of another size never resumes
-        from the checkpoint of the budget's own size.
+        With :attr:`points` the variant's folder is ``<variant>_<points>pts``, with a ``train_objects`` subset of the
+        data ``<variant>_train<n>`` (e.g. ``idam_X_train0.5``): a run of another size or on other training objects
+        never resumes from the checkpoint of an unfinished run of the budget's own size or of all the objects.
         """
         size = "" if self.points is None else f"_{self.points}pts"
-        folder = variant.key.replace("/", "_") + size
+        subset = "" if self.data.train_objects is None else f"_train{self.data.train_objects:g}"
+        folder = variant.key.replace("/", "_") + size + subset
         return self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
