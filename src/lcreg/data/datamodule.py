@@ -271,9 +271,9 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         Raises:
             ValueError: If a ``train_objects`` count exceeds the training objects.
         """
-        total = len(objects)
         if self.train_objects is None:
             return objects
+        total = len(objects)
         if isinstance(self.train_objects, int):
             if self.train_objects > total:
                 raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects")

@@ -212,9 +212,8 @@ class DataChoice:
     def describe(self) -> str:
         """One line for tables and the JSONL key (full clouds: the same line as before crops existed)."""
         crop = "" if self.partial == "none" else f", partial: {self.partial} crop keeping {self.partial_keep:g}"
-        if self.train_objects is not None:
-            crop += f", training objects: {self.train_objects:g}"
+        subset = "" if self.train_objects is None else f", training objects: {self.train_objects:g}"
         if self.root is None:
             shapes = f"embedded synthetic shapes ({SMOKE_PAIRS} validation and test pairs; smoke: numbers mean nothing)"
-            return shapes + crop
-        return f"ModelNet40 {self.root}, {self.protocol.replace('_', ' ')}{crop}"
+            return shapes + crop + subset
+        return f"ModelNet40 {self.root}, {self.protocol.replace('_', ' ')}{crop}{subset}"
