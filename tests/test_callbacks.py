@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 import torch
 from lightning.pytorch import LightningModule, Trainer
-from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint, TQDMProgressBar
 from torch.utils.data import DataLoader
 
-from lcreg.callbacks import TimedProgressBar, TrainingClock
+from lcreg.callbacks import LatestCheckpoint, TimedProgressBar, TrainingClock, follow_moved_folder
 
 BATCHES = 8
 
@@ -112,3 +112,68 @@ def test_training_clock_adds_a_resumed_segment_to_the_checkpoint_time() -> None:
     resumed.load_state_dict(state)
     resumed.on_fit_start(None, None)  # type: ignore[arg-type]  # 500
     assert resumed.seconds() == 5.0  # 3 s kept from the checkpoint + 2 s of this segment
+
+
+class _ScriptedValidation(_Steps):
+    """One step an epoch; the validation after step ``k`` logs ``val/score`` = ``scores[k - 1]``."""
+
+    def __init__(self, scores: list[float]) -> None:
+        super().__init__()
+        self.scores = scores
+
+    def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
+        self.log("val/score", self.scores[self.trainer.global_step - 1])
+
+    def train_dataloader(self) -> DataLoader[Any]:
+        return DataLoader(torch.zeros(1), batch_size=1)
+
+    def val_dataloader(self) -> DataLoader[Any]:
+        return self.train_dataloader()
+
+
+def _fit_scripted(dirpath: Path, max_steps: int, scores: list[float], ckpt_path: Path | None = None) -> Any:
+    checkpoint = ModelCheckpoint(dirpath=dirpath, monitor="val/score", filename="{step}", save_top_k=1)
+    trainer = Trainer(
+        accelerator="cpu",
+        max_steps=max_steps,
+        num_sanity_val_steps=0,
+        logger=False,
+        enable_model_summary=False,
+        enable_progress_bar=False,
+        callbacks=[checkpoint, LatestCheckpoint(every_n_train_steps=1)],
+        default_root_dir=dirpath.parent,
+    )
+    trainer.fit(_ScriptedValidation(scores), ckpt_path=ckpt_path)
+    return checkpoint
+
+
+def test_a_run_resumed_in_a_moved_folder_keeps_the_checkpoint_it_chose_before_the_move(tmp_path: Path) -> None:
+    scores = [1.0, 5.0, 3.0, 4.0]  # the best validation comes before the move; the ones after it are worse
+    _fit_scripted(tmp_path / "a" / "checkpoints", 2, scores)
+    (tmp_path / "a").rename(tmp_path / "b")  # a renamed run folder, or a run copied to another machine
+    moved = tmp_path / "b" / "checkpoints"
+    resumed = _fit_scripted(moved, 4, scores, ckpt_path=moved / "last.ckpt")
+    # Before: Lightning dropped the recorded top-k on a changed dirpath and chose step 3 (3.0) over step 1 (1.0).
+    assert Path(resumed.best_model_path) == moved / "step=1.ckpt"
+    assert float(resumed.best_model_score) == 1.0
+    assert sorted(p.name for p in moved.glob("step*.ckpt")) == ["step=1.ckpt"]  # the worse ones were not kept
+
+
+def test_a_moved_run_whose_chosen_checkpoint_did_not_move_keeps_lightnings_behaviour(tmp_path: Path) -> None:
+    new = tmp_path / "b"
+    new.mkdir()
+    (new / "step=3.ckpt").touch()  # only a worse checkpoint came along
+    state = {
+        "dirpath": str(tmp_path / "a"),
+        "best_model_path": str(tmp_path / "a" / "step=1.ckpt"),
+        "best_k_models": {str(tmp_path / "a" / "step=1.ckpt"): torch.tensor(1.0)},
+    }
+    before = dict(state)
+    assert not follow_moved_folder(state, ModelCheckpoint(dirpath=new))
+    assert state == before
+    same = ModelCheckpoint(dirpath=tmp_path / "a")
+    assert not follow_moved_folder(state, same)  # not moved
+    (new / "step=1.ckpt").touch()
+    assert follow_moved_folder(state, ModelCheckpoint(dirpath=new, save_top_k=1))
+    assert state["dirpath"] == str(new) and state["best_model_path"] == str(new / "step=1.ckpt")
+    assert state["kth_best_model_path"] == str(new / "step=1.ckpt") and float(state["kth_value"]) == 1.0

@@ -35,6 +35,7 @@ __all__ = [
     "TimedProgressBar",
     "TrainingClock",
     "TransformWriter",
+    "follow_moved_folder",
     "keep_initial_weights_as_candidate",
     "validate_starting_weights",
 ]
@@ -117,6 +118,20 @@ class LatestCheckpoint(Checkpoint):
         """
         if not (_epoch_complete(trainer) and _checkpoints_update_at_epoch_end(trainer)):
             self._save(trainer)
+
+    def on_load_checkpoint(self, trainer: Trainer, pl_module: LightningModule, checkpoint: dict[str, Any]) -> None:
+        """Keep the checkpoint selection of a run resumed in a moved folder (:func:`follow_moved_folder`).
+
+        Lightning calls every callback's ``on_load_checkpoint`` before any loads its state.
+        """
+        states = checkpoint.get("callbacks") or {}
+        for callback in trainer.checkpoint_callbacks:
+            state = states.get(callback.state_key)
+            if not (isinstance(callback, ModelCheckpoint) and isinstance(state, dict)):
+                continue
+            recorded = state.get("dirpath")
+            if follow_moved_folder(state, callback):
+                rank_zero_info(f"The run moved from {recorded} to {callback.dirpath}: its chosen checkpoints are kept")
 
     def on_exception(self, trainer: Trainer, pl_module: LightningModule, exception: BaseException) -> None:
         """Save when SIGTERM stopped ``fit`` at the end of a step, so that the run resumes from the step it reached.
@@ -397,10 +412,58 @@ def keep_initial_weights_as_candidate(trainer: Trainer) -> Path | None:
 def _add_candidate(callback: Any, path: str, score: torch.Tensor) -> None:
     """Record checkpoint ``path`` with ``score`` in a ``ModelCheckpoint``'s top-k, as its own saves do."""
     callback.best_k_models[path] = score
-    k = len(callback.best_k_models) if callback.save_top_k == -1 else callback.save_top_k
-    worst, best = (max, min) if callback.mode == "min" else (min, max)
-    if len(callback.best_k_models) >= k:
-        callback.kth_best_model_path = worst(callback.best_k_models, key=callback.best_k_models.get)
-        callback.kth_value = callback.best_k_models[callback.kth_best_model_path]
-    callback.best_model_path = best(callback.best_k_models, key=callback.best_k_models.get)
-    callback.best_model_score = callback.best_k_models[callback.best_model_path]
+    for name, value in _top_k_fields(callback.best_k_models, callback.mode, callback.save_top_k).items():
+        setattr(callback, name, value)
+
+
+def _top_k_fields(best_k_models: dict[str, Any], mode: str, save_top_k: int) -> dict[str, Any]:
+    """A ``ModelCheckpoint``'s best and k-th entries for a non-empty top-k ``{path: score}``, as its saves set them.
+
+    The k-th entry (the one the next better checkpoint replaces) is set only once the top-k is full.
+    """
+    k = len(best_k_models) if save_top_k == -1 else save_top_k
+    worst, best = (max, min) if mode == "min" else (min, max)
+    fields: dict[str, Any] = {}
+    if len(best_k_models) >= k:
+        fields["kth_best_model_path"] = worst(best_k_models, key=lambda path: best_k_models[path])
+        fields["kth_value"] = best_k_models[fields["kth_best_model_path"]]
+    fields["best_model_path"] = best(best_k_models, key=lambda path: best_k_models[path])
+    fields["best_model_score"] = best_k_models[fields["best_model_path"]]
+    return fields
+
+
+def follow_moved_folder(state: dict[str, Any], callback: ModelCheckpoint) -> bool:
+    """Point a ``ModelCheckpoint``'s saved ``state`` at its files in ``callback``'s folder, if the run was moved.
+
+    Lightning keeps a resumed ``ModelCheckpoint``'s top-k only when the checkpoint records the same ``dirpath``:
+    a run folder renamed, or copied to another machine or root, resumes with an empty top-k, so its first later
+    validation is saved as the best however much worse it is, and the checkpoint chosen before the move is
+    neither a candidate nor deleted. Here each recorded checkpoint that was in the recorded folder and is now in
+    ``callback.dirpath`` (same file name) is renamed into it; recorded files absent there are dropped. Nothing
+    changes when the folder is the same, when the recorded best checkpoint is not in the new folder (Lightning's
+    own behaviour follows), or for files recorded outside the old folder.
+
+    Args:
+        state: The callback's entry of a checkpoint's ``callbacks`` (changed in place).
+        callback: The ``ModelCheckpoint`` about to load it (its ``dirpath`` resolved by ``setup``).
+
+    Returns:
+        Whether ``state`` was changed.
+    """
+    old, new = state.get("dirpath"), callback.dirpath
+    if not old or not new or Path(old) == Path(new):
+        return False
+
+    def moved(path: str) -> str:
+        return str(Path(new) / Path(path).name) if path and Path(path).parent == Path(old) else path
+
+    best = moved(str(state.get("best_model_path") or ""))
+    if not best or best == state.get("best_model_path") or not Path(best).is_file():
+        return False
+    kept = {moved(path): score for path, score in (state.get("best_k_models") or {}).items()}
+    kept = {path: score for path, score in kept.items() if Path(path).is_file()}
+    if best not in kept:
+        return False
+    state.update(_top_k_fields(kept, callback.mode, callback.save_top_k))
+    state.update(dirpath=new, best_k_models=kept, last_model_path=moved(str(state.get("last_model_path") or "")))
+    return True
