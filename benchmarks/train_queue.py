@@ -317,14 +317,20 @@ def finished_runs(source: Path) -> set[str]:
     """The run folders, relative to the job's folder ``source``, of the finished runs that its JSONL logs list.
 
     A finished run's row names its ``metrics_csv`` (``<runs>/<job id>/<run folder>/metrics.csv``, on whichever
-    machine trained it); what follows the job id is the run folder.
+    machine trained it); what follows the job id is the run folder. A sweep's row (``lcreg reproduce``: its
+    ``weights``) does not count where its folder holds a ``last.ckpt`` again: a sweep deletes a finished run's
+    checkpoints, so that is a run of another budget or data training in the same folder (session 38: the row of
+    PRNet's LC run at lr 1e-3 hid the run at 2.2e-4 from ``progress`` and its resume state from :func:`keep_resume`).
     """
     marker, folders = f"/{source.name}/", set()
     for log in source.rglob("*.jsonl"):
         for row in ResultLog(log).rows:
             metrics = str(row.get("metrics_csv") or "")
-            if marker in metrics:
-                folders.add(metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv"))
+            if marker not in metrics:
+                continue
+            folder = metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv")
+            if not (row.get("weights") and (source / folder / "checkpoints" / "last.ckpt").is_file()):
+                folders.add(folder)
     return folders
 
 

@@ -17,6 +17,7 @@ import torch
 
 from lcreg.checkpoints import CheckpointNotFoundError
 from lcreg.cli import main
+from lcreg.resume import changed_settings
 
 from _cli_runs import TINY_DVDS, cli_isolation, config_args  # type: ignore[import-not-found]
 
@@ -263,3 +264,14 @@ def test_a_finished_run_resumed_with_ckpt_path_last_keeps_its_metrics_file(tmp_p
     _fit(tmp_path / "done", "--ckpt_path", "last")
     assert sorted(path.name for path in done.glob("metrics*.csv")) == ["metrics.csv"]
     assert (done / "metrics.csv").read_text(encoding="utf-8") == before
+
+
+def test_changed_settings_compares_model_and_data_but_not_machine_keys_or_new_options() -> None:
+    saved = {"model": {"init_args": {"lr": 1e-3, "k": 12}}, "data": {"init_args": {"root": "/a", "sigma": 0.0}}}
+    same = {
+        "model": {"init_args": {"lr": 1e-3, "k": 12, "added": None}},
+        "data": {"init_args": {"root": "/b", "sigma": 0.0}},
+    }
+    assert changed_settings(saved, {**same, "trainer": {"max_steps": 9}}) == []
+    other = {"model": {"init_args": {"lr": 2e-4, "k": 12}}, "data": {"init_args": {"root": "/a", "sigma": 0.01}}}
+    assert changed_settings(saved, other) == ["data.init_args.sigma", "model.init_args.lr"]

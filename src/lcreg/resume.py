@@ -22,10 +22,12 @@ __all__ = [
     "TERMINATED_EXIT_CODE",
     "LastCheckpoint",
     "best_checkpoint_of",
+    "changed_settings",
     "find_last_checkpoint",
     "keep_previous_metrics",
     "restore_unlogged_metrics",
     "set_aside_metrics",
+    "set_aside_run",
 ]
 
 LAST = "last.ckpt"
@@ -168,6 +170,61 @@ def restore_unlogged_metrics(kept: Path | None) -> None:
         kept.rename(metrics)
 
 
+SETTING_SECTIONS = ("model", "data")
+"""The sections of a run's ``config.yaml`` that define what it trains (the trainer's may change between segments)."""
+MACHINE_KEYS = frozenset({"root", "num_workers"})
+"""Keys whose values differ between machines, not between runs (the data folder, the loader's processes)."""
+
+
+def changed_settings(saved: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
+    """Dotted keys of :data:`SETTING_SECTIONS` whose values differ between two configs (as ``config.yaml`` holds them).
+
+    For a run folder's ``config.yaml`` (the segment trained last) against the run about to resume there: a change
+    (a learning rate, the crop, the training objects) makes it another run, which must not continue that state. Keys
+    present in one config only (an option added to the code since) and :data:`MACHINE_KEYS` do not count.
+
+    Returns:
+        The differing keys, sorted (``[]``: the same run).
+    """
+
+    def walk(a: Any, b: Any, key: str) -> list[str]:
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            shared = sorted(k for k in a.keys() & b.keys() if k not in MACHINE_KEYS)
+            return [found for k in shared for found in walk(a[k], b[k], f"{key}.{k}" if key else str(k))]
+        return [] if a == b else [key]
+
+    return walk(
+        {k: saved[k] for k in SETTING_SECTIONS if k in saved},
+        {k: current[k] for k in SETTING_SECTIONS if k in current},
+        "",
+    )
+
+
+def set_aside_run(log_dir: Path) -> Path:
+    """Move a run's state out of ``log_dir`` to ``log_dir/superseded/<n>/`` (first free ``n``), to start afresh there.
+
+    That is ``checkpoints/``, ``config.yaml``, ``hparams.yaml`` and the metrics files.
+    For an unfinished run whose settings differ from the run now started in its folder (:func:`changed_settings`):
+    nothing of it is deleted. Returns the new folder.
+    """
+    names = ("checkpoints", "config.yaml", "hparams.yaml", "metrics.csv")
+    moving = [log_dir / name for name in names if (log_dir / name).exists()] + sorted(
+        log_dir.glob("metrics.segment*.csv")
+    )
+    return _move_into_new(log_dir / "superseded", moving)
+
+
+def _move_into_new(parent: Path, paths: list[Path]) -> Path:
+    """Move ``paths`` into ``parent/<n>/``, the first ``n`` (1, 2, ...) not taken; returns that folder."""
+    n = 1
+    while (target := parent / str(n)).exists():
+        n += 1
+    target.mkdir(parents=True)
+    for path in paths:
+        path.rename(target / path.name)
+    return target
+
+
 def set_aside_metrics(log_dir: Path) -> Path | None:
     """Move a lost run's ``metrics.csv`` and ``metrics.segment<n>.csv`` to ``log_dir/abandoned/<n>/`` (first free n).
 
@@ -179,12 +236,4 @@ def set_aside_metrics(log_dir: Path) -> Path | None:
         The new folder, or ``None`` when there was nothing to move.
     """
     stale = sorted(log_dir.glob("metrics.segment*.csv")) + [p for p in [log_dir / "metrics.csv"] if p.is_file()]
-    if not stale:
-        return None
-    n = 1
-    while (target := log_dir / "abandoned" / str(n)).exists():
-        n += 1
-    target.mkdir(parents=True)
-    for path in stale:
-        path.rename(target / path.name)
-    return target
+    return _move_into_new(log_dir / "abandoned", stale) if stale else None

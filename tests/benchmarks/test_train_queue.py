@@ -477,6 +477,31 @@ def test_only_the_checkpoints_the_run_resumes_from_are_kept(tmp_path: Path) -> N
     assert len(queue.resume_files(folder)) == 3
 
 
+def test_a_sweep_run_training_again_in_a_finished_runs_folder_is_in_progress(tmp_path: Path) -> None:
+    """A sweep's row for another budget names the same folder (variant and seed), but a finished sweep run leaves
+    no checkpoint: with a ``last.ckpt`` there, the folder's run is training and its resume state is kept."""
+    import torch
+
+    queue = load("train_queue")
+    source = tmp_path / "runs" / "j"
+    run = source / "runs" / "converge" / "lc" / "prnet_LC" / "seed0" / "run"
+    row = {"variant": "prnet/LC", "seed": 0, "weights": f"{run.parent}/selected_weights.pt"}
+    (source / "runs").mkdir(parents=True)
+    (source / "runs" / "lc.jsonl").write_text(
+        json.dumps({**row, "metrics_csv": f"/elsewhere/j/{run.relative_to(source)}/metrics.csv"}) + "\n"
+    )
+    folder = run.relative_to(source).as_posix()
+    assert queue.finished_runs(source) == {folder}  # finished: its checkpoints are gone
+    (run / "checkpoints").mkdir(parents=True)
+    torch.save({"callbacks": {}}, run / "checkpoints" / "last.ckpt")  # the run of the new budget, in training
+    assert queue.finished_runs(source) == set()
+    assert [p.name for p in queue.keep_resume(source, tmp_path / "kept")] == ["last.ckpt"]
+    (source / "runs" / "curves.jsonl").write_text(
+        json.dumps({"best_checkpoint": "x", "metrics_csv": f"/m/j/{folder}/metrics.csv"}) + "\n"
+    )
+    assert queue.finished_runs(source) == {folder}  # a learning_curves.py row keeps its checkpoints: finished
+
+
 def test_restore_does_not_bring_back_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
     """Session 30: a new machine restarted a run from scratch (its old metrics moved to ``abandoned/1/``), then the
     runner was restarted before any sync; ``restore`` copied the committed old files back beside the new run's, so

@@ -348,6 +348,36 @@ def test_a_run_started_again_sets_aside_the_curve_of_a_lost_run(tmp_path: Path) 
     assert (kept / "metrics.segment1.csv").read_text(encoding="utf-8") == lost and (kept / "metrics.csv").is_file()
 
 
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("model.init_args.optimizer.init_args.lr", 2.2e-4), ("data.init_args.noise_sigma", 0.01)],
+)
+def test_a_run_with_other_settings_starts_afresh_and_sets_the_unfinished_one_aside(
+    tmp_path: Path, key: str, value: float
+) -> None:
+    # A sweep's run folder is named by its variant and seed, not its learning rate or crop: a run of changed settings
+    # in the folder of an unfinished one silently continued that state (and was reported under the new settings).
+    data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
+
+    def converge(steps: int, changed: dict[str, float]) -> FitResult:
+        run = converge_overrides(max_steps=steps, val_every=2, patience=50, run_dir=tmp_path, name="r")
+        return fit("dvds", {**run, **data, **changed}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+
+    first = converge(2, {})
+    log_dir = Path(first.trainer.log_dir or "")
+    old_last = (log_dir / "checkpoints" / "last.ckpt").read_bytes()
+    second = converge(4, {key: value})
+    assert second.trainer.global_step == 4
+    # From scratch: the new curve starts at its untrained step 0, in one file; the old run is kept, whole.
+    assert list(read_metrics(log_dir / "metrics.csv")["val/rre_clip5_deg"].steps) == [0, 1, 3]
+    assert not list(log_dir.glob("metrics.segment*.csv"))
+    aside = log_dir / "superseded" / "1"
+    assert (aside / "checkpoints" / "last.ckpt").read_bytes() == old_last
+    assert (aside / "metrics.csv").is_file() and (aside / "config.yaml").is_file()
+    third = converge(6, {key: value})  # the same settings again: it resumes (steps 5 and 6 only)
+    assert third.trainer.global_step == 6 and (log_dir / "metrics.segment1.csv").is_file()
+
+
 # --- timing --------------------------------------------------------------------------------------------------------
 def test_timed_reads_the_clock_around_the_call() -> None:
     out, seconds = timed(lambda: "done", clock=FakeClock([10.0, 2.5]))

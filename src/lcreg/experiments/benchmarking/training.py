@@ -18,6 +18,7 @@ from lcreg.resume import TERMINATED_EXIT_CODE
 if TYPE_CHECKING:
     from lightning.pytorch import LightningDataModule, Trainer
 
+    from lcreg.cli import LcregCLI
     from lcreg.models.base import RegistrationModule
     from lcreg.types import RegistrationBatch
 
@@ -147,6 +148,23 @@ def last_checkpoint(log_dir: str | Path) -> Path | None:
     return path if path.is_file() else None
 
 
+def _changed_since_last_segment(cli: LcregCLI, log_dir: Path) -> list[str]:
+    """The model and data keys of ``cli``'s config that differ from the last segment trained in ``log_dir``.
+
+    Read from that segment's ``config.yaml`` (:func:`lcreg.resume.changed_settings`); none without one.
+    """
+    import yaml
+
+    from lcreg.resume import changed_settings
+
+    try:
+        saved = yaml.safe_load((log_dir / "config.yaml").read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return []
+    current = yaml.safe_load(cli.parser.dump(cli.config, skip_none=False))
+    return changed_settings(saved, current) if isinstance(saved, dict) and isinstance(current, dict) else []
+
+
 def _quiet_run(run_dir: str | Path, name: str) -> Values:
     """No progress bar or model summary; logs and checkpoints under ``<run_dir>/<name>``."""
     return {
@@ -210,7 +228,7 @@ def fit(
     """
     from lcreg.callbacks import TrainingClock
     from lcreg.models.base import RegistrationModule
-    from lcreg.resume import keep_previous_metrics, restore_unlogged_metrics, set_aside_metrics
+    from lcreg.resume import keep_previous_metrics, restore_unlogged_metrics, set_aside_metrics, set_aside_run
 
     cli = build_cli_for(name, configs, values)
     callback = cli.trainer.checkpoint_callback
@@ -221,6 +239,14 @@ def fit(
         raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
     log_dir = Path(cli.trainer.log_dir or cli.trainer.default_root_dir)
     start = last_checkpoint(log_dir) if resume else None
+    if start is not None and (changed := _changed_since_last_segment(cli, log_dir)):
+        aside = set_aside_run(log_dir)
+        print(
+            f"{name}: the unfinished run in {log_dir} has other settings ({', '.join(changed)}): moved to {aside}; "
+            "this run starts from scratch",
+            flush=True,
+        )
+        start = None
     kept = None
     if start is not None:
         kept = keep_previous_metrics(log_dir)
