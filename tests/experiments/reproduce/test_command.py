@@ -229,6 +229,29 @@ def test_train_objects_trains_every_run_of_a_sweep_on_the_subset_and_keys_its_ru
     assert calls == [("idam", 0)]  # the run on all the training objects is another run
 
 
+def test_set_gives_every_run_of_a_sweep_a_config_value_and_keys_its_runs_apart(tmp_path: Path) -> None:
+    """``--set KEY=VALUE``: the workers of ``--jobs`` get it too; the row's budget key, folder and report name it."""
+    milestones = "model.init_args.lr_scheduler.init_args.milestones"
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    main([*args, "--set", f"{milestones}=[60]", "--jobs", "2"])
+    (row,) = read_jsonl(tmp_path / "lc.jsonl")
+    assert row["budget"].endswith(f"; set {milestones}=[60]") and row["overrides"] == {milestones: [60]}
+    config = yaml.safe_load((Path(row["metrics_csv"]).parent / "config.yaml").read_text())
+    assert config["model"]["init_args"]["lr_scheduler"]["init_args"]["milestones"] == [60]
+    assert Path(row["metrics_csv"]).parent.parent.parent.name.startswith("idam_X_set")
+    assert f"; set {milestones}=[60]" in (tmp_path / "lc.md").read_text()  # the report's budget line
+    calls: list[tuple[str, int]] = []
+    run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
+    assert calls == [("idam", 0)]  # without the setting: another run
+
+
+@pytest.mark.parametrize("bad", ["milestones=[60]", "model.init_args.x", "model.init_args.x=[1", ".a.b=1"])
+def test_a_malformed_set_is_a_usage_error_naming_the_option(bad: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["reproduce", "lc", "--budget", "smoke", "--set", bad])
+    assert stop.value.code == 2 and "--set" in capsys.readouterr().err
+
+
 def test_points_resizes_every_run_and_keeps_its_runs_and_folders_apart(tmp_path: Path) -> None:
     """``--points 96 --partial prnet``: the workers of ``--jobs`` train at 96 points, cropped to 72 (0.75 of 96)."""
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]

@@ -12,12 +12,15 @@ Errors print one line on stderr with exit code 2 (arguments); ``LCREG_DEBUG=1`` 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn, get_args
+from typing import Any, NoReturn, get_args
 
+from lcreg.checkpoints import one_line
 from lcreg.data.pairs import PartialMode
 from lcreg.experiments.benchmarking import ResultLog, write_text
 from lcreg.experiments.reproduce.ablation import ABLATION
@@ -128,6 +131,17 @@ def build_parser() -> argparse.ArgumentParser:
         "the budget reduced it); its runs get their own rows and folders (default: the budget's)",
     )
     parser.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        default=[],
+        type=_setting,
+        metavar="KEY=VALUE",
+        help="ablation, lc: a config value of every run, after its variant's own: a dotted key as `lcreg fit` takes "
+        "it and a YAML value, e.g. --set model.init_args.lr_scheduler.init_args.milestones=[60] (repeatable; part of "
+        "each row's budget key and run folder)",
+    )
+    parser.add_argument(
         "--only",
         nargs="+",
         default=[],
@@ -157,6 +171,28 @@ def _count_or_fraction(text: str) -> int | float:
         return int(text)
     except ValueError:
         return float(text)
+
+
+_KEY = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)+$")
+
+
+def _setting(text: str) -> tuple[str, Any]:
+    """``--set KEY=VALUE``: a dotted config key and its YAML-parsed value (``"[60]"`` is a list, ``"1e-4"`` a float).
+
+    Raises:
+        argparse.ArgumentTypeError: No ``=``, a key that is not dotted words, or a value YAML cannot read.
+    """
+    import yaml
+
+    key, sep, value = text.partition("=")
+    if not sep or not _KEY.match(key.strip()):
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE with a dotted key (model.init_args.x=1), got {text!r}")
+    try:
+        return key.strip(), yaml.safe_load(value)
+    except yaml.YAMLError as err:
+        raise argparse.ArgumentTypeError(
+            f"{key.strip()}: the value {value!r} is not YAML ({one_line(str(err))})"
+        ) from None
 
 
 def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment | EvalExperiment:
@@ -224,6 +260,7 @@ def reproduce(
         ("--partial", args.partial != "none"),
         ("--points", args.points is not None),
         ("--train-objects", args.train_objects is not None),
+        ("--set", bool(args.settings)),
     )
     for option, value in chosen:
         if value and not isinstance(experiment, Experiment):
@@ -239,8 +276,9 @@ def reproduce(
         return _evaluate(run, args, command, progress)
     data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep, args.train_objects)
     seeds = _seeds(args.seeds)
+    settings = tuple(dict(args.settings).items())  # a key set twice: the last value
     try:
-        sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points)
+        sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points, settings=settings)
     except ValueError as err:  # Experiment.with_points owns the bound on --points
         raise ReproduceUsageError(f"--points: {err}") from None
     failure = None
@@ -268,7 +306,9 @@ def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
     crop = ["--partial", args.partial, "--partial-keep", str(args.partial_keep)] if args.partial != "none" else []
     size = [] if args.points is None else ["--points", str(args.points)]
     subset = [] if args.train_objects is None else ["--train-objects", str(args.train_objects)]
-    return ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size, *subset]
+    settings = [f"--set={key}={json.dumps(value)}" for key, value in dict(args.settings).items()]
+    options = ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size]
+    return [*options, *subset, *settings]
 
 
 def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]:

@@ -202,7 +202,7 @@ def _budget_lines(sweep: Sweep) -> list[str]:
     """One line per budget group (one line when all groups share a budget)."""
     budgets = sweep.experiment.budgets[sweep.preset]
     groups = list(dict.fromkeys(v.budget_group for v in sweep.experiment.variants))
-    described = {g: budgets[g].describe() for g in groups}
+    described = {g: budgets[g].describe() + sweep.settings_text() for g in groups}
     if len(set(described.values())) <= 1:
         return [f"- Budget `{sweep.preset}` per run: {next(iter(described.values()), '–')}."]
     return [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}." for g, d in described.items()]

@@ -15,6 +15,8 @@ and the sweep goes on.
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
@@ -127,25 +129,39 @@ class Sweep(PresetRun):
     """Points per cloud of every run instead of its budget's (``None``: the budget's); set at construction, it
     resizes :attr:`experiment`'s budgets (:meth:`Experiment.with_points`) and gives the runs their own folders."""
 
+    settings: tuple[tuple[str, Any], ...] = ()
+    """``(dotted key, value)`` config values of every run, applied after its variant's own (``--set``): part of each
+    row's budget key (:meth:`key`) and of its run folder, so such runs never stand for or resume the budget's own."""
+
     def __post_init__(self) -> None:
         if self.points is not None:
             object.__setattr__(self, "experiment", self.experiment.with_points(self.points))
+
+    def overrides(self, variant: Variant) -> dict[str, Any]:
+        """The config values of ``variant``'s runs: its own, then :attr:`settings`."""
+        return {**variant.overrides, **dict(self.settings)}
+
+    def settings_text(self) -> str:
+        """``"; set key=value, ..."`` (JSON values) for the budget key, ``""`` without :attr:`settings`."""
+        return "; set " + ", ".join(f"{k}={json.dumps(v)}" for k, v in self.settings) if self.settings else ""
 
     def run_dir(self, variant: Variant, seed: int) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``.
 
         With :attr:`points` the variant's folder is ``<variant>_<points>pts``, with a ``train_objects`` subset of the
-        data ``<variant>_train<n>`` (e.g. ``idam_X_train0.5``): a run of another size or on other training objects
-        never resumes from the checkpoint of an unfinished run of the budget's own size or of all the objects.
+        data ``<variant>_train<n>`` (e.g. ``idam_X_train0.5``), with :attr:`settings` ``..._set<hash>`` (8 hex digits
+        of :meth:`settings_text`): a run of another size, on other training objects or with other settings never
+        resumes from the checkpoint of an unfinished run of the budget's own.
         """
         size = "" if self.points is None else f"_{self.points}pts"
         subset = "" if self.data.train_objects is None else f"_train{self.data.train_objects:g}"
-        folder = variant.key.replace("/", "_") + size + subset
+        digest = hashlib.sha1(self.settings_text().encode()).hexdigest()[:8]
+        folder = variant.key.replace("/", "_") + size + subset + (f"_set{digest}" if self.settings else "")
         return self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
         """The :data:`KEY_FIELDS` of a run."""
-        budget = self.experiment.budget(self.preset, variant).describe()
+        budget = self.experiment.budget(self.preset, variant).describe() + self.settings_text()
         name = self.experiment.name
         return {
             "experiment": name,
@@ -257,7 +273,7 @@ def run_sweep(
                 continue
             run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
             try:
-                fields = run(seed, variant.overrides)
+                fields = run(seed, sweep.overrides(variant))
             except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
                 fields = {"failed": one_line(str(err), 300)}
             row = log.append({**sweep.key(variant, seed), "preset": sweep.preset, **fields})
