@@ -458,7 +458,7 @@ def follow_moved_folder(state: dict[str, Any], callback: ModelCheckpoint) -> boo
         return str(Path(new) / Path(path).name) if path and Path(path).parent == Path(old) else path
 
     best = moved(str(state.get("best_model_path") or ""))
-    if not best or best == state.get("best_model_path") or not Path(best).is_file():
+    if not best or best == state.get("best_model_path"):
         return False
     kept = {moved(path): score for path, score in (state.get("best_k_models") or {}).items()}
     kept = {path: score for path, score in kept.items() if Path(path).is_file()}
