@@ -2,14 +2,16 @@
 
     python benchmarks/plot_learning_curves.py --run "model D=runs/x/version_0/metrics.csv" \\
         --run "model D=runs/x/version_1/metrics.csv" --run "recipe=runs/y/version_*/metrics.csv" \\
-        --out docs/results/curves/ [--smooth 0.6]
+        --out docs/results/curves/ [--smooth 0.6] [--x pairs]
     python benchmarks/plot_learning_curves.py --smoke     # synthetic metrics.csv files (in smoke_runs/ beside the PNGs)
 
 Each ``--run label=path`` adds runs to a label: ``path`` is a ``metrics.csv``, a folder (its ``metrics.csv`` files,
 recursively) or a glob (quote it); several runs of one label are its seeds (mean line, min–max shade). Without
 ``label=`` the label is the run's name (the folder above ``version_<k>``). ``--out`` is a folder (``validation.png``,
 ``jacobian.png``, ``training.png``, ``other.png`` where their keys were logged, and ``summary.md``) or a ``.md`` file
-(the summary there, the PNGs beside it as ``<stem>_<figure>.png``). See :mod:`lcreg.experiments.benchmarking.curves`.
+(the summary there, the PNGs beside it as ``<stem>_<figure>.png``). ``--x pairs`` draws against the training pairs
+seen (step × the ``batch_size`` of each run's ``hparams.yaml``), to compare runs of different batch sizes. See
+:mod:`lcreg.experiments.benchmarking.curves`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from lcreg.experiments.benchmarking import (
+    X_AXES,
     add_smoke_argument,
     load_runs,
     output_path,
@@ -74,6 +77,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--run", action="append", default=[], metavar="[LABEL=]PATH", help="repeatable; see above")
     parser.add_argument("--out", default=None, help="folder of the PNGs and summary.md, or the summary's .md file")
     parser.add_argument("--smooth", type=float, default=0.0, help="EMA weight of the training curves (0: raw)")
+    parser.add_argument("--x", choices=sorted(X_AXES), default="step", help="x axis (default: step)")
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
     if not args.smoke and not (args.run and args.out):
@@ -89,12 +93,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     files = smoke_runs(folder / "smoke_runs") if args.smoke else {}
     for label, paths in map(parse_run, args.run):
         files.setdefault(label, []).extend(paths)
-    metrics = load_runs(files)
-    table = summary_table(metrics)
+    try:
+        metrics = load_runs(files, x=args.x)
+    except (FileNotFoundError, ValueError) as err:  # --x pairs: a run without its batch size
+        raise SystemExit(f"--x {args.x}: {err}") from None
+    table = summary_table(metrics, x=args.x)
     print(table, flush=True)
     sources = [f"- {label}: " + ", ".join(map(str, paths)) for label, paths in files.items()]
     write_text(summary, "\n".join(["Learning curves of", "", *sources, "", table, ""]))
-    for path in plot_curves(metrics, folder, prefix, smooth=args.smooth):
+    for path in plot_curves(metrics, folder, prefix, smooth=args.smooth, x=args.x):
         print(f"wrote {path}")
     print(f"wrote {summary}")
 

@@ -44,6 +44,7 @@ RUNS = {
     "learning_curves": [],
     "pilot_dvds_variants": [],
     "plot_learning_curves": [],
+    "plot_learning_curves --x pairs": ["--x", "pairs"],
     "register_scenes": [],
     "tune_classical": [],
 }
@@ -72,6 +73,18 @@ def test_smoke(run: str, tmp_path: Path) -> None:
     out = tmp_path / "out" / "report.md"
     load(run.split()[0]).main(["--smoke", "--out", str(out), *RUNS[run]])
     assert out.is_file() and "|---" in out.read_text()
+
+
+def test_plot_learning_curves_on_pairs_names_a_run_without_its_batch_size(tmp_path: Path) -> None:
+    from lcreg.experiments.benchmarking import write_synthetic_metrics
+
+    run = write_synthetic_metrics(tmp_path / "run" / "metrics.csv")
+    (run.parent / "hparams.yaml").unlink()
+    script = load("plot_learning_curves")
+    with pytest.raises(SystemExit, match=r"--x pairs: no hparams\.yaml beside .*run"):
+        script.main(["--run", f"D={run}", "--out", str(tmp_path / "curves.md"), "--x", "pairs"])
+    script.main(["--run", f"D={run}", "--out", str(tmp_path / "curves.md")])  # steps need no batch size
+    assert "first @ step" in (tmp_path / "curves.md").read_text()
 
 
 def test_bad_input_matrix_smoke_has_no_cryptic_or_silent_case(tmp_path: Path) -> None:

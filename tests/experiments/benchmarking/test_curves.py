@@ -24,6 +24,7 @@ from lcreg.experiments.benchmarking.curves import (
     load_runs,
     plot_curves,
     read_metrics,
+    run_batch_size,
     run_files,
     summary_rows,
     summary_table,
@@ -119,6 +120,33 @@ def test_load_runs_reads_each_labels_files_as_its_seeds(tmp_path: Path) -> None:
     assert_series(
         runs["recipe"][0]["val/loss"], runs["D"][0]["val/loss"].steps.tolist(), runs["D"][0]["val/loss"].values
     )
+
+
+def test_load_runs_on_training_pairs_scales_each_run_by_its_batch_size(tmp_path: Path) -> None:
+    b8 = write_synthetic_metrics(tmp_path / "b8" / "metrics.csv", batch_size=8)
+    b16 = write_synthetic_metrics(tmp_path / "b16" / "metrics.csv", batch_size=16)
+    by_step = load_runs({"8": [b8], "16": [b16]})
+    by_pairs = load_runs({"8": [b8], "16": [b16]}, x="pairs")
+    for label, batch in (("8", 8), ("16", 16)):
+        for key, s in by_step[label][0].items():
+            assert_series(by_pairs[label][0][key], (s.steps * batch).tolist(), s.values)
+    assert by_pairs["16"][0]["val/loss"].steps.tolist() == [19 * 16, 39 * 16, 59 * 16]
+
+
+def test_load_runs_on_training_pairs_needs_each_runs_batch_size(tmp_path: Path) -> None:
+    lone = write(tmp_path / "lone" / "metrics.csv", SPARSE_CSV)
+    with pytest.raises(FileNotFoundError, match=r"no hparams\.yaml beside .*lone"):
+        load_runs({"D": [lone]}, x="pairs")
+    assert load_runs({"D": [lone]})["D"][0]["val/loss"].steps.tolist() == [1, 3]  # steps need no hparams
+    hparams = lone.parent / "hparams.yaml"
+    for text in ("lr: 0.001\n", "batch_size: 0\n", "batch_size: eight\n", "batch_size: true\n", "- 8\n"):
+        hparams.write_text(text)
+        with pytest.raises(ValueError, match="no positive integer batch_size"):
+            run_batch_size(lone)
+    hparams.write_text("batch_size: 4\nencoder: !!python/object:torch.nn.Linear {}\n")  # a logged object
+    assert run_batch_size(lone) == 4
+    with pytest.raises(ValueError, match=r"x must be one of \['pairs', 'step'\]"):
+        load_runs({"D": [lone]}, x="epoch")
 
 
 def test_synthetic_metrics_look_like_lightnings(tmp_path: Path) -> None:
@@ -367,6 +395,19 @@ def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
     for path in written:
         read_png(path)
     assert "| val/rre_mean_deg | model D | 1 |" in summary_table(runs)
+    pairs = load_runs({"model D": [csv]}, x="pairs")["model D"][0]  # the hparams.yaml lcreg fit writes
+    assert pairs["val/rre_mean_deg"].steps.tolist() == [0, 2, 6]  # batch_size 2
+    assert "first @ pairs" in summary_table({"model D": [pairs]}, x="pairs").splitlines()[0]
+
+
+@needs_matplotlib
+def test_curves_on_training_pairs_say_so_on_their_x_axes(tmp_path: Path) -> None:
+    runs = load_runs({"D": [write_synthetic_metrics(tmp_path / "d" / "metrics.csv")]}, x="pairs")
+    for x, label in (("step", "step"), ("pairs", "training pairs")):
+        for _, fig in curve_figures(runs, x=x):
+            assert {ax.get_xlabel() for ax in fig.axes if ax.get_visible()} == {label}
+    with pytest.raises(ValueError, match="x must be one of"):
+        curve_figures(runs, x="epochs")
 
 
 def test_summary_lists_the_jacobian_diagnostics_best_when_highest(tmp_path: Path) -> None:

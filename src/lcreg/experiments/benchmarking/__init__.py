@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from lcreg.experiments.benchmarking.building import Values, build, build_cli_for, method_layers
 from lcreg.experiments.benchmarking.curves import (
+    X_AXES,
     Band,
     Series,
     aggregate,
@@ -104,6 +105,7 @@ __all__ = [
     "SELECTION_METRIC",
     "TERMINATED_EXIT_CODE",
     "VOXELIZE_CONFIG",
+    "X_AXES",
     "Band",
     "Budget",
     "FitResult",

@@ -9,6 +9,10 @@ max) and :func:`plot_curves` draws one PNG per figure of :data:`FIGURES` (panels
 out, and so are figures without panels); keys no figure claims go to ``other.png``. :func:`summary_table` gives the
 first (first validation), last and best value of the main metrics per label, ``mean ± std`` over seeds.
 
+The x axis is the optimiser step, or (``load_runs(..., x="pairs")``) the training pairs seen: step × the run's
+``batch_size`` from the ``hparams.yaml`` beside its ``metrics.csv`` (:func:`run_batch_size`), which puts runs of
+different batch sizes on one axis.
+
 matplotlib (the ``plot`` extra) is imported inside :func:`curve_figures` (which :func:`plot_curves` saves) only, with
 the ``Agg`` backend.
 """
@@ -41,6 +45,7 @@ __all__ = [
     "PANEL_SIZE",
     "SUMMARY_HEADER",
     "SUMMARY_KEYS",
+    "X_AXES",
     "Band",
     "CurveFigure",
     "Metrics",
@@ -54,7 +59,10 @@ __all__ = [
     "load_runs",
     "plot_curves",
     "read_metrics",
+    "run_batch_size",
     "run_files",
+    "scale_steps",
+    "summary_header",
     "summary_rows",
     "summary_table",
     "write_synthetic_metrics",
@@ -70,6 +78,8 @@ COLUMNS = 3
 """Panels per figure row."""
 TITLE_CHAR_PT = 6.0
 """Width of an average character of the 10 pt figure title, points (wide enough for capitals and digits)."""
+X_AXES = {"step": "step", "pairs": "training pairs"}
+"""The x axes :func:`load_runs` can put runs on, with their axis labels."""
 
 
 @dataclass(frozen=True)
@@ -289,9 +299,58 @@ def run_files(pattern: str | Path) -> list[Path]:
     return files
 
 
-def load_runs(runs: Mapping[str, Sequence[str | Path]]) -> dict[str, list[Metrics]]:
-    """:func:`read_metrics` of every file (or :func:`run_files` pattern) of each label, in order."""
-    return {label: [read_metrics(f) for p in patterns for f in run_files(p)] for label, patterns in runs.items()}
+def _x_label(x: str) -> str:
+    """The axis label of ``x``; a name not in :data:`X_AXES` is a ``ValueError``."""
+    if x not in X_AXES:
+        raise ValueError(f"x must be one of {sorted(X_AXES)}, got {x!r}")
+    return X_AXES[x]
+
+
+def run_batch_size(path: str | Path) -> int:
+    """The ``batch_size`` hyper-parameter of the run whose ``metrics.csv`` is ``path`` (its ``hparams.yaml``).
+
+    Raises:
+        FileNotFoundError: If there is no ``hparams.yaml`` beside ``path``.
+        ValueError: If it has no positive integer ``batch_size``.
+    """
+    import yaml
+
+    class Lenient(yaml.SafeLoader):
+        """Reads Python-tagged values (a logged object) as ``None``."""
+
+    Lenient.add_multi_constructor("", lambda loader, suffix, node: None)
+    hparams = Path(path).parent / "hparams.yaml"
+    if not hparams.is_file():
+        raise FileNotFoundError(f"no hparams.yaml beside {str(path)!r}: its run's batch size is unknown")
+    values = yaml.load(hparams.read_text(encoding="utf-8"), Lenient)
+    batch = values.get("batch_size") if isinstance(values, dict) else None
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"{hparams}: no positive integer batch_size (got {batch!r})")
+    return batch
+
+
+def scale_steps(metrics: Metrics, factor: int) -> Metrics:
+    """``metrics`` with every step multiplied by ``factor`` (steps to training pairs: the batch size)."""
+    return {key: Series(s.steps * factor, s.values) for key, s in metrics.items()}
+
+
+def load_runs(runs: Mapping[str, Sequence[str | Path]], x: str = "step") -> dict[str, list[Metrics]]:
+    """:func:`read_metrics` of every file (or :func:`run_files` pattern) of each label, in order.
+
+    Args:
+        runs: ``metrics.csv`` files or :func:`run_files` patterns by label.
+        x: A key of :data:`X_AXES`: ``"step"`` (as logged) or ``"pairs"`` (steps × :func:`run_batch_size`).
+
+    Raises:
+        ValueError: If ``x`` is not a key of :data:`X_AXES`.
+    """
+    _x_label(x)
+
+    def read(path: Path) -> Metrics:
+        metrics = read_metrics(path)
+        return scale_steps(metrics, run_batch_size(path)) if x == "pairs" else metrics
+
+    return {label: [read(f) for p in patterns for f in run_files(p)] for label, patterns in runs.items()}
 
 
 # --------------------------------------------------------------------------------------------------- seeds
@@ -358,7 +417,12 @@ def _summary_row(key: str, label: str, seeds: Sequence[Series]) -> list[str]:
     ]
 
 
-SUMMARY_HEADER = ("metric", "variant", "seeds", "first @ step", "last @ step", "best", "best at step")
+def summary_header(x: str = "step") -> tuple[str, ...]:
+    """The columns of :func:`summary_table` with the x axis ``x`` (a key of :data:`X_AXES`) in their names."""
+    return ("metric", "variant", "seeds", f"first @ {x}", f"last @ {x}", "best", f"best at {x}")
+
+
+SUMMARY_HEADER = summary_header()
 
 
 def summary_rows(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS) -> list[list[str]]:
@@ -376,9 +440,12 @@ def summary_rows(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS) -> list[list[st
     return rows
 
 
-def summary_table(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS) -> str:
-    """:func:`summary_rows` as a Markdown table (:func:`~lcreg.experiments.benchmarking.writers.markdown_table`)."""
-    return markdown_table(SUMMARY_HEADER, summary_rows(runs, keys))
+def summary_table(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS, x: str = "step") -> str:
+    """:func:`summary_rows` as a Markdown table (:func:`~lcreg.experiments.benchmarking.writers.markdown_table`).
+
+    ``x`` names the x axis the runs were loaded on (:func:`load_runs`) in the column names.
+    """
+    return markdown_table(summary_header(x), summary_rows(runs, keys))
 
 
 # --------------------------------------------------------------------------------------------------- figures
@@ -478,16 +545,16 @@ PANEL_TITLE_PT = 9.0
 """Font size of a panel's title, points."""
 
 
-def _style_axes(ax: Axes, title: str, ylabel: str) -> None:
+def _style_axes(ax: Axes, title: str, ylabel: str, xlabel: str) -> None:
     chars = int(PANEL_SIZE[0] * 72 / (PANEL_TITLE_PT * TITLE_CHAR_PT / 10))  # a 10 pt character is TITLE_CHAR_PT wide
     ax.set_title(textwrap.fill(title, chars, break_long_words=False), fontsize=PANEL_TITLE_PT)
-    ax.set_xlabel("step", fontsize=8)
+    ax.set_xlabel(xlabel, fontsize=8)
     ax.set_ylabel(ylabel, fontsize=8)
     ax.tick_params(which="both", labelsize=7)
     ax.grid(True, alpha=0.3, which="major", linewidth=0.5)
 
 
-def _draw_axes(ax: Axes, spec: AxesSpec, runs: Runs, colours: Mapping[str, str], smooth: float) -> None:
+def _draw_axes(ax: Axes, spec: AxesSpec, runs: Runs, colours: Mapping[str, str], smooth: float, xlabel: str) -> None:
     """One panel: colour per label and style per key, or (``by_key``) colour per key of the one label."""
     from matplotlib.lines import Line2D
 
@@ -500,7 +567,7 @@ def _draw_axes(ax: Axes, spec: AxesSpec, runs: Runs, colours: Mapping[str, str],
                 low, high = min(low, float(band.low.min())), max(high, float(band.high.max()))
                 _draw(ax, band, colour if panel.by_key else colours[label], style, panel.scale, key.startswith("val/"))
         handles.append(Line2D([], [], color=colour, linestyle=style, label=panel.name(key)))
-    _style_axes(ax, f"{panel.title}: {labels[0]}" if panel.by_key else panel.title, panel.ylabel)
+    _style_axes(ax, f"{panel.title}: {labels[0]}" if panel.by_key else panel.title, panel.ylabel, xlabel)
     if panel.log and low > 0:
         _log_scale(ax, low * panel.scale, high * panel.scale)
     if panel.by_key:  # beside the axes: the lines of the six directions fill it
@@ -539,14 +606,14 @@ def _title(title: str, runs: Runs, specs: Sequence[AxesSpec], smooth: float) -> 
     return title + (f" ({'; '.join(notes)})" if notes else "")
 
 
-def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float) -> Figure:
+def _render(title: str, specs: Sequence[AxesSpec], runs: Runs, smooth: float, xlabel: str) -> Figure:
     """Draw ``specs`` on an Agg canvas of :func:`figure_pixels`."""
     width, height = figure_pixels(len(specs))
     fig = agg_figure(width / DPI, height / DPI, DPI, "learning curves")
     axes = fig.subplots(math.ceil(len(specs) / COLUMNS), min(len(specs), COLUMNS), squeeze=False).ravel()
     colours = {label: f"C{i % 10}" for i, label in enumerate(runs)}
     for ax, spec in zip(axes, specs):
-        _draw_axes(ax, spec, runs, colours, smooth)
+        _draw_axes(ax, spec, runs, colours, smooth, xlabel)
     for ax in axes[len(specs) :]:
         ax.set_visible(False)
     drawn = [label for label in runs if any(label in labels for _, _, labels in specs)]
@@ -560,7 +627,7 @@ def _wrapped(title: str, width_px: int) -> str:
     return textwrap.fill(title, chars, break_long_words=False)
 
 
-def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float = 0.0) -> list[Path]:
+def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float = 0.0, x: str = "step") -> list[Path]:
     """Write ``<out_dir>/<prefix><figure>.png`` for each figure with a logged key; returns the written files.
 
     Figures: ``validation`` (RRE mean and median, RTE, recalls at (5°, 0.05) and (2°, 0.01), RMSE/MAE),
@@ -574,17 +641,20 @@ def plot_curves(runs: Runs, out_dir: str | Path, prefix: str = "", smooth: float
         out_dir: Folder of the PNGs (created).
         prefix: Start of every file name.
         smooth: :func:`ema` weight of the training (not ``val/``) series, applied per seed before aggregating.
+        x: The x axis ``runs`` were loaded on (a key of :data:`X_AXES`; :func:`load_runs`), for its label.
     """
-    return [save_png(fig, Path(out_dir) / f"{prefix}{name}.png") for name, fig in curve_figures(runs, smooth)]
+    figures = curve_figures(runs, smooth, x)
+    return [save_png(fig, Path(out_dir) / f"{prefix}{name}.png") for name, fig in figures]
 
 
-def curve_figures(runs: Runs, smooth: float = 0.0) -> list[tuple[str, Figure]]:
+def curve_figures(runs: Runs, smooth: float = 0.0, x: str = "step") -> list[tuple[str, Figure]]:
     """The figures of :func:`plot_curves` by name (``validation``, ``jacobian``, ``training``, ``other``), unsaved."""
+    xlabel = _x_label(x)
     present = sorted({key for seeds in runs.values() for metrics in seeds for key in metrics})
     figures = []
     for fig, panels in _layout(present):
         if specs := _axes_specs(panels, runs):
-            figures.append((fig.name, _render(fig.title, specs, runs, smooth)))
+            figures.append((fig.name, _render(fig.title, specs, runs, smooth, xlabel)))
     return figures
 
 
@@ -628,13 +698,13 @@ def _synthetic_rows(rng: np.random.Generator, steps: int, log_every: int, val_ev
 
 
 def write_synthetic_metrics(
-    path: str | Path, seed: int = 0, steps: int = 60, log_every: int = 2, val_every: int = 20
+    path: str | Path, seed: int = 0, steps: int = 60, log_every: int = 2, val_every: int = 20, batch_size: int = 8
 ) -> Path:
     """Write a Lightning-like sparse ``metrics.csv`` of a DVDs run (smoke runs and tests); returns the path.
 
     Training rows every ``log_every`` steps (``train/<term>_step`` losses, Jacobian diagnostics, gradient norms),
     validation rows every ``val_every`` steps and epoch-end rows (``train/loss_epoch``) every 32 steps; values from
-    ``numpy.random.default_rng(seed)``.
+    ``numpy.random.default_rng(seed)``. Beside it an ``hparams.yaml`` with ``batch_size`` (:func:`run_batch_size`).
     """
     rows = _synthetic_rows(np.random.default_rng(seed), steps, log_every, val_every)
     columns = ["epoch", "step", *sorted({key for row in rows for key in row} - {"epoch", "step"})]
@@ -644,4 +714,5 @@ def write_synthetic_metrics(
         writer = csv.DictWriter(fh, columns)
         writer.writeheader()
         writer.writerows(rows)
+    (path.parent / "hparams.yaml").write_text(f"batch_size: {batch_size}\n", encoding="utf-8")
     return path
