@@ -144,7 +144,20 @@ class TrainingLogic(RegistrationInterface):
             self._skip_step(f"non-finite loss (terms {', '.join(bad)})")
             return None
         self._log_losses(losses, "train", len(batch))
+        self._log_learning_rate(len(batch))
         return loss
+
+    def _log_learning_rate(self, batch_size: int) -> None:
+        """Log the rate of the first optimiser's first parameter group as ``train/lr`` (the rate of this step).
+
+        An injected ``lr_scheduler`` steps per epoch, so where it changes the rate depends on the training set's size;
+        the logged rate shows in each run's curves when it did.
+        """
+        trainer = self._trainer
+        optimizers = getattr(trainer, "optimizers", None) if trainer is not None else None
+        if optimizers:
+            lr = float(optimizers[0].param_groups[0]["lr"])
+            self.log("train/lr", lr, on_step=True, on_epoch=False, batch_size=batch_size)
 
     def on_train_start(self) -> None:
         """Refuse to train from non-finite parameters (loaded weights or checkpoint holding NaN/Inf).

@@ -16,12 +16,14 @@ from lcreg.experiments.benchmarking.curves import (
     SUMMARY_HEADER,
     Panel,
     Series,
+    _layout,
     aggregate,
     canonical_key,
     curve_figures,
     ema,
     figure_pixels,
     load_runs,
+    lr_changes,
     plot_curves,
     read_metrics,
     run_batch_size,
@@ -185,6 +187,24 @@ def test_ema_is_bias_corrected() -> None:
     np.testing.assert_allclose(ema(s, 0.5).values, [1.0, 1.75 / 0.75, 2.375 / 0.875])
 
 
+def test_lr_changes_are_the_first_logged_steps_at_each_new_rate() -> None:
+    metrics = {"train/lr": series([0, 10, 20, 30, 40, 50], [1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 5e-5])}
+    changes = lr_changes(metrics)
+    assert [s for s, _ in changes] == [20, 50]
+    np.testing.assert_allclose([f for _, f in changes], [0.1, 0.5])
+    assert lr_changes({"train/lr": series([0, 10], [1e-3, 1e-3])}) == []
+    assert lr_changes({"train/loss": series([0, 10], [1.0, 0.5])}) == []  # no rate logged
+
+
+def test_the_learning_rate_is_the_last_training_panel_not_a_loss(tmp_path: Path) -> None:
+    metrics = read_metrics(write_synthetic_metrics(tmp_path / "m.csv"))
+    assert [s for s, _ in lr_changes(metrics)] == [41]  # the first logged step after the synthetic drop at 40
+    (training,) = [panels for fig, panels in _layout(sorted(metrics)) if fig.name == "training"]
+    assert [p.title for p, _ in training][-1] == "learning rate" and "lr loss" not in [p.title for p, _ in training]
+    (training,) = [panels for fig, panels in _layout(["train/loss", "val/loss"]) if fig.name == "training"]
+    assert [p.title for p, _ in training] == ["total loss"]  # no rate logged: no empty panel
+
+
 def test_panels_match_patterns_in_order_and_name_keys() -> None:
     panel = Panel("norms", ("train/*_grad_norm", "train/x"))
     present = ["train/x", "train/lc_grad_norm", "train/global_grad_norm", "val/x"]
@@ -290,7 +310,7 @@ def test_plot_curves_writes_one_png_per_figure_of_the_expected_size(tmp_path: Pa
     assert [p.name for p in written] == ["validation.png", "jacobian.png", "training.png"]
     assert_drawn(read_png(written[0]), 3)  # RRE, RTE, recall (no RMSE/MAE logged)
     assert_drawn(read_png(written[1]), 5)  # J cond, J sensitivity, gradient norms, per direction for each label
-    assert_drawn(read_png(written[2]), 5)  # loss, global, lc, recon, normal
+    assert_drawn(read_png(written[2]), 6)  # loss, global, lc, recon, normal, learning rate
 
 
 @needs_matplotlib
@@ -382,6 +402,9 @@ def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
             "--trainer.log_every_n_steps=1",
             "--trainer.enable_progress_bar=false",
             "--trainer.enable_model_summary=false",
+            "--model.init_args.lr_scheduler=torch.optim.lr_scheduler.StepLR",  # stepped per epoch of 2 steps
+            "--model.init_args.lr_scheduler.init_args.step_size=1",
+            "--model.init_args.lr_scheduler.init_args.gamma=0.5",
         ]
     )
     (csv,) = run_files(tmp_path / "runs")
@@ -390,6 +413,8 @@ def test_a_real_fit_run_is_plotted(tmp_path: Path) -> None:
     assert metrics["val/rre_mean_deg"].steps.tolist() == [0, 1, 3]  # configs/dvds.yaml validates its start first
     assert metrics["train/loss"].steps.tolist() == [0, 1, 2, 3]  # the _step values, not the epoch means
     assert {"train/lc", "train/recon", "train/normal", "train/global_grad_norm"} <= set(metrics)
+    assert_series(metrics["train/lr"], [0, 1, 2, 3], [3e-5, 3e-5, 1.5e-5, 1.5e-5])  # the rate each step used
+    assert [(s, round(f, 6)) for s, f in lr_changes(metrics)] == [(2, 0.5)]
     written = plot_curves(runs, tmp_path / "curves")
     assert {p.name for p in written} >= {"validation.png", "jacobian.png", "training.png"}
     for path in written:

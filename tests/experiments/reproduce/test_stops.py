@@ -57,11 +57,29 @@ def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_ord
     }
     lines = stops_table(LC, rows, "converge").splitlines()[2:]
     assert lines == [
-        "| idam/X | 1 | 68 | step cap | – | – | 3 | – |",
-        "| idam/X | 2 | 4664 | early stop (no gain) | `b.ckpt` | 1.503 (`val/rre_clip5_deg`) | 12 | – |",
-        "| idam/LC | 0 | 5016 | step cap | `s.ckpt` | 1.3 (`val/rre_clip5_deg`) | 12 | 812 |",
+        "| idam/X | 1 | 68 | step cap | – | – | – | 3 | – |",
+        "| idam/X | 2 | 4664 | early stop (no gain) | `b.ckpt` | 1.503 (`val/rre_clip5_deg`) | – | 12 | – |",
+        "| idam/LC | 0 | 5016 | step cap | `s.ckpt` | 1.3 (`val/rre_clip5_deg`) | – | 12 | 812 |",
     ]
     assert "| idam/LC | 0 | 5016 | end of the budget |" in stops_table(LC, rows, "cpu")
+
+
+def test_stops_table_says_when_each_runs_learning_rate_changed(tmp_path: Path) -> None:
+    """An epoch-stepped schedule drops at a step set by the training set's size: the table shows the step."""
+    dropped, constant, older = (tmp_path / name / "metrics.csv" for name in ("dropped", "constant", "older"))
+    for path, text in (
+        (dropped, "epoch,step,train/lr\n0,9,1e-4\n1,19,1e-4\n2,29,1e-5\n3,39,1e-5\n4,49,2e-6\n"),
+        (constant, "epoch,step,train/lr\n0,9,1e-4\n1,19,1e-4\n"),
+        (older, "epoch,step,train/loss_step\n0,9,1.0\n"),  # written before the rate was logged
+    ):
+        path.parent.mkdir()
+        path.write_text(text)
+    rows = {
+        "idam/X": [{"seed": s, "steps": 50, "metrics_csv": str(p)} for s, p in enumerate((dropped, constant, older))]
+        + [{"seed": 3, "steps": 50, "metrics_csv": str(tmp_path / "gone" / "metrics.csv")}]
+    }
+    cells = [line.split(" | ")[6] for line in stops_table(LC, rows, "converge").splitlines()[2:]]
+    assert cells == ["29: ×0.1, 49: ×0.2", "none", "–", "–"]
 
 
 def test_a_report_of_a_copied_output_folder_has_the_stops_and_learning_curves(

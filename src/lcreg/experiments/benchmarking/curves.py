@@ -57,6 +57,7 @@ __all__ = [
     "ema",
     "figure_pixels",
     "load_runs",
+    "lr_changes",
     "plot_curves",
     "read_metrics",
     "run_batch_size",
@@ -202,6 +203,8 @@ JACOBIAN = CurveFigure(
 )
 FIGURES = (VALIDATION, JACOBIAN)
 """Figures with fixed panels; ``training.png`` (one panel per training-loss term) and ``other.png`` follow them."""
+LR_KEY = "train/lr"
+"""The learning rate each training step used (:meth:`lcreg.models.training.TrainingLogic._log_learning_rate`)."""
 LOSS_ORDER = ("loss", "global", "lc", "recon", "normal")
 """Training-loss terms first in ``training.png`` (then the others alphabetically)."""
 SUMMARY_KEYS = (
@@ -378,6 +381,20 @@ def aggregate(series: Sequence[Series]) -> Band:
     return Band(steps, mean, std, low, high, count)
 
 
+def lr_changes(metrics: Metrics, key: str = LR_KEY) -> list[tuple[int, float]]:
+    """Where a run's logged learning rate changed: the first logged step at each new rate and the factor (new / old).
+
+    The rate is logged every ``log_every_n_steps``, so a step here is within that many steps after the change. A run
+    that did not log ``key`` has none.
+    """
+    series = metrics.get(key)
+    if series is None or len(series.values) < 2:
+        return []
+    values = series.values
+    moved = np.flatnonzero(~np.isclose(values[1:], values[:-1], rtol=1e-6, atol=0.0)) + 1
+    return [(int(series.steps[i]), float(values[i] / values[i - 1])) for i in moved]
+
+
 def _seed_series(seeds: Sequence[Metrics], key: str) -> list[Series]:
     return [metrics[key] for metrics in seeds if key in metrics and len(metrics[key].steps)]
 
@@ -451,17 +468,22 @@ def summary_table(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS, x: str = "step
 # --------------------------------------------------------------------------------------------------- figures
 
 
+LEARNING_RATE = Panel("learning rate", (LR_KEY,), "lr", log=True)
+"""The last panel of ``training.png``: the logged rate (``train/lr``) of each run."""
+
+
 def _loss_panels(present: Sequence[str]) -> tuple[Panel, ...]:
-    """One panel per training-loss term (``train/x`` with its ``val/x``), :data:`LOSS_ORDER` first."""
+    """One panel per training-loss term (``train/x`` with its ``val/x``), :data:`LOSS_ORDER` first; the rate last."""
     terms = sorted(
-        (key.split("/", 1)[1] for key in present if key.startswith("train/")),
+        (key.split("/", 1)[1] for key in present if key.startswith("train/") and key != LR_KEY),
         key=lambda t: (LOSS_ORDER.index(t) if t in LOSS_ORDER else len(LOSS_ORDER), t),
     )
     names = ("train", "validation")
-    return tuple(
+    losses = tuple(
         Panel("total loss" if t == "loss" else f"{t} loss", (f"train/{t}", f"val/{t}"), "", names, log=True)
         for t in terms
     )
+    return (*losses, LEARNING_RATE)
 
 
 def _layout(present: Sequence[str]) -> list[tuple[CurveFigure, list[tuple[Panel, list[str]]]]]:
@@ -472,8 +494,8 @@ def _layout(present: Sequence[str]) -> list[tuple[CurveFigure, list[tuple[Panel,
         panels = [(p, p.matches(left)) for p in fig.panels]
         layout.append((fig, [(p, keys) for p, keys in panels if keys]))
         left = [k for k in left if not any(k in keys for _, keys in panels)]
-    for fig in (CurveFigure("training", "training losses", _loss_panels(left)),):
-        panels = [(p, p.matches(left)) for p in fig.panels]
+    for fig in (CurveFigure("training", "training losses and learning rate", _loss_panels(left)),):
+        panels = [(p, keys) for p in fig.panels if (keys := p.matches(left))]
         layout.append((fig, panels))
         left = [k for k in left if not any(k in keys for _, keys in panels)]
     layout.append((CurveFigure("other", "other logged values", ()), [(Panel(k, (k,)), [k]) for k in left]))
@@ -681,6 +703,7 @@ def _synthetic_rows(rng: np.random.Generator, steps: int, log_every: int, val_ev
             }
             row |= {d: 10 ** (i / 2 - 2) * noise[7 + i] for i, d in enumerate(DIRECTIONS)}
             row |= {"train/global_grad_norm": 0.08 * noise[13], "train/lc_grad_norm": 0.01 * noise[14]}
+            row |= {LR_KEY: 1e-3 if s < 40 else 1e-4}  # a step schedule's drop at step 40
             rows.append({"epoch": s // 32, "step": s, **row})
         if (s + 1) % val_every == 0:
             rre = float(_decay(np.array(s), 14.0, 4.0, 40.0)) * noise[15]

@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from lcreg.experiments.benchmarking import markdown_table, plot_curves, read_metrics
+from lcreg.experiments.benchmarking import lr_changes, markdown_table, plot_curves, read_metrics
 from lcreg.experiments.reproduce.budgets import Preset
 from lcreg.experiments.reproduce.spec import Experiment, Rows
 
@@ -30,6 +30,7 @@ STOPS_HEADER = [
     "why",
     "selected checkpoint",
     "best validation",
+    "lr changes (step: ×factor)",
     "train s (a resumed run: the segments it kept; rows before session 12: the last one)",
     "peak MiB (GPU: allocated; CPU: resident increase)",
 ]
@@ -85,10 +86,22 @@ def _best(row: Mapping[str, Any]) -> str:
     return "–" if value is None else f"{float(value):.4g} (`{metric or 'val'}`)"
 
 
+def _lr_cell(row: Mapping[str, Any]) -> str:
+    """The run's learning-rate changes from its ``metrics.csv`` (:func:`lr_changes`); ``–`` where none was logged."""
+    path = metrics_file(row)
+    metrics = read_metrics(path) if path is not None else {}
+    if "train/lr" not in metrics:
+        return "–"
+    changes = lr_changes(metrics)
+    return ", ".join(f"{step}: ×{factor:.3g}" for step, factor in changes) if changes else "none"
+
+
 def stops_table(experiment: Experiment, rows: Rows, preset: Preset) -> str:
     """One line per finished run, in the experiment's variant order, then by seed: where and why it stopped.
 
-    Why: ``early stop (no gain)`` or ``step cap`` for a converge budget, ``end of the budget`` for a fixed one.
+    Why: ``early stop (no gain)`` or ``step cap`` for a converge budget, ``end of the budget`` for a fixed one. The
+    learning rate's changes (a schedule stepped per epoch moves them with the training set's size) are read from the
+    run's ``metrics.csv`` (``–``: not found, or logged before the rate was).
     """
     lines = []
     for variant in experiment.variants:
@@ -104,6 +117,7 @@ def stops_table(experiment: Experiment, rows: Rows, preset: Preset) -> str:
                     _why(row, converge),
                     selected,
                     _best(row),
+                    _lr_cell(row),
                     "–" if seconds is None else f"{float(seconds):.0f}",
                     "–" if row.get("peak_mib") is None else f"{float(row['peak_mib']):.0f}",
                 ]
