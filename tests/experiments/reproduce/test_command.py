@@ -239,7 +239,10 @@ def test_set_gives_every_run_of_a_sweep_a_config_value_and_keys_its_runs_apart(t
     config = yaml.safe_load((Path(row["metrics_csv"]).parent / "config.yaml").read_text())
     assert config["model"]["init_args"]["lr_scheduler"]["init_args"]["milestones"] == [60]
     assert Path(row["metrics_csv"]).parent.parent.parent.name.startswith("idam_X_set")
-    assert f"; set {milestones}=[60]" in (tmp_path / "lc.md").read_text()  # the report's budget line
+    report = (tmp_path / "lc.md").read_text()  # the budget's own line, then the set values on theirs
+    assert "- Budget `smoke` per run: 2 steps × 2 pairs × 128 points, validated every 2 steps.\n" in report
+    set_line = "- Set on every run (`--set`; each replaces the budget's value of its key, if it has one): "
+    assert f"{set_line}`{milestones}=[60]`.\n" in report
     calls: list[tuple[str, int]] = []
     run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
     assert calls == [("idam", 0)]  # without the setting: another run

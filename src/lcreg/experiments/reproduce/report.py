@@ -9,6 +9,7 @@ finished; the claims section says for each of the paper's claims whether it hold
 
 from __future__ import annotations
 
+import json
 import statistics
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -199,13 +200,25 @@ def claims_table(experiment: Experiment, rows: Rows) -> str:
 
 
 def _budget_lines(sweep: Sweep) -> list[str]:
-    """One line per budget group (one line when all groups share a budget)."""
+    """One line per budget group (one line when all groups share a budget), then the ``--set`` values.
+
+    A set value replaces the budget's own where it names one (``trainer.max_steps`` its steps,
+    ``data.init_args.batch_size`` its batch), so it gets its own line rather than trailing the budget's text (the rows'
+    keys keep that text: :meth:`Sweep.key`).
+    """
     budgets = sweep.experiment.budgets[sweep.preset]
     groups = list(dict.fromkeys(v.budget_group for v in sweep.experiment.variants))
-    described = {g: budgets[g].describe() + sweep.settings_text() for g in groups}
+    described = {g: budgets[g].describe() for g in groups}
     if len(set(described.values())) <= 1:
-        return [f"- Budget `{sweep.preset}` per run: {next(iter(described.values()), '–')}."]
-    return [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}." for g, d in described.items()]
+        lines = [f"- Budget `{sweep.preset}` per run: {next(iter(described.values()), '–')}."]
+    else:
+        lines = [f"- Budget `{sweep.preset}` per run:"] + [f"  - {g}: {d}." for g, d in described.items()]
+    if sweep.settings:
+        values = ", ".join(f"`{k}={json.dumps(v)}`" for k, v in sweep.settings)
+        lines.append(
+            f"- Set on every run (`--set`; each replaces the budget's value of its key, if it has one): {values}."
+        )
+    return lines
 
 
 def _monitors(sweep: Sweep) -> str:
