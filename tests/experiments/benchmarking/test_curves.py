@@ -199,10 +199,11 @@ def test_lr_changes_are_the_first_logged_steps_at_each_new_rate() -> None:
 def test_the_learning_rate_is_the_last_training_panel_not_a_loss(tmp_path: Path) -> None:
     metrics = read_metrics(write_synthetic_metrics(tmp_path / "m.csv"))
     assert [s for s, _ in lr_changes(metrics)] == [41]  # the first logged step after the synthetic drop at 40
-    (training,) = [panels for fig, panels in _layout(sorted(metrics)) if fig.name == "training"]
+    (fig, training), *_ = [(fig, panels) for fig, panels in _layout(sorted(metrics)) if fig.name == "training"]
     assert [p.title for p, _ in training][-1] == "learning rate" and "lr loss" not in [p.title for p, _ in training]
-    (training,) = [panels for fig, panels in _layout(["train/loss", "val/loss"]) if fig.name == "training"]
-    assert [p.title for p, _ in training] == ["total loss"]  # no rate logged: no empty panel
+    assert fig.title == "training losses and learning rate"
+    (fig, training), *_ = [(f, panels) for f, panels in _layout(["train/loss", "val/loss"]) if f.name == "training"]
+    assert [p.title for p, _ in training] == ["total loss"] and fig.title == "training losses"  # no rate: no panel
 
 
 def test_panels_match_patterns_in_order_and_name_keys() -> None:

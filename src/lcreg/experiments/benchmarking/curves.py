@@ -494,7 +494,8 @@ def _layout(present: Sequence[str]) -> list[tuple[CurveFigure, list[tuple[Panel,
         panels = [(p, p.matches(left)) for p in fig.panels]
         layout.append((fig, [(p, keys) for p, keys in panels if keys]))
         left = [k for k in left if not any(k in keys for _, keys in panels)]
-    for fig in (CurveFigure("training", "training losses and learning rate", _loss_panels(left)),):
+    title = "training losses" + (" and learning rate" if LR_KEY in left else "")
+    for fig in (CurveFigure("training", title, _loss_panels(left)),):
         panels = [(p, keys) for p in fig.panels if (keys := p.matches(left))]
         layout.append((fig, panels))
         left = [k for k in left if not any(k in keys for _, keys in panels)]
