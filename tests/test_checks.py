@@ -9,12 +9,14 @@ from lcreg.checks import (
     NonFiniteError,
     ShapeError,
     TooFewPointsError,
+    check_count_or_fraction,
     check_finite,
     check_float,
     check_points,
     check_same_batch,
     check_shape,
     check_transform,
+    resolve_count,
 )
 
 
@@ -23,6 +25,36 @@ def test_error_hierarchy() -> None:
     assert issubclass(NonFiniteError, ValueError)
     assert issubclass(TooFewPointsError, ValueError)
     assert issubclass(DatasetLayoutError, ValueError)
+
+
+@pytest.mark.parametrize("value", [1, 768, 0.25, 1.0])
+def test_check_count_or_fraction_returns_a_count_or_a_fraction_as_given(value: int | float) -> None:
+    assert check_count_or_fraction(value, "keep") is value
+
+
+@pytest.mark.parametrize(
+    ("value", "error", "message"),
+    [
+        (0, ValueError, "`keep` as a count must be >= 1, got 0"),
+        (-3, ValueError, "`keep` as a count must be >= 1"),
+        (0.0, ValueError, r"`keep` as a fraction must be in \(0, 1\], got 0.0"),
+        (1.5, ValueError, r"`keep` as a fraction must be in \(0, 1\]"),
+        (float("nan"), ValueError, "as a fraction"),
+        (True, TypeError, "`keep` must be an int count or a float fraction, got True"),
+        ("3", TypeError, "got '3'"),
+        (None, TypeError, "got None"),
+    ],
+)
+def test_check_count_or_fraction_names_the_argument(value: object, error: type[Exception], message: str) -> None:
+    with pytest.raises(error, match=message):
+        check_count_or_fraction(value, "keep")
+    with pytest.raises(ValueError, match="`keep`"):  # a caller may want a ValueError for every bad value
+        check_count_or_fraction(value, "keep", wrong_type=ValueError)
+
+
+def test_resolve_count_rounds_a_fraction_of_the_total_and_keeps_a_count() -> None:
+    assert [resolve_count(v, 705) for v in (0.5, 0.25, 1.0, 1e-9, 176)] == [352, 176, 705, 1, 176]
+    assert resolve_count(0.75, 512) == 384 and resolve_count(0.75, 1024) == 768
 
 
 def test_shape_error_attributes_and_message() -> None:

@@ -29,6 +29,7 @@ __all__ = [
     "PointCloudFileError",
     "ShapeError",
     "TooFewPointsError",
+    "check_count_or_fraction",
     "check_extent",
     "check_finite",
     "check_float",
@@ -37,6 +38,7 @@ __all__ = [
     "check_same_batch",
     "check_shape",
     "check_transform",
+    "resolve_count",
 ]
 
 SUPPORTED_DTYPES = (torch.float32, torch.float64)
@@ -119,6 +121,31 @@ def dataset_root(root: str | Path, what: str, layout: str, argument: str = "--da
     raise DatasetNotFoundError(
         f"{what}: root {str(root)!r}{where} is not a directory; give the dataset's folder with {argument}; {layout}"
     )
+
+
+def check_count_or_fraction(value: object, name: str, wrong_type: type[Exception] = TypeError) -> int | float:
+    """Check that ``value`` is an int count ``>= 1`` or a float fraction in ``(0, 1]`` and return it.
+
+    Args:
+        value: The value to check (a bool is neither).
+        name: The argument it was given as, named in the message.
+        wrong_type: The error raised for a value of another type.
+
+    Raises:
+        ValueError: For a count below 1 or a fraction outside ``(0, 1]``; ``wrong_type`` for another type.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise wrong_type(f"`{name}` must be an int count or a float fraction, got {value!r}")
+    if isinstance(value, int) and value < 1:
+        raise ValueError(f"`{name}` as a count must be >= 1, got {value!r}")
+    if isinstance(value, float) and not 0.0 < value <= 1.0:
+        raise ValueError(f"`{name}` as a fraction must be in (0, 1], got {value!r}")
+    return value
+
+
+def resolve_count(value: int | float, total: int) -> int:
+    """A :func:`check_count_or_fraction` value as a count of ``total``: a count as it is, a fraction rounded (>= 1)."""
+    return max(1, round(value * total)) if isinstance(value, float) else value
 
 
 def check_float(x: object, name: str) -> torch.Tensor:

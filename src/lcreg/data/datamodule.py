@@ -21,7 +21,13 @@ import torch
 from lightning.pytorch import LightningDataModule
 from torch.utils.data import DataLoader, Dataset
 
-from lcreg.checks import DatasetLayoutError, ShapeError, dataset_root
+from lcreg.checks import (
+    DatasetLayoutError,
+    ShapeError,
+    check_count_or_fraction,
+    dataset_root,
+    resolve_count,
+)
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, load_shape_names, modelnet40_objects
 from lcreg.data.pairs import ObjectSet, PairProtocol, PartialMode, make_pair
@@ -151,15 +157,7 @@ def _check_pairs_per_object(value: Any, name: str = "pairs_per_object", minimum:
 
 def _check_train_objects(value: Any) -> int | float | None:
     """``train_objects``: ``None``, an int count ``>= 1`` or a float fraction in ``(0, 1]`` (else a ``ValueError``)."""
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"`train_objects` must be an int count, a float fraction or None, got {value!r}")
-    if isinstance(value, int) and value < 1:
-        raise ValueError(f"`train_objects` as a count must be >= 1, got {value!r}")
-    if isinstance(value, float) and not 0.0 < value <= 1.0:
-        raise ValueError(f"`train_objects` as a fraction must be in (0, 1], got {value!r}")
-    return value
+    return None if value is None else check_count_or_fraction(value, "train_objects", wrong_type=ValueError)
 
 
 class PairDataModule(ResumableTrainingOrder, LightningDataModule):
@@ -274,12 +272,9 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         if self.train_objects is None:
             return objects
         total = len(objects)
-        if isinstance(self.train_objects, int):
-            if self.train_objects > total:
-                raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects")
-            count = self.train_objects
-        else:
-            count = max(1, round(self.train_objects * total))
+        if isinstance(self.train_objects, int) and self.train_objects > total:
+            raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects")
+        count = resolve_count(self.train_objects, total)
         generator = torch.Generator().manual_seed(self.seed + TRAIN_SUBSET_SEED_OFFSET)
         return objects.subset(np.sort(torch.randperm(total, generator=generator).numpy()[:count]))
 

@@ -33,7 +33,15 @@ from typing import Literal, get_args
 import numpy as np
 import torch
 
-from lcreg.checks import ShapeError, TooFewPointsError, check_finite, check_float, check_shape
+from lcreg.checks import (
+    ShapeError,
+    TooFewPointsError,
+    check_count_or_fraction,
+    check_finite,
+    check_float,
+    check_shape,
+    resolve_count,
+)
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.geometry.se3 import transform_normals, transform_points
 
@@ -93,13 +101,7 @@ class PairProtocol:
             raise ValueError(f"`max_angle_deg` must be <= 180, got {self.max_angle_deg!r}")
         if self.partial not in _PARTIAL_MODES:
             raise ValueError(f"`partial` must be one of {_PARTIAL_MODES}, got {self.partial!r}")
-        keep = self.partial_keep
-        if isinstance(keep, bool) or not isinstance(keep, (int, float)):
-            raise TypeError(f"`partial_keep` must be an int count or a float fraction, got {keep!r}")
-        if isinstance(keep, float) and not 0.0 < keep <= 1.0:
-            raise ValueError(f"`partial_keep` as a fraction must be in (0, 1], got {keep!r}")
-        if isinstance(keep, int) and keep < 1:
-            raise ValueError(f"`partial_keep` as a count must be >= 1, got {keep!r}")
+        keep = check_count_or_fraction(self.partial_keep, "partial_keep")
         if self.partial != "none" and isinstance(keep, int) and keep > self.num_points:
             raise ValueError(f"`partial_keep` ({keep}) must be <= `num_points` ({self.num_points}) for a crop")
 
@@ -108,9 +110,7 @@ class PairProtocol:
         """Points in each output cloud: ``num_points`` without a crop, else the resolved ``partial_keep``."""
         if self.partial == "none":
             return self.num_points
-        if isinstance(self.partial_keep, float):
-            return max(1, round(self.partial_keep * self.num_points))
-        return self.partial_keep
+        return resolve_count(self.partial_keep, self.num_points)
 
 
 @dataclass
