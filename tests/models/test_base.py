@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from lightning.pytorch import Callback, Trainer
 
 from lcreg.geometry import se3
 from lcreg.models.base import RegistrationModule
@@ -64,8 +65,53 @@ def test_plateau_scheduler_is_monitored_on_the_validation_loss() -> None:
     assert config["lr_scheduler"]["monitor"] == "val/loss"
     step = partial(torch.optim.lr_scheduler.StepLR, step_size=3)
     config = _Translate(lr_scheduler=step).configure_optimizers()
-    assert isinstance(config["lr_scheduler"], torch.optim.lr_scheduler.StepLR)
+    assert isinstance(config["lr_scheduler"]["scheduler"], torch.optim.lr_scheduler.StepLR)
+    assert config["lr_scheduler"]["interval"] == "epoch"
+    assert (
+        _Translate(lr_scheduler=step, lr_scheduler_interval="step").configure_optimizers()["lr_scheduler"]["interval"]
+        == "step"
+    )
     assert isinstance(_Translate().configure_optimizers(), torch.optim.Adam)
+
+
+class _Rates(Callback):
+    """The learning rate of every training batch."""
+
+    def __init__(self) -> None:
+        self.seen: list[float] = []
+
+    def on_train_batch_start(self, trainer: Trainer, *args: object) -> None:
+        self.seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+
+def test_a_step_interval_steps_the_schedule_after_every_optimiser_step() -> None:
+    """Milestones in steps do not move with the training set's size (an epoch here is 2 steps)."""
+    step = partial(torch.optim.lr_scheduler.StepLR, step_size=3, gamma=0.5)
+    rates: dict[str, list[float]] = {}
+    for interval in ("epoch", "step"):
+        model, recorder = _Translate(lr_scheduler=step, lr_scheduler_interval=interval), _Rates()
+        loader = torch.utils.data.DataLoader([_batch(), _batch()], batch_size=None, collate_fn=lambda b: b)
+        trainer = Trainer(
+            max_steps=8,
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            callbacks=[recorder],
+        )
+        trainer.fit(model, train_dataloaders=loader)
+        rates[interval] = recorder.seen
+    lr = 1e-3  # Adam's default
+    assert rates["step"] == [lr] * 3 + [lr / 2] * 3 + [lr / 4] * 2
+    assert rates["epoch"] == [lr] * 6 + [lr / 2] * 2  # every 3 epochs of 2 steps
+
+
+def test_a_step_interval_is_refused_for_a_plateau_schedule_and_a_bad_interval() -> None:
+    plateau = partial(torch.optim.lr_scheduler.ReduceLROnPlateau, factor=0.5)
+    with pytest.raises(ValueError, match="ReduceLROnPlateau steps on the validation loss"):
+        _Translate(lr_scheduler=plateau, lr_scheduler_interval="step").configure_optimizers()
+    with pytest.raises(ValueError, match="`lr_scheduler_interval` must be 'epoch' or 'step', got 'batch'"):
+        _Translate(lr_scheduler_interval="batch")
 
 
 class _CountingRefiner(RegistrationModule):

@@ -51,6 +51,7 @@ class TrainingLogic(RegistrationInterface):
     loss_terms: torch.nn.ModuleList
     optimizer_factory: OptimizerFactory
     scheduler_factory: SchedulerFactory | None
+    lr_scheduler_interval: str = "epoch"
     max_bad_steps: int
     _bad_steps: int = 0
     _step_skipped: bool = False
@@ -269,9 +270,15 @@ class TrainingLogic(RegistrationInterface):
         if self.scheduler_factory is None:
             return optimizer
         scheduler = self.scheduler_factory(optimizer)
+        interval = self.lr_scheduler_interval
         if isinstance(scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
+            if interval != "epoch":
+                raise ValueError(
+                    "`lr_scheduler_interval='step'` is for schedules of step counts; ReduceLROnPlateau steps on the "
+                    "validation loss after each validation: leave lr_scheduler_interval at 'epoch'"
+                )
             return {"optimizer": optimizer, "lr_scheduler": self._plateau_config(scheduler)}
-        return {"optimizer": optimizer, "lr_scheduler": scheduler}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": interval}}
 
     def _plateau_config(self, scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau) -> dict[str, Any]:
         """A plateau scheduler steps on the validation loss (label-free for self-supervised models), when it exists.
