@@ -529,8 +529,15 @@ def runs_table(jobs: Sequence[Job], results: Path) -> str:
         for row in result_rows(job, results):
             budgets.setdefault(str(row.get("budget") or "fixed step budget"), []).append(row)
         for budget, rows in budgets.items():
-            lines += ["", f"## `{job.id}`: {budget}", "", *RUNS_HEADER, *map(run_line, rows)]
+            lines += ["", f"## `{job.id}`: {budget_heading(budget)}", "", *RUNS_HEADER, *map(run_line, rows)]
     return "\n".join(lines) + "\n"
+
+
+def budget_heading(budget: str) -> str:
+    """A row's budget key as a heading: ``lcreg reproduce --set`` values (``"; set k=v, ..."``) after the budget,
+    marked as replacing its values (a set ``trainer.max_steps`` is the run's cap, not the budget's steps)."""
+    base, sep, settings = budget.partition("; set ")
+    return f"{base}; set on every run, replacing the budget's values of these keys: {settings}" if sep else budget
 
 
 PROGRESS_KEYS = ("val/rre_median_deg", "val/rre_clip5_deg", "val/recall_r2_t0p01", "val/rre_mean_deg")

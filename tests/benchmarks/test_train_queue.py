@@ -756,6 +756,9 @@ def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budg
         {"variant": "prnet/X", "seed": 0, "budget": "B1, lr 0.00022", "steps": 3000, "stopped_early": False,
          "train_s": 900.0, "selected": "step002900-val_rre_median_deg1.6800.ckpt",
          "selected_on": "val/rre_median_deg", "best_val": 1.68, "num_points": 256},
+        {"variant": "idam/X", "seed": 0, "budget": "5016 steps × 8 pairs; set trainer.max_steps=2508", "steps": 1848,
+         "stopped_early": True, "train_s": 3411.5, "selected": "step001496-val_rre_clip5_deg3.9651.ckpt",
+         "selected_on": "val/rre_clip5_deg", "best_val": 3.965, "num_points": 512},
     ]  # fmt: skip
     for job, name, rows in (("curves", "runs.jsonl", curves), ("sweep", "lc.jsonl", sweep)):
         (res / job / "runs").mkdir(parents=True)
@@ -767,6 +770,8 @@ def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budg
         "`curves`: converge p6 v4 min3000",
         "`sweep`: B1",
         "`sweep`: B1, lr 0.00022",
+        "`sweep`: 5016 steps × 8 pairs; set on every run, replacing the budget's values of these keys: "
+        "trainer.max_steps=2508",
     ]
     rows = [s.splitlines()[-1] for s in sections]
     assert rows[0] == "| fmr | 1 | 1024 | 2,950 | early stop | 2,350 | `val/rre_median_deg` | 0.3769 | 19,722 |"
