@@ -1,6 +1,8 @@
 from __future__ import annotations
 
 import dataclasses
+import re
+import warnings
 from functools import partial
 from pathlib import Path
 
@@ -84,26 +86,57 @@ class _Rates(Callback):
         self.seen.append(trainer.optimizers[0].param_groups[0]["lr"])
 
 
+def _fit_two_batch_epochs(model: RegistrationModule, max_steps: int, *callbacks: Callback) -> None:
+    """Train ``model`` for ``max_steps`` on epochs of 2 batches."""
+    loader = torch.utils.data.DataLoader([_batch(), _batch()], batch_size=None, collate_fn=lambda b: b)
+    trainer = Trainer(
+        max_steps=max_steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=list(callbacks),
+    )
+    trainer.fit(model, train_dataloaders=loader)
+
+
 def test_a_step_interval_steps_the_schedule_after_every_optimiser_step() -> None:
     """Milestones in steps do not move with the training set's size (an epoch here is 2 steps)."""
     step = partial(torch.optim.lr_scheduler.StepLR, step_size=3, gamma=0.5)
     rates: dict[str, list[float]] = {}
     for interval in ("epoch", "step"):
         model, recorder = _Translate(lr_scheduler=step, lr_scheduler_interval=interval), _Rates()
-        loader = torch.utils.data.DataLoader([_batch(), _batch()], batch_size=None, collate_fn=lambda b: b)
-        trainer = Trainer(
-            max_steps=8,
-            logger=False,
-            enable_checkpointing=False,
-            enable_progress_bar=False,
-            enable_model_summary=False,
-            callbacks=[recorder],
-        )
-        trainer.fit(model, train_dataloaders=loader)
+        _fit_two_batch_epochs(model, 8, recorder)
         rates[interval] = recorder.seen
     lr = 1e-3  # Adam's default
     assert rates["step"] == [lr] * 3 + [lr / 2] * 3 + [lr / 4] * 2
     assert rates["epoch"] == [lr] * 6 + [lr / 2] * 2  # every 3 epochs of 2 steps
+
+
+@pytest.mark.parametrize(
+    ("milestones", "interval", "beyond"),
+    [([2, 4, 10], "epoch", "[4, 10] (epochs)"), ([5, 8, 20], "step", "[8, 20] (steps)")],
+)
+def test_milestones_beyond_the_run_are_a_warning_naming_them(milestones: list[int], interval: str, beyond: str) -> None:
+    """8 steps are 4 epochs of 2: a MultiStepLR milestone at epoch 4 or step 8 would never change the rate."""
+    schedule = partial(torch.optim.lr_scheduler.MultiStepLR, milestones=milestones)
+    model = _Translate(lr_scheduler=schedule, lr_scheduler_interval=interval)
+    message = rf"MultiStepLR's milestones {re.escape(beyond)} lie beyond this run's 8 optimiser steps \(4 epochs of 2"
+    with pytest.warns(UserWarning, match=message):
+        _fit_two_batch_epochs(model, 8)
+
+
+def test_milestones_within_the_run_and_other_schedules_give_no_warning() -> None:
+    schedules = [
+        partial(torch.optim.lr_scheduler.MultiStepLR, milestones=[1, 3]),
+        partial(torch.optim.lr_scheduler.StepLR, step_size=3),
+        partial(torch.optim.lr_scheduler.ExponentialLR, gamma=0.9),
+        None,
+    ]
+    for schedule in schedules:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message="lr_scheduler:")
+            _fit_two_batch_epochs(_Translate(lr_scheduler=schedule), 8)
 
 
 def test_a_step_interval_is_refused_for_a_plateau_schedule_and_a_bad_interval() -> None:

@@ -16,6 +16,7 @@ non-finite one stops training at once, naming the step and the parameter, before
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from typing import Any, Literal
 
@@ -27,7 +28,7 @@ from lcreg.models.interface import RegistrationInterface
 from lcreg.models.loss_terms import LossTerm
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["NonFiniteTrainingError", "OptimizerFactory", "SchedulerFactory", "Stage", "TrainingLogic"]
+__all__ = ["NonFiniteTrainingError", "OptimizerFactory", "SchedulerFactory", "Stage", "TrainingLogic", "milestones"]
 
 Stage = Literal["train", "val", "test"]
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
@@ -167,6 +168,31 @@ class TrainingLogic(RegistrationInterface):
             NonFiniteTrainingError: Naming the first non-finite parameter.
         """
         self._check_parameters("before training (the model's weights hold them)", advice="load finite weights")
+        self._warn_unreached_milestones()
+
+    def _warn_unreached_milestones(self) -> None:
+        """Warn when a step schedule's milestones lie beyond the run's step or epoch limit (its rate would not move).
+
+        The original methods give their milestones in epochs of the full dataset (DCP-v2's MultiStepLR at 75, 150
+        and 200 epochs); a run capped at fewer epochs, or by ``max_steps``, never reaches them.
+        """
+        trainer = self._trainer
+        if trainer is None:
+            return
+        total = trainer.estimated_stepping_batches  # optimiser steps of the whole run (inf: unknown)
+        per_epoch = trainer.num_training_batches / max(1, trainer.accumulate_grad_batches)
+        if not (math.isfinite(total) and math.isfinite(per_epoch) and per_epoch > 0):
+            return
+        for config in trainer.lr_scheduler_configs:
+            unit, steps_per = ("epochs", per_epoch) if config.interval == "epoch" else ("steps", 1.0)
+            beyond = [m for m in milestones(config.scheduler) if m * config.frequency * steps_per >= total]
+            if beyond:
+                rank_zero_warn(
+                    f"lr_scheduler: {type(config.scheduler).__name__}'s milestones {beyond} ({unit}) lie beyond this "
+                    f"run's {int(total)} optimiser steps ({total / per_epoch:.3g} epochs of {per_epoch:g} steps): "
+                    "the rate will not change there. Give milestones within the run, or step counts with "
+                    "`lr_scheduler_interval: step`"
+                )
 
     def optimizer_step(self, *args: Any, **kwargs: Any) -> None:
         """The optimiser's step, then a check of the parameters (before any callback can save them).
@@ -293,3 +319,16 @@ class TrainingLogic(RegistrationInterface):
         if trainer is not None and trainer.check_val_every_n_epoch is None and isinstance(interval, int):
             config |= {"interval": "step", "frequency": interval}
         return config
+
+
+def milestones(scheduler: Any) -> list[int]:
+    """Where a step schedule changes the rate, in its own steps (epochs or optimiser steps).
+
+    A ``MultiStepLR``'s milestones (sorted), a ``StepLR``'s first step; ``[]`` for other schedules (their rate
+    changes from the start, or on a plateau).
+    """
+    if isinstance(scheduler, torch.optim.lr_scheduler.MultiStepLR):
+        return sorted(scheduler.milestones)
+    if isinstance(scheduler, torch.optim.lr_scheduler.StepLR):
+        return [scheduler.step_size]
+    return []
