@@ -187,9 +187,11 @@ class TrainingLogic(RegistrationInterface):
             unit, steps_per = ("epochs", per_epoch) if config.interval == "epoch" else ("steps", 1.0)
             beyond = [m for m in milestones(config.scheduler) if m * config.frequency * steps_per >= total]
             if beyond:
+                epochs = total / per_epoch
                 rank_zero_warn(
                     f"lr_scheduler: {type(config.scheduler).__name__}'s milestones {beyond} ({unit}) lie beyond this "
-                    f"run's {int(total)} optimiser steps ({total / per_epoch:.3g} epochs of {per_epoch:g} steps): "
+                    f"run's {int(total)} optimiser steps ({epochs:.3g} epoch{'' if epochs == 1 else 's'} of "
+                    f"{per_epoch:g} steps): "
                     "the rate will not change there. Give milestones within the run, or step counts with "
                     "`lr_scheduler_interval: step`"
                 )
