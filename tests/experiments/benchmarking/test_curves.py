@@ -16,6 +16,7 @@ from lcreg.experiments.benchmarking.curves import (
     SUMMARY_HEADER,
     Panel,
     Series,
+    _band,
     _layout,
     aggregate,
     canonical_key,
@@ -204,6 +205,16 @@ def test_the_learning_rate_is_the_last_training_panel_not_a_loss(tmp_path: Path)
     assert fig.title == "training losses and learning rate"
     (fig, training), *_ = [(f, panels) for f, panels in _layout(["train/loss", "val/loss"]) if f.name == "training"]
     assert [p.title for p, _ in training] == ["total loss"] and fig.title == "training losses"  # no rate: no panel
+
+
+def test_smoothing_leaves_the_learning_rate_and_validation_values_as_logged(tmp_path: Path) -> None:
+    metrics = read_metrics(write_synthetic_metrics(tmp_path / "m.csv"))
+    for key in ("train/lr", "val/rre_mean_deg"):
+        band = _band([metrics], key, smooth=0.9)
+        assert band is not None
+        np.testing.assert_array_equal(band.mean, metrics[key].values)
+    band = _band([metrics], "train/loss", smooth=0.9)
+    assert band is not None and not np.allclose(band.mean, metrics["train/loss"].values)
 
 
 def test_panels_match_patterns_in_order_and_name_keys() -> None:

@@ -542,7 +542,8 @@ def _band(seeds: Sequence[Metrics], key: str, smooth: float) -> Band | None:
     series = _seed_series(seeds, key)
     if not series:
         return None
-    return aggregate(series if key.startswith("val/") else [ema(s, smooth) for s in series])
+    raw = key.startswith("val/") or key == LR_KEY  # a smoothed rate would blur where it dropped
+    return aggregate(series if raw else [ema(s, smooth) for s in series])
 
 
 def _draw(ax: Axes, band: Band, colour: str, style: LineStyleType, scale: float, marked: bool) -> None:
