@@ -96,7 +96,7 @@ def test_variant_values_build_their_models() -> None:
     assert orig.model.configure_optimizers().param_groups[0]["lr"] == 1e-3 and not orig.trainer.gradient_clip_val
     lever = cli("pointnetlk_nobn_steplr")
     assert lever.model.hparams.batch_norm is False and lever.trainer.gradient_clip_val == 1.0
-    scheduler = lever.model.configure_optimizers()["lr_scheduler"]
+    scheduler = lever.model.configure_optimizers()["lr_scheduler"]["scheduler"]
     assert isinstance(scheduler, torch.optim.lr_scheduler.StepLR) and (scheduler.step_size, scheduler.gamma) == (5, 0.5)
     assert scheduler.optimizer.param_groups[0]["lr"] == 0.0001
     for name, lr in (("prnet", 1e-3), ("prnet_lr2.2e-4", 2.2e-4)):  # as `lcreg reproduce lc`: DCP-family pairs
