@@ -10,6 +10,7 @@ import pytest
 import torch
 from lightning.pytorch import Callback, Trainer
 
+from _training import fit_batches  # type: ignore[import-not-found]
 from lcreg.geometry import se3
 from lcreg.models.base import RegistrationModule
 from lcreg.types import RegistrationBatch, RegistrationResult
@@ -88,16 +89,7 @@ class _Rates(Callback):
 
 def _fit_two_batch_epochs(model: RegistrationModule, max_steps: int, *callbacks: Callback) -> None:
     """Train ``model`` for ``max_steps`` on epochs of 2 batches."""
-    loader = torch.utils.data.DataLoader([_batch(), _batch()], batch_size=None, collate_fn=lambda b: b)
-    trainer = Trainer(
-        max_steps=max_steps,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        callbacks=list(callbacks),
-    )
-    trainer.fit(model, train_dataloaders=loader)
+    fit_batches(model, [_batch(), _batch()], *callbacks, max_steps=max_steps, max_epochs=-1)
 
 
 def test_a_step_interval_steps_the_schedule_after_every_optimiser_step() -> None:

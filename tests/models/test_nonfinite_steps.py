@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 
+from _training import fit_batches  # type: ignore[import-not-found]
 from lcreg.cli import build_cli
 from lcreg.types import RegistrationBatch
 
@@ -68,20 +68,7 @@ class _Snapshots(Callback):
 
 
 def _fit(model: LightningModule, batches: list[RegistrationBatch], *callbacks: Callback) -> None:
-    class Batches(torch.utils.data.IterableDataset[RegistrationBatch]):
-        def __iter__(self) -> Iterator[RegistrationBatch]:
-            return iter(batches)
-
-    loader = torch.utils.data.DataLoader(Batches(), batch_size=None, collate_fn=lambda b: b)
-    trainer = Trainer(
-        max_epochs=1,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        callbacks=list(callbacks),
-    )
-    trainer.fit(model, train_dataloaders=loader)
+    fit_batches(model, batches, *callbacks)
 
 
 @pytest.mark.parametrize(
