@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from lcreg.experiments.benchmarking.building import Values, build, build_cli_for, method_layers
 from lcreg.experiments.benchmarking.curves import (
+    LR_SERIES,
     X_AXES,
     Band,
     Series,
@@ -100,6 +101,7 @@ __all__ = [
     "ABLATION_CONFIGS",
     "CONVERGE_METRIC",
     "DATA_CONFIGS",
+    "LR_SERIES",
     "METHODS",
     "REFINE_CONFIG",
     "REPORT_COLUMNS",

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
 __all__ = [
     "DPI",
     "FIGURES",
+    "LR_SERIES",
     "PANEL_SIZE",
     "SUMMARY_HEADER",
     "SUMMARY_KEYS",
@@ -203,7 +204,7 @@ JACOBIAN = CurveFigure(
 )
 FIGURES = (VALIDATION, JACOBIAN)
 """Figures with fixed panels; ``training.png`` (one panel per training-loss term) and ``other.png`` follow them."""
-LR_KEY = "train/lr"
+LR_SERIES = "train/lr"
 """The learning rate each training step used (:meth:`lcreg.models.training.TrainingLogic._log_learning_rate`)."""
 LOSS_ORDER = ("loss", "global", "lc", "recon", "normal")
 """Training-loss terms first in ``training.png`` (then the others alphabetically)."""
@@ -381,7 +382,7 @@ def aggregate(series: Sequence[Series]) -> Band:
     return Band(steps, mean, std, low, high, count)
 
 
-def lr_changes(metrics: Metrics, key: str = LR_KEY) -> list[tuple[int, float]]:
+def lr_changes(metrics: Metrics, key: str = LR_SERIES) -> list[tuple[int, float]]:
     """Where a run's logged learning rate changed: the first logged step at each new rate and the factor (new / old).
 
     The rate is logged every ``log_every_n_steps``, so a step here is within that many steps after the change. A run
@@ -468,14 +469,14 @@ def summary_table(runs: Runs, keys: Sequence[str] = SUMMARY_KEYS, x: str = "step
 # --------------------------------------------------------------------------------------------------- figures
 
 
-LEARNING_RATE = Panel("learning rate", (LR_KEY,), "lr", log=True)
+LEARNING_RATE = Panel("learning rate", (LR_SERIES,), "lr", log=True)
 """The last panel of ``training.png``: the logged rate (``train/lr``) of each run."""
 
 
 def _loss_panels(present: Sequence[str]) -> tuple[Panel, ...]:
     """One panel per training-loss term (``train/x`` with its ``val/x``), :data:`LOSS_ORDER` first; the rate last."""
     terms = sorted(
-        (key.split("/", 1)[1] for key in present if key.startswith("train/") and key != LR_KEY),
+        (key.split("/", 1)[1] for key in present if key.startswith("train/") and key != LR_SERIES),
         key=lambda t: (LOSS_ORDER.index(t) if t in LOSS_ORDER else len(LOSS_ORDER), t),
     )
     names = ("train", "validation")
@@ -494,7 +495,7 @@ def _layout(present: Sequence[str]) -> list[tuple[CurveFigure, list[tuple[Panel,
         panels = [(p, p.matches(left)) for p in fig.panels]
         layout.append((fig, [(p, keys) for p, keys in panels if keys]))
         left = [k for k in left if not any(k in keys for _, keys in panels)]
-    title = "training losses" + (" and learning rate" if LR_KEY in left else "")
+    title = "training losses" + (" and learning rate" if LR_SERIES in left else "")
     for fig in (CurveFigure("training", title, _loss_panels(left)),):
         panels = [(p, keys) for p in fig.panels if (keys := p.matches(left))]
         layout.append((fig, panels))
@@ -542,7 +543,7 @@ def _band(seeds: Sequence[Metrics], key: str, smooth: float) -> Band | None:
     series = _seed_series(seeds, key)
     if not series:
         return None
-    raw = key.startswith("val/") or key == LR_KEY  # a smoothed rate would blur where it dropped
+    raw = key.startswith("val/") or key == LR_SERIES  # a smoothed rate would blur where it dropped
     return aggregate(series if raw else [ema(s, smooth) for s in series])
 
 
@@ -705,7 +706,7 @@ def _synthetic_rows(rng: np.random.Generator, steps: int, log_every: int, val_ev
             }
             row |= {d: 10 ** (i / 2 - 2) * noise[7 + i] for i, d in enumerate(DIRECTIONS)}
             row |= {"train/global_grad_norm": 0.08 * noise[13], "train/lc_grad_norm": 0.01 * noise[14]}
-            row |= {LR_KEY: 1e-3 if s < 40 else 1e-4}  # a step schedule's drop at step 40
+            row |= {LR_SERIES: 1e-3 if s < 40 else 1e-4}  # a step schedule's drop at step 40
             rows.append({"epoch": s // 32, "step": s, **row})
         if (s + 1) % val_every == 0:
             rre = float(_decay(np.array(s), 14.0, 4.0, 40.0)) * noise[15]

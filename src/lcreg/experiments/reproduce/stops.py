@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from lcreg.experiments.benchmarking import lr_changes, markdown_table, plot_curves, read_metrics
+from lcreg.experiments.benchmarking import LR_SERIES, lr_changes, markdown_table, plot_curves, read_metrics
 from lcreg.experiments.reproduce.budgets import Preset
 from lcreg.experiments.reproduce.spec import Experiment, Rows
 
@@ -90,7 +90,7 @@ def _lr_cell(row: Mapping[str, Any]) -> str:
     """The run's learning-rate changes from its ``metrics.csv`` (:func:`lr_changes`); ``–`` where none was logged."""
     path = metrics_file(row)
     metrics = read_metrics(path) if path is not None else {}
-    if "train/lr" not in metrics:
+    if LR_SERIES not in metrics:
         return "–"
     changes = lr_changes(metrics)
     return ", ".join(f"{step}: ×{factor:.3g}" for step, factor in changes) if changes else "none"
