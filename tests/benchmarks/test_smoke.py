@@ -40,6 +40,7 @@ RUNS = {
     "lc_plus_x": [],
     "lk_fixed_point": [],
     "pcrnet_collapse": [],
+    "oracle_floor": [],
     "overfit": [],
     "learning_curves": [],
     "pilot_dvds_variants": [],

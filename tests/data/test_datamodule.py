@@ -61,6 +61,22 @@ def test_deterministic_pairs_repeat_across_calls_and_instances(shapes: tuple) ->
         ds[len(ds)]
 
 
+def test_item_with_indices_is_the_same_pair_with_its_object_rows(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    ds = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7, pairs_per_object=2)
+    for key in (2, 9, (3, 123)):
+        pair, with_rows = ds[key], ds.item_with_indices(key)
+        _assert_same(pair, {k: with_rows[k] for k in pair})
+        rows = with_rows["point_index_src"]
+        item = int(pair["index"]) % ds.num_objects
+        assert rows.shape == (64,) and rows.unique().numel() == 64 and int(rows.max()) < points.shape[1]
+        centred = torch.as_tensor(points[item]).double() - torch.as_tensor(points[item]).double().mean(0)
+        expected = (centred / centred.norm(dim=-1).max())[rows]  # the normalized object's rows
+        assert torch.allclose(pair["points_src"].double(), expected, atol=1e-6)
+    with pytest.raises(IndexError):
+        ds.item_with_indices(len(ds))
+
+
 def test_several_pairs_per_object_keep_the_first_pairs_and_add_new_ones(shapes: tuple) -> None:
     points, normals, _ = shapes
     one = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7)

@@ -7,7 +7,7 @@ import torch
 
 from lcreg.checks import ShapeError, TooFewPointsError
 from lcreg.data import pairs
-from lcreg.data.pairs import ANCHOR_DISTANCE, ObjectSet, PairProtocol, make_pair
+from lcreg.data.pairs import ANCHOR_DISTANCE, ObjectSet, PairProtocol, make_pair, true_correspondences
 from lcreg.geometry.euler import euler_zyx_to_matrix
 from lcreg.geometry.se3 import inverse, transform_points
 
@@ -232,6 +232,51 @@ def test_same_generator_seed_gives_the_same_pair() -> None:
     for key in a:
         assert torch.equal(a[key], b[key])
     assert not torch.equal(a["points_src"], c["points_src"])
+
+
+@pytest.mark.parametrize(
+    "protocol",
+    [
+        PairProtocol(),
+        PairProtocol(independent_sampling=False),
+        PairProtocol(independent_sampling=False, partial="prnet", partial_keep=0.75),
+        PairProtocol(partial="viewpoint", partial_keep=0.5),
+    ],
+    ids=["independent", "same_points", "prnet_crop", "viewpoint_crop"],
+)
+def test_indices_name_each_kept_points_object_row_and_change_nothing_else(protocol: PairProtocol) -> None:
+    points, normals = _object()
+    obj = _normalized(points)
+    plain = make_pair(points, normals, protocol, torch.Generator().manual_seed(3))
+    pair = make_pair(points, normals, protocol, torch.Generator().manual_seed(3), with_indices=True)
+    assert set(pair) - set(plain) == {"point_index_src", "point_index_ref"}
+    assert all(torch.equal(plain[key], pair[key]) for key in plain)  # the same draws, the same pair
+    assert pair["point_index_src"].dtype == torch.int64 and pair["point_index_src"].shape == (protocol.num_kept,)
+    assert torch.allclose(pair["points_src"].double(), obj[pair["point_index_src"]], atol=1e-6)
+    assert torch.allclose(_ref_in_src_frame(pair), obj[pair["point_index_ref"]], atol=1e-5)
+
+
+def test_true_correspondences_against_a_brute_force_loop() -> None:
+    protocol = PairProtocol(independent_sampling=False, partial="prnet", partial_keep=0.75, noise_sigma=0.01)
+    points, _ = _object()
+    pair = make_pair(points, None, protocol, torch.Generator().manual_seed(5), with_indices=True)
+    index_src, index_ref = pair["point_index_src"], pair["point_index_ref"]
+    rows_src, rows_ref = true_correspondences(index_src, index_ref)
+    expected = [(i, j) for i in range(len(index_src)) for j in range(len(index_ref)) if index_src[i] == index_ref[j]]
+    assert list(zip(rows_src.tolist(), rows_ref.tolist())) == expected
+    assert 0 < len(expected) < protocol.num_kept  # the crops overlap partly
+    # The matched points are one object point up to the noise (clipped at 0.05 per coordinate on each cloud).
+    gap = (pair["points_src"].double()[rows_src] - _ref_in_src_frame(pair)[rows_ref]).abs().max()
+    assert 0 < gap <= 2 * protocol.noise_clip + 1e-5
+    empty = true_correspondences(torch.tensor([0, 1]), torch.tensor([2, 3]))
+    assert empty[0].numel() == empty[1].numel() == 0
+
+
+def test_true_correspondences_rejects_bad_indices_naming_them() -> None:
+    with pytest.raises(TypeError, match="index_src"):
+        true_correspondences(torch.tensor([0.0, 1.0]), torch.tensor([0, 1]))
+    with pytest.raises(ShapeError, match="index_ref"):
+        true_correspondences(torch.tensor([0, 1]), torch.tensor([[0, 1]]))
 
 
 def test_input_validation() -> None:

@@ -136,6 +136,18 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
             The keys of :func:`~lcreg.data.pairs.make_pair` plus ``index`` (int64 scalar, the pair's index ``i``;
             its object is ``i % S``).
         """
+        return self._pair(key)
+
+    def item_with_indices(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        """Pair ``key`` as ``self[key]`` (the same pair when deterministic) with the object row of every point.
+
+        Returns:
+            ``self[key]``'s keys plus ``point_index_src`` and ``point_index_ref`` ``(K,)`` int64
+            (:func:`~lcreg.data.pairs.make_pair`; :func:`~lcreg.data.pairs.true_correspondences` matches them).
+        """
+        return self._pair(key, with_indices=True)
+
+    def _pair(self, key: int | tuple[int, int], with_indices: bool = False) -> dict[str, torch.Tensor]:
         index, seed = key if isinstance(key, tuple) else (key, None)
         if not -len(self) <= index < len(self):
             raise IndexError(f"index {index} is out of range for a dataset of {len(self)} pairs")
@@ -143,7 +155,7 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
         item = index % self.num_objects
         normals = None if self.normals is None else self.normals[item]
         generator = self.generator(index) if seed is None else torch.Generator().manual_seed(seed)
-        pair = make_pair(self.points[item], normals, self.protocol, generator)
+        pair = make_pair(self.points[item], normals, self.protocol, generator, with_indices)
         pair["index"] = torch.tensor(index, dtype=torch.int64)
         return pair
 

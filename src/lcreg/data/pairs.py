@@ -21,7 +21,9 @@ the ``torch.Generator`` passed to :func:`make_pair`, so a seeded generator gives
    sampling order.
 
 Normals follow their points: the object's normals are renormalized to unit length and the reference normals are
-rotated by ``R``. Outputs are CPU float32 tensors.
+rotated by ``R``. Outputs are CPU float32 tensors. With ``with_indices`` a pair also names the object row of each
+kept point, from which :func:`true_correspondences` gives the exact point-to-point matches of a same-points pair
+(what a correspondence-based method could find at best).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from lcreg.checks import (
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.geometry.se3 import transform_normals, transform_points
 
-__all__ = ["ANCHOR_DISTANCE", "ObjectSet", "PairProtocol", "PartialMode", "make_pair"]
+__all__ = ["ANCHOR_DISTANCE", "ObjectSet", "PairProtocol", "PartialMode", "make_pair", "true_correspondences"]
 
 PartialMode = Literal["none", "prnet", "viewpoint"]
 _PARTIAL_MODES: tuple[str, ...] = get_args(PartialMode)
@@ -216,6 +218,7 @@ def make_pair(
     normals: torch.Tensor | None,
     protocol: PairProtocol,
     generator: torch.Generator,
+    with_indices: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Make one registration pair from one object following ``protocol``.
 
@@ -224,6 +227,8 @@ def make_pair(
         normals: Object normals ``(P, 3)`` or ``None``; they are renormalized to unit length.
         protocol: The pair protocol.
         generator: CPU generator that supplies every random draw.
+        with_indices: Also return ``point_index_src`` / ``point_index_ref`` ``(K,)`` int64: the row of ``points``
+            each kept point was sampled from (the random draws, hence the pair, are the same either way).
 
     Returns:
         A dict of CPU float32 tensors with ``K = protocol.num_kept``:
@@ -291,6 +296,7 @@ def make_pair(
         keep_src = crop(src, crop_src, protocol.num_kept)
         keep_ref = crop(ref, crop_ref, protocol.num_kept)
         src, ref = src[keep_src], ref[keep_ref]
+        idx_src, idx_ref = idx_src[keep_src], idx_ref[keep_ref]
         if nrm_src is not None and nrm_ref is not None:
             nrm_src, nrm_ref = nrm_src[keep_src], nrm_ref[keep_ref]
 
@@ -303,4 +309,31 @@ def make_pair(
     if nrm_src is not None and nrm_ref is not None:
         out["normals_src"] = nrm_src.float()
         out["normals_ref"] = nrm_ref.float()
+    if with_indices:
+        out["point_index_src"], out["point_index_ref"] = idx_src.long(), idx_ref.long()
     return out
+
+
+def true_correspondences(index_src: torch.Tensor, index_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact matches of a pair: the positions ``(i, j)`` where both clouds hold the same object point.
+
+    Args:
+        index_src: ``point_index_src`` of :func:`make_pair` (``with_indices=True``), ``(N,)`` int64.
+        index_ref: ``point_index_ref``, ``(M,)`` int64.
+
+    Returns:
+        ``(rows_src (C,), rows_ref (C,))``: ``points_src[rows_src[c]]`` and ``points_ref[rows_ref[c]]`` are one
+        object point before noise (``points_ref = R p + t``), ordered by ``rows_src``. ``C = 0`` for independent
+        samplings that share no point.
+
+    Raises:
+        ShapeError: If either is not 1-D. TypeError: If either is not an integer tensor.
+    """
+    for name, value in (("index_src", index_src), ("index_ref", index_ref)):
+        if value.dtype.is_floating_point or value.dtype == torch.bool:
+            raise TypeError(f"`{name}` must be an integer tensor, got {value.dtype}")
+        if value.ndim != 1:
+            raise ShapeError(name, ("N",), value.shape)
+    match = index_src[:, None] == index_ref[None, :]  # (N, M): rows of a sampling without replacement are unique
+    rows_src, rows_ref = match.nonzero(as_tuple=True)
+    return rows_src, rows_ref

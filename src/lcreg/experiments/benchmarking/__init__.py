@@ -37,6 +37,7 @@ from lcreg.experiments.benchmarking.curves import (
 from lcreg.experiments.benchmarking.data import (
     pair_batches,
     pair_batches_and_classes,
+    pair_datamodule,
     split_batches,
     synthetic_options,
     synthetic_overrides,
@@ -148,6 +149,7 @@ __all__ = [
     "output_path",
     "pair_batches",
     "pair_batches_and_classes",
+    "pair_datamodule",
     "peak_memory_mib",
     "peak_rss_increase_mib",
     "peak_rss_mib",

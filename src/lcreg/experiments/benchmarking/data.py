@@ -18,6 +18,7 @@ __all__ = [
     "SYNTHETIC_DATA",
     "pair_batches",
     "pair_batches_and_classes",
+    "pair_datamodule",
     "split_batches",
     "synthetic_options",
     "synthetic_overrides",
@@ -100,18 +101,33 @@ def pair_batches_and_classes(
     The class is :meth:`~lcreg.data.datamodule.PairDataModule.pair_classes`'s (its name, else its label), so that
     failures can be read per class (e.g. shapes with an axis of symmetry).
     """
-    from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
-
-    dm: PairDataModule
-    if root is None:
-        sizes = synthetic_options(pairs, num_points, batch_size) if pairs else {"num_points": num_points}
-        dm = SyntheticDataModule(**{**sizes, "batch_size": batch_size, **options})
-        source = "embedded synthetic shapes"
-    else:
-        dm = ModelNet40DataModule(root, protocol, num_points=num_points, batch_size=batch_size, **options)
-        source = f"ModelNet40 {root} ({protocol.replace('_', ' ')} {split} pairs)"
+    dm, source = pair_datamodule(root, split, pairs, num_points, batch_size, protocol, **options)
     batches = _first_pairs(split_batches(dm, split), pairs)
     return batches, source, _classes(dm, split, batches)
+
+
+def pair_datamodule(
+    root: str | None,
+    split: Split = "test",
+    pairs: int | None = None,
+    num_points: int = 1024,
+    batch_size: int = 16,
+    protocol: Protocol = "unseen_objects",
+    **options: Any,
+) -> tuple[PairDataModule, str]:
+    """The DataModule (not set up) of :func:`pair_batches`'s pairs, and a description of their source.
+
+    For the pairs' datasets themselves (``dm.test_set`` after ``dm.setup("test")``, e.g. their
+    :meth:`~lcreg.data.datamodule.PairDataset.item_with_indices`). Arguments as :func:`pair_batches`; ``pairs``
+    sizes the synthetic splits only.
+    """
+    from lcreg.data.datamodule import ModelNet40DataModule, SyntheticDataModule
+
+    if root is None:
+        sizes = synthetic_options(pairs, num_points, batch_size) if pairs else {"num_points": num_points}
+        return SyntheticDataModule(**{**sizes, "batch_size": batch_size, **options}), "embedded synthetic shapes"
+    dm = ModelNet40DataModule(root, protocol, num_points=num_points, batch_size=batch_size, **options)
+    return dm, f"ModelNet40 {root} ({protocol.replace('_', ' ')} {split} pairs)"
 
 
 def _classes(dm: PairDataModule, split: Split, batches: list[RegistrationBatch]) -> list[str] | None:
