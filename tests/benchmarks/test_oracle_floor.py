@@ -2,30 +2,21 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 import torch
+from test_smoke import load  # type: ignore[import-not-found]
 
 from lcreg.experiments.benchmarking import build
 from lcreg.experiments.reproduce.budgets import CONVERGE_EPOCHS_OF_8, CONVERGE_SMALL_BATCH, DataChoice, RunBudget
 
 from _shared_data import shared_data  # type: ignore[import-not-found]
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "oracle_floor.py"
-
 
 @pytest.fixture(scope="module")
 def oracle() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("_bench_oracle_floor", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load("oracle_floor")
 
 
 def test_clean_same_points_are_solved_exactly_and_noise_sets_a_floor(oracle: ModuleType) -> None:
