@@ -500,8 +500,10 @@ def selection(row: dict) -> tuple[int | None, str, float | None]:
 def run_line(row: dict) -> str:
     """One finished run as a row of :data:`RUNS_HEADER` (seconds: of the call that finished it, for a run resumed
     over several calls of ``learning_curves.py``)."""
+    from lcreg.experiments.reproduce.stops import stopped_early
+
     stopped = row.get("stopped_step", row.get("steps"))
-    early = row.get("early_stopped", row.get("stopped_early"))
+    early = row.get("early_stopped", stopped_early(row))
     why = "early stop" if early else "step cap" if early is not None else "fixed budget"
     step, monitor, value = selection(row)
     seconds = row.get("train_s", row.get("seconds"))

@@ -785,6 +785,18 @@ def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budg
     assert out.read_text() == table
 
 
+def test_runs_reads_a_raised_step_cap_from_the_rows_overrides() -> None:
+    """``--set trainer.max_steps=7040``: a run stopped at 6,776 stopped early (its row, of before session 44, says
+    not: it compared with the budget's 5,016 steps)."""
+    queue = load("train_queue")
+    row = {"variant": "idam/X", "seed": 1, "num_points": 512, "steps": 6776, "stopped_early": False,
+           "overrides": {"trainer.max_steps": 7040}, "selected": "step006072-val_rre_clip5_deg2.8104.ckpt",
+           "selected_on": "val/rre_clip5_deg", "best_val": 2.8104, "train_s": 5253.4}  # fmt: skip
+    line = "| idam/X | 1 | 512 | 6,776 | early stop | 6,072 | `val/rre_clip5_deg` | 2.81 | 5,253 |"
+    assert queue.run_line(row) == line
+    assert "| 7,040 | step cap |" in queue.run_line({**row, "steps": 7040})
+
+
 def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(tmp_path: Path) -> None:
     """Over the segments of a resumed run: the last validation and the best so far (the highest recall, the lowest
     errors); a run that has not logged within ``hours``, a run set aside as lost and a finished run (its row in the

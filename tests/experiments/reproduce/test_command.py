@@ -194,6 +194,22 @@ def test_a_converge_run_selects_on_the_clipped_error_and_records_where_it_stoppe
     assert row["peak_mib"] is None or row["peak_mib"] > 0  # None only where Linux's resettable peak is missing
 
 
+def test_a_converge_run_that_reaches_a_raised_step_cap_is_not_recorded_as_stopped_early(tmp_path: Path) -> None:
+    """``--set trainer.max_steps`` is the run's cap: session 44's rows compared the steps with the budget's own."""
+    from dataclasses import replace
+
+    from lcreg.experiments.reproduce.ablation import ABLATION
+
+    budget = RunBudget(steps=6, points=64, batch=2, checks=2, patience=50, val_pairs=2)  # no early stop possible
+    experiment = replace(ABLATION.select(["paper/model_A"]), budgets={"smoke": {"dvds": budget}})
+    settings = (("trainer.max_steps", 3),)
+    sweep = Sweep(experiment, "smoke", (0,), DataChoice(None), tmp_path, settings=settings)
+    run_sweep(sweep)
+    (row,) = read_jsonl(sweep.log_path)
+    assert row["steps"] == 3 and row["overrides"] == {"trainer.max_steps": 3}
+    assert row["stopped_early"] is False
+
+
 def test_partial_crops_every_cloud_of_a_sweep_and_keys_its_runs_apart_from_full_clouds(tmp_path: Path) -> None:
     """``--partial prnet --partial-keep 0.5``: the workers of ``--jobs`` get the crop too; full-cloud keys unchanged."""
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]

@@ -64,6 +64,19 @@ def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_ord
     assert "| idam/LC | 0 | 5016 | end of the budget |" in stops_table(LC, rows, "cpu")
 
 
+def test_a_run_stopped_below_its_raised_step_cap_is_an_early_stop_also_in_rows_written_before_the_fix() -> None:
+    """Rows before session 44 compared the steps with the budget's cap (5,016), not ``--set trainer.max_steps``."""
+    raised = {"overrides": {"trainer.min_steps": 5984, "trainer.max_steps": 7040}, "stopped_early": False}
+    assert stops.stopped_early({**raised, "steps": 6776}) is True  # idam_partial_drop5280_seeds_512, seed 1
+    assert stops.stopped_early({**raised, "steps": 7040}) is False
+    assert stops.stopped_early({"steps": 4664, "stopped_early": True}) is True  # no override: the row's own
+    assert stops.stopped_early({"steps": 5016, "stopped_early": False}) is False
+    assert stops.stopped_early({"steps": 68}) is None and stops.stopped_early({**raised, "steps": None}) is False
+    rows = {"idam/X": [{**raised, "seed": 1, "steps": 6776}, {**raised, "seed": 0, "steps": 7040}]}
+    lines = stops_table(LC, rows, "converge").splitlines()[2:]
+    assert [line.split(" | ")[2:4] for line in lines] == [["7040", "step cap"], ["6776", "early stop (no gain)"]]
+
+
 def test_stops_table_says_when_each_runs_learning_rate_changed(tmp_path: Path) -> None:
     """An epoch-stepped schedule drops at a step set by the training set's size: the table shows the step."""
     dropped, constant, older = (tmp_path / name / "metrics.csv" for name in ("dropped", "constant", "older"))

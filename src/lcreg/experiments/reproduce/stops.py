@@ -21,7 +21,7 @@ from lcreg.experiments.benchmarking import LR_SERIES, lr_changes, markdown_table
 from lcreg.experiments.reproduce.budgets import Preset
 from lcreg.experiments.reproduce.spec import Experiment, Rows
 
-__all__ = ["metrics_file", "plot_learning_curves", "stops_table", "with_metrics_files"]
+__all__ = ["metrics_file", "plot_learning_curves", "stopped_early", "stops_table", "with_metrics_files"]
 
 STOPS_HEADER = [
     "variant",
@@ -75,10 +75,22 @@ def _seed(row: Mapping[str, Any]) -> int:
     return int(row.get("seed", -1))
 
 
+def stopped_early(row: Mapping[str, Any]) -> bool | None:
+    """Whether a run stopped before its step cap (``None``: its row does not say).
+
+    The cap is the row's ``--set trainer.max_steps`` where it records one: rows written before session 44 compared
+    the steps with the budget's own cap, so a run stopped early below a raised cap reads ``stopped_early: false``.
+    """
+    cap = (row.get("overrides") or {}).get("trainer.max_steps")
+    if row.get("stopped_early") is None or cap is None or row.get("steps") is None:
+        return row.get("stopped_early")
+    return int(row["steps"]) < int(cap)
+
+
 def _why(row: Mapping[str, Any], converge: bool) -> str:
     if not converge:
         return "end of the budget"
-    return "early stop (no gain)" if row.get("stopped_early") else "step cap"
+    return "early stop (no gain)" if stopped_early(row) else "step cap"
 
 
 def _best(row: Mapping[str, Any]) -> str:

@@ -222,7 +222,7 @@ def train_and_test(
         "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
         "selected_on": budget.monitor,
         "best_val": None if best_val is None else float(best_val),
-        "stopped_early": budget.converge and int(result.trainer.global_step) < (budget.steps or 0),
+        "stopped_early": budget.converge and int(result.trainer.global_step) < _step_cap(result.trainer, budget),
         "metrics_csv": str(Path(result.trainer.log_dir or run_dir) / "metrics.csv"),
         "num_val_pairs": len(dm.val_set),
         "num_test_pairs": len(dm.test_set),
@@ -232,6 +232,11 @@ def train_and_test(
         **({"overrides": recorded} if recorded else {}),
         **{key: float(tested[f"test/{key}"]) for key in METRICS},
     }
+
+
+def _step_cap(trainer: Any, budget: RunBudget) -> int:
+    """The run's step cap: the trainer's ``max_steps`` (a ``--set trainer.max_steps`` included), else the budget's."""
+    return int(trainer.max_steps) if int(trainer.max_steps) > 0 else int(budget.steps or 0)
 
 
 def _keep_weights_only(model: torch.nn.Module, best: Path, run_dir: Path) -> Path:
