@@ -148,13 +148,16 @@ class Runner:
     adds ``run --jobs <jobs>``: a sweep of its jobs (:data:`PARALLEL_COMMANDS`) trains that many runs at once, each
     on its own thread, so a job of many runs gets that many shares of the cores. ``shares`` sets the runner's CPU
     weight in one-job runners' shares instead (default: ``jobs``): the queue file's priorities, e.g. more for the
-    run a session can finish (:func:`runner_nice`)."""
+    run a session can finish (:func:`runner_nice`). ``threads`` > 1 adds ``run --threads <threads>``: each training
+    process of the runner uses that many threads (``OMP_NUM_THREADS``) instead of one, e.g. for a machine-bound run
+    that must finish within a session once the other runners are done (it resumes from ``last.ckpt``)."""
 
     name: str
     only: tuple[str, ...]
     why: str = ""
     jobs: int = 1
     shares: int | None = None
+    threads: int = 1
 
 
 def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
@@ -175,7 +178,8 @@ def load_runners(path: Path, jobs: Sequence[Job]) -> list[Runner]:
         unknown = set(runner.only) - known
         if not runner.only or unknown:
             raise ValueError(f"{path}: runner {runner.name!r} names no job or unknown ones: {sorted(unknown)}")
-        for field, value in (("jobs", runner.jobs), ("shares", 1 if runner.shares is None else runner.shares)):
+        shares = 1 if runner.shares is None else runner.shares
+        for field, value in (("jobs", runner.jobs), ("shares", shares), ("threads", runner.threads)):
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{path}: runner {runner.name!r}: {field} must be an integer >= 1, got {value!r}")
     if len({r.name for r in runners}) != len(runners) or len(set(listed)) != len(listed):
@@ -687,14 +691,16 @@ def run_job(
     jobs: int = 1,
     lock_fd: int | None = None,
     keeping: Keeping = Keeping(),
+    threads: int = 1,
 ) -> bool:
     """Run ``job`` to its end (or ``max_minutes``); on exit 0 copy its results and mark it done. Returns done.
 
     ``jobs``: runs at once of an ``lcreg reproduce`` or ``learning_curves.py`` job (:meth:`Job.executable`), each on
     one thread. ``lock_fd``: the descriptor of :func:`job_lock`, inherited by the job's process. ``keeping``: the
-    syncs (and commits) while it trains and when it ends.
+    syncs (and commits) while it trains and when it ends. ``threads``: the job's ``OMP_NUM_THREADS`` (a runner's
+    ``threads``).
     """
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1"}
     argv = ["nice", "-n", "5", *job.executable(runs, results, jobs)]
     (results / job.id).mkdir(parents=True, exist_ok=True)
     if restored := restore(job, runs, results):
@@ -932,6 +938,7 @@ def start_runners(
         argv += ["--queue", str(queue.resolve())]
         argv += ["--only", *runner.only, "--runs", str(runs.resolve()), "--results", str(results.resolve())]
         argv += ["--jobs", str(runner.jobs)] if runner.jobs > 1 else []
+        argv += ["--threads", str(runner.threads)] if runner.threads > 1 else []
         argv += ["--runner", runner.name]
         argv += [] if keeping.sync_every_min is None else ["--sync-every", f"{keeping.sync_every_min:g}"]
         argv += ["--commit"] if keeping.commit else []
@@ -941,6 +948,7 @@ def start_runners(
             )
         nice_group(process.pid, runner_nice(runner))
         runs_at_once = f" ({runner.jobs} runs at once)" if runner.jobs > 1 else ""
+        runs_at_once += f" ({runner.threads} threads each)" if runner.threads > 1 else ""
         print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}{runs_at_once}", flush=True)
         pids.append(process.pid)
     return pids
@@ -1009,6 +1017,9 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         type=int,
         default=1,
         help="runs at once of an `lcreg reproduce` or `learning_curves.py` job (a GPU; a runner's `jobs`; default 1)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="run: each training process's OMP_NUM_THREADS (a runner's `threads`)"
     )
     parser.add_argument("--out", type=Path, default=None, help="runs: write the table here (default: print it)")
     parser.add_argument("--hours", type=float, default=3.0, help="progress: runs that logged within these hours")
@@ -1092,7 +1103,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     print(f"queue: {job.id}: another runner holds {args.runs / job.id}.lock; skipped", flush=True)
                     continue
                 keeping = Keeping(args.sync_every, args.commit)
-                if not run_job(job, args.runs, args.results, minutes, args.jobs, lock_fd, keeping):
+                if not run_job(job, args.runs, args.results, minutes, args.jobs, lock_fd, keeping, args.threads):
                     sys.exit(1)
     if args.action == "sync":
         (args.results / "runs.md").write_text(runs_table(load_jobs(args.queue), args.results), encoding="utf-8")

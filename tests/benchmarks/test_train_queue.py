@@ -147,6 +147,23 @@ def test_done_names_the_gpu_that_trained_on_a_gpu_machine(tmp_path: Path, monkey
     assert done["machine"].startswith("Test GPU 80GB (cuda)")
 
 
+def test_a_jobs_training_process_gets_the_runners_threads(tmp_path: Path) -> None:
+    # Session 45: a machine-bound run that must finish within the session gets both cores once the other runners are
+    # done; until then every job ran with OMP_NUM_THREADS=1 whatever the machine had free.
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    write = "import os, sys; open(sys.argv[1], 'w').write(os.environ['OMP_NUM_THREADS'])"
+    jobs = [
+        f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c \\"{write}\\" {{results}}/t"\n'
+        for n in "ab"
+    ]
+    file.write_text("".join(jobs))
+    args = ["--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")]
+    queue.main(["run", "--only", "a", *args])
+    queue.main(["run", "--only", "b", "--threads", "2", *args])
+    assert [(tmp_path / "res" / n / "t").read_text() for n in "ab"] == ["1", "2"]
+
+
 def test_a_section_runs_its_jobs_and_only_names_jobs_of_any_section(tmp_path: Path) -> None:
     queue = load("train_queue")
     file = tmp_path / "q.toml"
@@ -632,7 +649,8 @@ def test_committed_runners_list_known_jobs_once() -> None:
         ('[[runner]]\nname = "a"\nonly = ["nope"]\n', "unknown ones"),
         ('[[runner]]\nname = "a"\nonly = []\n', "names no job"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\n[[runner]]\nname = "b"\nonly = ["j"]\n', "must be unique"),
-        ('[[runner]]\nname = "a"\nonly = ["j"]\nthreads = 2\n', "unexpected keyword"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\ncores = 2\n', "unexpected keyword"),
+        ('[[runner]]\nname = "a"\nonly = ["j"]\nthreads = 0\n', "threads must be an integer >= 1"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = 0\n', "jobs must be an integer >= 1"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\njobs = "2"\n', "jobs must be an integer >= 1"),
         ('[[runner]]\nname = "a"\nonly = ["j"]\nshares = 0\n', "shares must be an integer >= 1"),
@@ -663,7 +681,7 @@ def test_a_runner_of_n_runs_at_once_gets_n_shares_of_the_cpu() -> None:
 
 def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[str]]:
     """A queue of three sleeping jobs: runner "one" runs a then b, runner "two" (``jobs = two_jobs``, twice as many
-    shares) runs c.
+    shares, two threads) runs c.
 
     Returns:
         The queue file, the runs folder and the arguments of ``start``/``stop`` for them.
@@ -672,7 +690,7 @@ def sleeping_runners(tmp_path: Path, two_jobs: int) -> tuple[Path, Path, list[st
     sleep = "python -c 'import time; time.sleep(900)'"  # outlives a slow start on a busy machine; stopped by the test
     jobs = [f'[[job]]\nid = "{n}"\nsection = "cpu"\nwhat = "x"\ncommand = "{sleep}"\n' for n in ("a", "b", "c")]
     runners = '[[runner]]\nname = "one"\nonly = ["a", "b"]\n'
-    runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\nshares = {2 * two_jobs}\n'
+    runners += f'[[runner]]\nname = "two"\nonly = ["c"]\njobs = {two_jobs}\nshares = {2 * two_jobs}\nthreads = 2\n'
     file.write_text("\n".join(jobs) + runners)
     runs, res = tmp_path / "runs", tmp_path / "res"
     args = ["--queue", str(file), "--runs", str(runs), "--results", str(res), "--checkout", str(BENCHMARKS.parent)]
@@ -713,6 +731,10 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
         argvs = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") for pid in pids]
         assert sorted(b"--jobs" in argv for argv in argvs) == [False, True]  # runner "two" runs 2 runs at once
         assert all(argv[argv.index(b"--jobs") + 1] == b"2" for argv in argvs if b"--jobs" in argv)
+        assert [argv[argv.index(b"--threads") + 1] if b"--threads" in argv else None for argv in argvs] in (
+            [None, b"2"],
+            [b"2", None],
+        ) and all((b"--threads" in argv) == (b"--jobs" in argv) for argv in argvs)  # runner "two" only
         assert all(argv[argv.index(b"--sync-every") + 1] == b"10" and b"--commit" not in argv for argv in argvs)
         for pid, argv in zip(pids, argvs, strict=True):  # the runner nice 10, its training 5 more: the session's
             assert os.getpriority(os.PRIO_PROCESS, pid) == min(own + queue.RUNNER_NICE, 19)  # own work comes first
