@@ -1,6 +1,7 @@
 """Lightning callbacks and the step-0 candidate of a run's checkpoint selection.
 
-Callbacks: latest-state checkpoint, RNG state, predictions, a time-based progress bar, a training clock.
+Callbacks: latest-state checkpoint, RNG state, predictions, a time-based progress bar, a training clock, early
+stopping that honours the trainer's minimum.
 :func:`validate_starting_weights` makes the weights a run starts from one of its checkpoints.
 """
 
@@ -23,6 +24,7 @@ from lightning.pytorch.callbacks import (
     ModelCheckpoint,
     TQDMProgressBar,
 )
+from lightning.pytorch.callbacks.early_stopping import EarlyStoppingReason
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
 from lightning.pytorch.utilities.exceptions import SIGTERMException
@@ -31,6 +33,7 @@ from lcreg.types import RegistrationResult
 
 __all__ = [
     "LatestCheckpoint",
+    "MinimumEarlyStopping",
     "RngState",
     "TimedProgressBar",
     "TrainingClock",
@@ -209,6 +212,47 @@ def _restore_rng_states(state: dict[str, Any]) -> None:
     random.setstate((version, tuple(internal), gauss))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class MinimumEarlyStopping(EarlyStopping):
+    """Lightning's ``EarlyStopping`` whose patience stop does not latch before the trainer's ``min_steps``.
+
+    Lightning 2.6 latches the stop (``trainer.should_stop = trainer.should_stop or should_stop``): when patience
+    runs out before ``min_steps``/``min_epochs``, the run stops the moment the minimum is reached even if its metric
+    has improved since (Lightning-AI/pytorch-lightning#19966). Here such a stop is provisional: the next check
+    derives it again, so a run still improving at its minimum goes on until ``patience`` validations without an
+    improvement (or the step cap), and a run that never recovered stops at the minimum as before. Stops for a
+    non-finite metric or a threshold latch as in Lightning, as does a stop set by anything else.
+
+    Its state in a checkpoint is ``EarlyStopping``'s, under the same key, so runs started with Lightning's class
+    resume with this one and the other way round.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._provisional = False
+
+    @property
+    def state_key(self) -> str:
+        """``EarlyStopping``'s own key (the parent's class name, not this one's)."""
+        return f"EarlyStopping{ ({'monitor': self.monitor, 'mode': self.mode})!r}"
+
+    def _run_early_stopping_check(self, trainer: Trainer) -> None:
+        if self._provisional:  # this callback's own stop under the minimum: derived again below
+            trainer.should_stop, self._provisional = False, False
+        stopped = trainer.should_stop
+        super()._run_early_stopping_check(trainer)
+        patience = self.stopping_reason == EarlyStoppingReason.PATIENCE_EXHAUSTED
+        if trainer.should_stop and not stopped and patience and not _minimum_met(trainer):
+            self._provisional = True
+
+
+def _minimum_met(trainer: Trainer) -> bool:
+    """Whether the fit loop may stop early: its ``min_steps`` and ``min_epochs`` (where set) are reached."""
+    loop = trainer.fit_loop
+    steps = loop.min_steps is None or trainer.global_step >= loop.min_steps
+    epochs = not loop.min_epochs or trainer.current_epoch >= loop.min_epochs
+    return steps and epochs
 
 
 class RngState(Callback):

@@ -184,6 +184,7 @@ def test_converge_budgets_stop_early_select_on_the_clipped_error_and_draw_more_v
     values = budget.fit_overrides(tmp_path, seed=1)
     stop = [c for c in values["trainer.callbacks"] if c["class_path"].endswith("EarlyStopping")]
     assert values["trainer.max_steps"] == 3000 and [c["init_args"]["patience"] for c in stop] == [6]
+    assert [c["class_path"] for c in stop] == ["lcreg.callbacks.MinimumEarlyStopping"]  # counts across min_steps
     assert DataChoice("/m").overrides(budget)["data.init_args.val_pairs_per_object"] == 4
     plain = RunBudget(steps=68)
     assert not plain.converge and plain.monitor == SELECTION_METRIC

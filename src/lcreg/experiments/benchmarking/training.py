@@ -103,9 +103,10 @@ def converge_overrides(
 ) -> Values:
     """``lcreg fit`` values of a run trained until its validation error stops improving, capped by a step limit.
 
-    :func:`fit_overrides` plus Lightning's ``EarlyStopping`` (stop after ``patience`` validations without an
-    improvement of more than ``min_delta``) and a ``ModelCheckpoint`` that keeps the best checkpoint on the same
-    ``monitor`` (both minimise it). Both callbacks keep their state in ``last.ckpt``, and the run logs to the fixed
+    :func:`fit_overrides` plus early stopping (:class:`lcreg.callbacks.MinimumEarlyStopping`: stop after
+    ``patience`` validations without an improvement of more than ``min_delta``, counted also across a
+    ``trainer.min_steps``) and a ``ModelCheckpoint`` that keeps the best checkpoint on the same ``monitor`` (both
+    minimise it). Both callbacks keep their state in ``last.ckpt``, and the run logs to the fixed
     folder ``<run_dir>/<name>/run``, so a run resumed with :func:`fit` (``resume=True``) goes on where it stopped.
 
     Args:
@@ -132,7 +133,7 @@ def converge_overrides(
         "auto_insert_metric_name": False,
     }
     callbacks: list[dict[str, Any]] = [
-        {"class_path": "lightning.pytorch.callbacks.EarlyStopping", "init_args": stop},
+        {"class_path": "lcreg.callbacks.MinimumEarlyStopping", "init_args": stop},
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint", "init_args": best},
     ]
     # A fixed logger version: a resumed run finds its last.ckpt in the same folder (a later value may rename it).
