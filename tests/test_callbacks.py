@@ -12,6 +12,7 @@ import pytest
 import torch
 from lightning.pytorch import LightningModule, Trainer
 from lightning.pytorch.callbacks import Callback, EarlyStopping, ModelCheckpoint, TQDMProgressBar
+from lightning.pytorch.strategies import SingleDeviceStrategy
 from torch.utils.data import DataLoader
 
 from lcreg.callbacks import (
@@ -230,6 +231,16 @@ def test_early_stopping_honours_patience_minimum_and_non_finite_scores_as_lightn
     scores: list[float], min_steps: int, stop: int, tmp_path: Path
 ) -> None:
     assert _stop_step(MinimumEarlyStopping("val/score", patience=2), scores, min_steps, tmp_path) == stop
+
+
+def test_a_stop_that_another_process_latched_is_not_dropped_by_this_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def other_process_disagrees(self: SingleDeviceStrategy, decision: bool, all: bool = True) -> bool:
+        return decision and not all  # any: this process's; all: another process's stop was not a patience stop
+
+    monkeypatch.setattr(SingleDeviceStrategy, "reduce_boolean_decision", other_process_disagrees)
+    assert _stop_step(MinimumEarlyStopping("val/score", patience=2), RECOVERS, 8, tmp_path) == 8  # as Lightning's
 
 
 def test_early_stopping_state_resumes_under_lightnings_key() -> None:

@@ -222,7 +222,9 @@ class MinimumEarlyStopping(EarlyStopping):
     has improved since (Lightning-AI/pytorch-lightning#19966). Here such a stop is provisional: the next check
     derives it again, so a run still improving at its minimum goes on until ``patience`` validations without an
     improvement (or the step cap), and a run that never recovered stops at the minimum as before. Stops for a
-    non-finite metric or a threshold latch as in Lightning, as does a stop set by anything else.
+    non-finite metric or a threshold latch as in Lightning, as does a stop set by anything else. Under DDP the stop
+    is provisional only when it is on every process (one whose own reason was not patience latches it for all), so
+    that no process trains on after another stopped.
 
     Its state in a checkpoint is ``EarlyStopping``'s, under the same key, so runs started with Lightning's class
     resume with this one and the other way round.
@@ -243,8 +245,9 @@ class MinimumEarlyStopping(EarlyStopping):
         stopped = trainer.should_stop
         super()._run_early_stopping_check(trainer)
         patience = self.stopping_reason == EarlyStoppingReason.PATIENCE_EXHAUSTED
-        if trainer.should_stop and not stopped and patience and not _minimum_met(trainer):
-            self._provisional = True
+        provisional = trainer.should_stop and not stopped and patience and not _minimum_met(trainer)
+        # Under DDP every process must keep or drop the stop alike: provisional only where all of them say so
+        self._provisional = trainer.strategy.reduce_boolean_decision(bool(provisional), all=True)
 
 
 def _minimum_met(trainer: Trainer) -> bool:
