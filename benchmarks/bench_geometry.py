@@ -17,7 +17,11 @@ float64 reference on the same float32 points: the largest relative error of the 
 fraction of rows whose index set differs. The last table times the library's ``knn`` and ``chamfer_distance``
 (forward + backward) end to end against the previous implementation (expanded search, same distance recomputation),
 with the number of kNN distances that are not bit-identical (a near-tie resolved differently: the float64 check of the
-first table says which search is right) and the largest relative Chamfer difference. Numbers depend on the machine
+first table says which search is right) and the largest relative Chamfer difference. The pooling table times the
+graph convolutions' maximum over the ``k`` neighbours (forward + backward), :func:`lcreg.geometry.neighbors.
+neighbour_max` against the previous ``amax`` on ``(B, N, k, C)`` edge values of DCP-v2's widths (``C`` = 64, 128,
+256; ``B`` = 8, ``k`` = 20, ``--pool-points``), and DCP-v2's whole DGCNN embedding with each (same weights and
+clouds), with whether the gradients are bit-identical (without ties they are). Numbers depend on the machine
 and its load (``--threads 1`` is steadier on a busy machine); the thread count is printed.
 """
 
@@ -34,7 +38,8 @@ import torch
 
 from lcreg.geometry import neighbors
 from lcreg.geometry.chamfer import chamfer_distance
-from lcreg.geometry.neighbors import gather_points, knn, safe_norm
+from lcreg.geometry.neighbors import gather_points, knn, neighbour_max, safe_norm
+from lcreg.nn import dgcnn
 
 Search = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -179,6 +184,64 @@ def library_table(batch: int, sizes: list[int], k: int, repeats: int) -> None:
         )
 
 
+def previous_max(values: Tensor) -> Tensor:
+    """The previous pooling, ``amax`` over the neighbour axis (kept here only as the baseline)."""
+    return values.amax(dim=2)
+
+
+def pool_backward(pool: Callable[[Tensor], Tensor], values: Tensor, grad: Tensor) -> Tensor:
+    values.grad = None
+    pool(values).backward(grad)
+    assert values.grad is not None
+    return values.grad
+
+
+def embedding_backward(model: dgcnn.DGCNN, pool: Callable[[Tensor], Tensor], points: Tensor) -> list[Tensor]:
+    """Weight gradients of ``model(points).sum()`` with ``pool`` as DGCNN's neighbour maximum."""
+    saved, dgcnn.neighbour_max = dgcnn.neighbour_max, pool
+    try:
+        model.zero_grad()
+        model(points).sum().backward()
+    finally:
+        dgcnn.neighbour_max = saved
+    return [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+
+def pooling_table(batch: int, points: int, k: int, repeats: int) -> None:
+    print(
+        f"\n### Neighbour maximum, forward + backward: amax (previous) vs neighbour_max, B={batch}, N={points}, k={k}\n"
+    )
+    print("| values | amax ms | neighbour_max ms | ratio | gradients identical |")
+    print("|---|---|---|---|---|")
+    gen = torch.Generator().manual_seed(points)
+    for channels in (64, 128, 256):
+        values = torch.randn(batch, points, k, channels, generator=gen).requires_grad_(True)
+        grad = torch.randn(batch, points, channels, generator=gen)
+        fns = {
+            name: partial(pool_backward, pool, values, grad)
+            for name, pool in (("old", previous_max), ("new", neighbour_max))
+        }
+        t = median_ms(fns, repeats)
+        same = torch.equal(fns["old"](), fns["new"]())
+        print(
+            f"| {batch} x {points} x {k} x {channels} | {t['old']:.1f} | {t['new']:.1f} | "
+            f"{t['old'] / t['new']:.2f} | {'yes' if same else 'no'} |"
+        )
+    torch.manual_seed(0)
+    model = dgcnn.DGCNN(k=k).train()
+    cloud = torch.randn(batch, points, 3, generator=gen)
+    fns = {
+        name: partial(embedding_backward, model, pool, cloud)
+        for name, pool in (("old", previous_max), ("new", neighbour_max))
+    }
+    t = median_ms(fns, repeats)
+    same = all(torch.equal(a, b) for a, b in zip(fns["old"](), fns["new"](), strict=True))
+    print(
+        f"| DCP-v2's DGCNN, {batch} x {points} points | {t['old']:.1f} | {t['new']:.1f} | "
+        f"{t['old'] / t['new']:.2f} | {'yes' if same else 'no'} |"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--batch", type=int, default=16)
@@ -186,16 +249,18 @@ def main() -> None:
     parser.add_argument("--dims", type=int, nargs="+", default=[3, 64], help="coordinate widths (64: DGCNN features)")
     parser.add_argument("--k", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--pool-points", type=int, default=256, help="points per cloud of the pooling table")
     parser.add_argument("--offset", type=float, default=0.0, help="added to every coordinate (far-from-origin test)")
     parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     parser.add_argument("--smoke", action="store_true", help="B=2, N=64, one repeat: checks that the script runs")
     args = parser.parse_args()
     if args.smoke:
-        args.batch, args.sizes, args.dims, args.k, args.repeats = 2, [64], [3], 4, 1
+        args.batch, args.sizes, args.dims, args.k, args.repeats, args.pool_points = 2, [64], [3], 4, 1, 32
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads")
     search_table(args.batch, args.sizes, args.dims, args.k, args.repeats, args.offset)
+    pooling_table(8 if not args.smoke else 2, args.pool_points, 20 if not args.smoke else 4, args.repeats)
     library_table(args.batch, args.sizes, args.k, args.repeats)
 
 

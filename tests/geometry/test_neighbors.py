@@ -13,6 +13,7 @@ from lcreg.geometry.neighbors import (
     gather_points,
     knn,
     knn_indices,
+    neighbour_max,
     pairwise_sq_distances,
     safe_norm,
 )
@@ -186,3 +187,30 @@ def test_gather_points_from_an_empty_cloud_is_a_typed_error() -> None:
     with pytest.raises(TooFewPointsError, match="`points` has no rows"):  # was an index-out-of-bounds RuntimeError
         gather_points(torch.zeros(2, 0, 3), torch.zeros(2, 5, dtype=torch.long))
     assert gather_points(torch.zeros(2, 0, 3), torch.zeros(2, 0, dtype=torch.long)).shape == (2, 0, 3)
+
+
+def test_neighbour_max_equals_amax_and_its_gradient_without_ties() -> None:
+    gen = torch.Generator().manual_seed(0)
+    values = torch.randn(2, 5, 6, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    grad = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64)
+    out = neighbour_max(values)
+    assert out.shape == (2, 5, 3) and torch.equal(out, values.detach().amax(dim=2))
+    (ours,) = torch.autograd.grad(out, values, grad)
+    (reference,) = torch.autograd.grad(values.amax(dim=2), values, grad)
+    assert torch.equal(ours, reference)
+    assert torch.autograd.gradcheck(neighbour_max, (values,))
+
+
+def test_neighbour_max_at_a_tie_keeps_the_neighbour_sum_of_the_gradient() -> None:
+    values = torch.tensor([[[[1.0], [3.0], [3.0], [2.0]]]], requires_grad=True)  # (1, 1, 4, 1): neighbours 1, 2 tie
+    (grad,) = torch.autograd.grad(neighbour_max(values), values, torch.tensor([[[2.0]]]))
+    assert grad[0, 0, [0, 3], 0].tolist() == [0.0, 0.0]  # only tied neighbours receive it
+    assert sorted(grad[0, 0, [1, 2], 0].tolist()) == [0.0, 2.0]  # one of them, whole (amax: 1.0 each)
+    assert float(grad.sum()) == 2.0
+
+
+def test_neighbour_max_rejects_other_shapes() -> None:
+    with pytest.raises(ShapeError, match="values"):
+        neighbour_max(torch.zeros(2, 5, 3))
+    with pytest.raises(ShapeError, match="values"):
+        neighbour_max(torch.zeros(2, 5, 0, 3))

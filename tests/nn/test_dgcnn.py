@@ -5,6 +5,7 @@ import torch
 from torch import nn
 
 from lcreg.checks import ShapeError, TooFewPointsError
+from lcreg.nn import dgcnn
 from lcreg.nn.dgcnn import DGCNN, edge_conv, edge_features
 from lcreg.nn.mlp import PointwiseMLP
 
@@ -189,3 +190,24 @@ def test_edge_conv_rejects_a_foreign_layer_or_a_width_mismatch() -> None:
         edge_conv(nn.Linear(10, 4), features, idx)
     with pytest.raises(ShapeError, match="features"):
         edge_conv(PointwiseMLP([8, 4]), features, idx)  # expects 4 input channels, gets 5
+
+
+@pytest.mark.parametrize("graph", ["static", "dynamic"])
+def test_pooling_with_neighbour_max_gives_amaxs_embedding_and_weight_gradients(
+    graph: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    torch.manual_seed(0)
+    net = DGCNN(EMB, K, graph, channels=CHANNELS).train()  # type: ignore[arg-type]
+    points = _points().float()
+
+    def embedding_and_gradients() -> list[torch.Tensor]:
+        net.zero_grad()
+        out = net(points)
+        out.sum().backward()
+        return [out.detach(), *(p.grad.clone() for p in net.parameters() if p.grad is not None)]
+
+    ours = embedding_and_gradients()
+    monkeypatch.setattr(dgcnn, "neighbour_max", lambda values: values.amax(dim=2))  # the previous pooling
+    previous = embedding_and_gradients()
+    assert len(ours) == len(previous) == 1 + len(list(net.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(ours, previous, strict=True))

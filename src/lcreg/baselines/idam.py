@@ -59,7 +59,7 @@ from torch import nn
 
 from lcreg.checks import TooFewPointsError
 from lcreg.geometry import se3
-from lcreg.geometry.neighbors import gather_points, knn, knn_indices, safe_norm
+from lcreg.geometry.neighbors import gather_points, knn, knn_indices, neighbour_max, safe_norm
 from lcreg.geometry.procrustes import weighted_kabsch
 from lcreg.models.base import RegistrationModule
 from lcreg.nn.mlp import PointwiseMLP
@@ -101,7 +101,7 @@ class _Propagate(nn.Module):
 
     def forward(self, features: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """``(B, N, C_in)`` features and ``(B, N, k)`` graph -> ``(B, N, C_out)``."""
-        return self.point(self.edge(edge_differences(features, idx)).amax(dim=2))
+        return self.point(neighbour_max(self.edge(edge_differences(features, idx))))
 
 
 class GNNEncoder(nn.Module):

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from lcreg.checks import ShapeError, TooFewPointsError
-from lcreg.geometry.neighbors import gather_points, knn_indices
+from lcreg.geometry.neighbors import gather_points, knn_indices, neighbour_max
 from lcreg.nn.mlp import Activation, PointwiseMLP
 
 __all__ = ["DGCNN", "edge_conv", "edge_features"]
@@ -117,13 +117,13 @@ class DGCNN(nn.Module):
         if self.graph == "static":
             idx = knn_indices(points, points, self.k)
             h = edge_conv(self.edge_layers[0], points, idx)  # first layer on [x_j, x_i] (6 channels)
-            outputs.append(h.amax(dim=2))
+            outputs.append(neighbour_max(h))
             for layer in self.edge_layers[1:]:
                 h = layer(h)
-                outputs.append(h.amax(dim=2))
+                outputs.append(neighbour_max(h))
         else:
             f = points
             for layer in self.edge_layers:
-                f = edge_conv(layer, f, knn_indices(f, f, self.k)).amax(dim=2)
+                f = neighbour_max(edge_conv(layer, f, knn_indices(f, f, self.k)))
                 outputs.append(f)
         return self.head(torch.cat(outputs, dim=-1))
