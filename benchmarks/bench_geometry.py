@@ -260,7 +260,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads")
     search_table(args.batch, args.sizes, args.dims, args.k, args.repeats, args.offset)
-    pooling_table(8 if not args.smoke else 2, args.pool_points, 20 if not args.smoke else 4, args.repeats)
+    pool_batch, pool_k = (2, 4) if args.smoke else (8, 20)  # DCP-v2's batch and graph
+    pooling_table(pool_batch, args.pool_points, pool_k, args.repeats)
     library_table(args.batch, args.sizes, args.k, args.repeats)
 
 

@@ -15,4 +15,5 @@ def test_smoke_run_reports_identical_values() -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert "| cdist-exact |" in proc.stdout
+    assert "| DCP-v2's DGCNN, 2 x 32 points |" in proc.stdout and proc.stdout.count("| yes |") == 4, proc.stdout
     assert proc.stdout.rstrip().endswith("| 0 of 512 | 0.0e+00 |"), proc.stdout  # B=2, N=64, k=4
