@@ -49,6 +49,7 @@ import torch
 from torch import nn
 
 from lcreg.geometry import se3
+from lcreg.geometry.precision import full_precision
 from lcreg.geometry.procrustes import weighted_kabsch
 from lcreg.geometry.rri import rri_features
 from lcreg.models.base import RegistrationModule
@@ -59,6 +60,7 @@ from lcreg.types import RegistrationBatch, RegistrationResult
 __all__ = ["DeepGMR", "DeepGMREncoder", "gmm_params", "gmm_register"]
 
 
+@full_precision
 def gmm_params(
     gamma: torch.Tensor, points: torch.Tensor, eps: float = 1e-12
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -82,6 +84,7 @@ def gmm_params(
     return pi, mu, sigma2.clamp_min(eps)
 
 
+@full_precision
 def gmm_register(pi_s: torch.Tensor, mu_s: torch.Tensor, mu_t: torch.Tensor, sigma2_t: torch.Tensor) -> torch.Tensor:
     """Closed-form rigid transform taking the source mixture onto the target mixture (DeepGMR's formula).
 

@@ -138,7 +138,7 @@ class PCRNet(RegistrationModule):
             history.append((feature_ref - feature_src).norm(dim=-1))
             delta = self.delta_transform(feature_ref, feature_src)
             moved = se3.transform_points(delta, moved)
-            g = delta @ g
+            g = se3.compose(delta, g)
         aux = {"transformed_src": moved + mean_ref[:, None], "feature_ref": feature_ref}
         result = RegistrationResult.fixed_iterations(se3.uncenter(g, mean_src, mean_ref), self.num_iterations, aux)
         result.residual_history = torch.stack(history, dim=1)

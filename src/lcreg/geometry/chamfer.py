@@ -24,6 +24,7 @@ import torch
 
 from lcreg.checks import check_points, check_same_batch
 from lcreg.geometry.neighbors import _CHUNK_ELEMENTS, cdist, gather_points, safe_norm
+from lcreg.geometry.precision import full_precision
 from lcreg.reference import reference_active
 
 __all__ = ["chamfer_distance"]
@@ -68,6 +69,7 @@ def _nearest_both_ways_dense(points_a: torch.Tensor, points_b: torch.Tensor) -> 
     return torch.cat(idx_ab, dim=1), idx_ba
 
 
+@full_precision
 def chamfer_distance(points_a: torch.Tensor, points_b: torch.Tensor, squared: bool = False) -> torch.Tensor:
     """Symmetric Chamfer distance per batch item.
 

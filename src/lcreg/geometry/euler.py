@@ -11,6 +11,7 @@ import torch
 
 from lcreg.checks import ShapeError, check_float
 from lcreg.geometry._eps import nan_where_non_finite
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["euler_zyx_to_matrix", "matrix_to_euler_zyx"]
 
@@ -28,6 +29,7 @@ def _axis_rotation(angle: torch.Tensor, axis: int) -> torch.Tensor:
     return torch.stack(rows, dim=-1).reshape(*angle.shape, 3, 3)
 
 
+@full_precision
 def euler_zyx_to_matrix(angles_zyx: torch.Tensor) -> torch.Tensor:
     """Rotation matrices from ``[z, y, x]`` angles.
 
@@ -44,6 +46,7 @@ def euler_zyx_to_matrix(angles_zyx: torch.Tensor) -> torch.Tensor:
     return _axis_rotation(x, 0) @ _axis_rotation(y, 1) @ _axis_rotation(z, 2)
 
 
+@full_precision
 def matrix_to_euler_zyx(rot: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`euler_zyx_to_matrix`, matching scipy's ``as_euler('zyx')``.
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from lcreg.checks import ShapeError, TooFewPointsError, check_float, check_points, check_same_batch, check_shape
+from lcreg.geometry.precision import full_precision
 
 __all__ = [
     "EXACT_MAX_DIM",
@@ -40,6 +41,7 @@ EXACT_MAX_DIM = 3
 """Widest points for which :func:`cdist` sums squared differences (no matrix product)."""
 
 
+@full_precision
 def cdist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Euclidean distances between all pairs of rows, ``torch.cdist`` in the mode chosen by the width ``D``.
 
@@ -60,6 +62,7 @@ def cdist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.cdist(a - shift, b - shift, compute_mode="use_mm_for_euclid_dist")
 
 
+@full_precision
 def pairwise_sq_distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Squared Euclidean distances between all pairs of rows (:func:`cdist` squared).
 
@@ -151,6 +154,7 @@ def gather_points(points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return out.reshape(*idx.shape, channels)
 
 
+@full_precision
 def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     """Euclidean norm along ``dim`` whose gradient is 0 (not NaN) where the norm is exactly 0.
 
@@ -166,6 +170,7 @@ def safe_norm(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
     return torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
 
 
+@full_precision
 def knn_indices(query: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
     """Indices ``(B, Q, k)`` of the ``k`` nearest ``points (B, N, D)`` of each ``query (B, Q, D)``, no autograd.
 
@@ -182,6 +187,7 @@ def knn_indices(query: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tens
     return torch.cat(parts, dim=1)
 
 
+@full_precision
 def knn(query: torch.Tensor, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Exact k nearest neighbours by brute force.
 

@@ -12,6 +12,7 @@ import torch
 
 from lcreg.checks import check_finite, check_float, check_points, check_same_batch, check_shape
 from lcreg.geometry.neighbors import gather_points, knn
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["estimate_normals"]
 
@@ -23,6 +24,7 @@ def _orient(normals: torch.Tensor, points: torch.Tensor, viewpoint: torch.Tensor
     return torch.where(flip, -normals, normals)
 
 
+@full_precision
 def estimate_normals(points: torch.Tensor, k: int = 16, orient_towards: torch.Tensor | None = None) -> torch.Tensor:
     """Unit normals by PCA of the ``k`` nearest neighbours.
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 
 from lcreg.checks import check_finite, check_float, check_points, check_same_batch, check_shape
+from lcreg.geometry.precision import full_precision
 from lcreg.geometry.se3 import make_transform
 
 __all__ = ["weighted_kabsch"]
@@ -34,6 +35,7 @@ def _normalized_weights(weights: torch.Tensor | None, points: torch.Tensor, eps:
     return (weights / total.clamp_min(eps))[..., None]
 
 
+@full_precision
 def weighted_kabsch(
     points_src: torch.Tensor,
     points_ref: torch.Tensor,

@@ -32,6 +32,7 @@ import torch
 
 from lcreg.checks import check_points
 from lcreg.geometry.neighbors import gather_points, knn_indices, safe_norm
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["neighbours_excluding_self", "rri_features"]
 
@@ -42,6 +43,7 @@ def _unit(x: torch.Tensor, norm: torch.Tensor) -> torch.Tensor:
     return torch.where(positive[..., None], x / torch.where(positive, norm, 1.0)[..., None], 0.0)
 
 
+@full_precision
 def neighbours_excluding_self(points: torch.Tensor, k: int) -> torch.Tensor:
     """Indices ``(B, N, k)`` of the ``k`` nearest other points of every point, ascending distance.
 
@@ -55,6 +57,7 @@ def neighbours_excluding_self(points: torch.Tensor, k: int) -> torch.Tensor:
     return idx.gather(-1, order)[..., :k]
 
 
+@full_precision
 def rri_features(points: torch.Tensor, k: int = 20) -> torch.Tensor:
     """RRI features of every point of batched clouds (module docstring for the definition).
 

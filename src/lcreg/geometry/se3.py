@@ -16,6 +16,7 @@ import torch
 from lcreg.checks import ShapeError, check_float
 from lcreg.geometry import so3
 from lcreg.geometry._eps import small_angle
+from lcreg.geometry.precision import full_precision
 
 __all__ = [
     "compose",
@@ -52,6 +53,7 @@ def identity(batch: int, device: torch.device | None = None, dtype: torch.dtype 
     return torch.eye(4, device=device, dtype=dtype).expand(batch, 4, 4).clone()
 
 
+@full_precision
 def make_transform(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     """Assemble ``[R t; 0 1]`` from rotations ``(..., 3, 3)`` and translations ``(..., 3)``."""
     if rot.shape[-2:] != (3, 3):
@@ -69,6 +71,7 @@ def split(transform: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return transform[..., :3, :3], transform[..., :3, 3]
 
 
+@full_precision
 def compose(transform_a_b: torch.Tensor, transform_b_c: torch.Tensor) -> torch.Tensor:
     """Compose ``T_ac = T_ab T_bc`` (apply ``T_bc`` first); both ``(..., 4, 4)``, broadcast over leading dims."""
     _check_transform_like(transform_a_b, "transform_a_b")
@@ -76,6 +79,7 @@ def compose(transform_a_b: torch.Tensor, transform_b_c: torch.Tensor) -> torch.T
     return transform_a_b @ transform_b_c
 
 
+@full_precision
 def inverse(transform: torch.Tensor) -> torch.Tensor:
     """Closed-form inverse ``[R^T, -R^T t; 0 1]`` of rigid transforms ``(..., 4, 4)``."""
     _check_transform_like(transform, "transform")
@@ -84,6 +88,7 @@ def inverse(transform: torch.Tensor) -> torch.Tensor:
     return make_transform(rot_t, -(rot_t @ trans[..., None]).squeeze(-1))
 
 
+@full_precision
 def uncenter(transform: torch.Tensor, mean_src: torch.Tensor, mean_ref: torch.Tensor) -> torch.Tensor:
     """Undo a centring: ``Trans(mean_ref) G Trans(-mean_src)`` for ``G (B, 4, 4)`` estimated on centred clouds.
 
@@ -100,6 +105,7 @@ def uncenter(transform: torch.Tensor, mean_src: torch.Tensor, mean_ref: torch.Te
     return make_transform(rot, trans + mean_ref - (rot @ mean_src[..., None]).squeeze(-1))
 
 
+@full_precision
 def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply transforms ``(B, 4, 4)`` to points ``(B, N, 3)``: ``R p + t``, returns ``(B, N, 3)``."""
     _check_transform_like(transform, "transform")
@@ -108,6 +114,7 @@ def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Ten
     return points @ rot.transpose(-1, -2) + trans[..., None, :]
 
 
+@full_precision
 def transform_normals(transform: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """Rotate normals ``(B, N, 3)`` by the rotation part of ``(B, 4, 4)`` transforms."""
     _check_transform_like(transform, "transform")
@@ -125,6 +132,7 @@ def _v_coefficients(theta2: torch.Tensor, small: torch.Tensor) -> tuple[torch.Te
     return a, b, c
 
 
+@full_precision
 def exp(xi: torch.Tensor) -> torch.Tensor:
     """Exponential map of twists ``xi = [omega, v]`` ``(..., 6)`` to transforms ``(..., 4, 4)``."""
     check_float(xi, "xi")
@@ -142,6 +150,7 @@ def exp(xi: torch.Tensor) -> torch.Tensor:
     return make_transform(rot, (v_mat @ v[..., None]).squeeze(-1))
 
 
+@full_precision
 def log(transform: torch.Tensor) -> torch.Tensor:
     """Logarithm map of transforms ``(..., 4, 4)`` to twists ``[omega, v]`` ``(..., 6)``.
 

@@ -12,10 +12,12 @@ import torch
 
 from lcreg.checks import ShapeError, check_float
 from lcreg.geometry._eps import nan_where_non_finite, near_pi, small_angle
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["exp", "hat", "log", "quaternion_to_matrix", "vee"]
 
 
+@full_precision
 def hat(omega: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrix ``[omega]_x`` of ``(..., 3)`` vectors, shape ``(..., 3, 3)``."""
     if omega.shape[-1:] != (3,):
@@ -25,6 +27,7 @@ def hat(omega: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*omega.shape[:-1], 3, 3)
 
 
+@full_precision
 def vee(mat: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`hat` applied to the skew part of ``(..., 3, 3)`` matrices, shape ``(..., 3)``."""
     if mat.shape[-2:] != (3, 3):
@@ -43,6 +46,7 @@ def _exp_coefficients(theta2: torch.Tensor, small: torch.Tensor) -> tuple[torch.
     return a, b
 
 
+@full_precision
 def exp(omega: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula ``R = I + A K + B K^2`` with ``K = [omega]_x``.
 
@@ -74,6 +78,7 @@ def _log_near_pi(rot: torch.Tensor, theta: torch.Tensor, skew: torch.Tensor) -> 
     return sign * axis * theta[..., None]
 
 
+@full_precision
 def log(rot: torch.Tensor) -> torch.Tensor:
     """Logarithm map: rotation vector of each rotation matrix, angle in ``[0, pi]``.
 
@@ -101,6 +106,7 @@ def log(rot: torch.Tensor) -> torch.Tensor:
     return nan_where_non_finite(omega, rot, 2)
 
 
+@full_precision
 def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
     """Rotation matrices of quaternions in **scalar-first** ``(w, x, y, z)`` order (scipy uses ``(x, y, z, w)``).
 

@@ -22,6 +22,7 @@ import torch
 
 from lcreg.checks import check_float, check_same_batch, check_shape
 from lcreg.geometry.euler import matrix_to_euler_zyx
+from lcreg.geometry.precision import full_precision
 
 __all__ = [
     "correspondence_rmse_sq",
@@ -50,6 +51,7 @@ def _nan_if_nonfinite(err: torch.Tensor, transform_pred: torch.Tensor, transform
     return torch.where(finite, err, torch.full_like(err, float("nan")))
 
 
+@full_precision
 def rotation_error_deg(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """Isotropic rotation error ``arccos((tr(R_pred^T R_gt) - 1) / 2)`` in degrees.
 
@@ -79,17 +81,20 @@ def rotation_error_deg(transform_pred: torch.Tensor, transform_gt: torch.Tensor)
     return _nan_if_nonfinite(torch.rad2deg(torch.atan2(sin, cos)), transform_pred, transform_gt)
 
 
+@full_precision
 def translation_error(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """Translation error ``||t_pred - t_gt||`` ``(B,)`` in the units of the points (NaN for non-finite input)."""
     return translation_errors(transform_pred, transform_gt).norm(dim=-1)
 
 
+@full_precision
 def translation_errors(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """Signed per-component translation differences ``t_pred - t_gt`` ``(B, 3)`` (DCP's RMSE/MAE(t) input)."""
     _check_pair(transform_pred, transform_gt)
     return _nan_if_nonfinite(transform_pred[:, :3, 3] - transform_gt[:, :3, 3], transform_pred, transform_gt)
 
 
+@full_precision
 def euler_errors_deg(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """Signed Euler-angle differences in degrees, DCP style.
 
@@ -107,6 +112,7 @@ def euler_errors_deg(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -
     return _nan_if_nonfinite(torch.rad2deg(diff), transform_pred, transform_gt)
 
 
+@full_precision
 def registration_recall(
     rot_err: torch.Tensor, trans_err: torch.Tensor, rot_thr_deg: float, trans_thr: float
 ) -> torch.Tensor:
@@ -171,6 +177,7 @@ def _quaternion_wxyz(rot: torch.Tensor) -> torch.Tensor:
     return quat / quat.norm(dim=-1, keepdim=True)
 
 
+@full_precision
 def correspondence_rmse_sq(
     transform_pred: torch.Tensor, transform_gt: torch.Tensor, info: torch.Tensor
 ) -> torch.Tensor:

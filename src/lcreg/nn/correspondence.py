@@ -12,6 +12,7 @@ import math
 
 import torch
 
+from lcreg.geometry.precision import full_precision
 from lcreg.geometry.procrustes import weighted_kabsch
 
 __all__ = ["similarity_scores", "soft_correspondence_transform"]
@@ -22,6 +23,7 @@ def similarity_scores(feat_src: torch.Tensor, feat_ref: torch.Tensor) -> torch.T
     return feat_src @ feat_ref.transpose(1, 2) / math.sqrt(feat_src.shape[-1])
 
 
+@full_precision
 def soft_correspondence_transform(
     points_src: torch.Tensor,
     points_ref: torch.Tensor,

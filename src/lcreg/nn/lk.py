@@ -18,6 +18,10 @@ has a lower minimum farther away, which a rotated start reaches.
 The damping ``lambda = damping * mean(diag(J^T J)) + tiny`` keeps a singular ``J^T J`` (e.g. dead ReLUs)
 from producing NaN: a zero Jacobian gives ``dxi = 0``. The 6x6 systems are solved in float64.
 
+Under autocast (mixed-precision training) the solve, encoder passes included, runs in float32
+(:func:`lcreg.geometry.precision.full_precision`): it drives a difference of two descriptors to zero, which bfloat16's
+8-bit mantissa would round away; the training passes of the encoder outside the solve keep autocast.
+
 Jacobians: ``"analytic"`` (exact, via the encoder's ``twist_jacobian``; PointNet provides it),
 ``"autodiff"`` (forward-mode AD through any encoder, exact, 6 JVPs) and ``"finite_difference"``
 (``(psi(exp(delta e_k) Y0) - psi(Y0)) / delta`` as PointNetLK, ``delta = 1e-2``).
@@ -35,6 +39,7 @@ from torch import nn
 
 from lcreg.checks import check_points, check_same_batch, check_transform
 from lcreg.geometry import se3
+from lcreg.geometry.precision import full_precision
 from lcreg.nn.dtypes import to_module_dtype
 from lcreg.types import RegistrationResult
 
@@ -61,6 +66,7 @@ def _generators(points: torch.Tensor) -> torch.Tensor:
     return torch.stack(rot + trans)
 
 
+@full_precision
 def twist_jacobian(
     encoder: Encoder | nn.Module, points: torch.Tensor, mode: JacobianMode = "analytic", fd_step: float = 1e-2
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,6 +100,7 @@ def twist_jacobian(
     raise ValueError(f"unknown Jacobian mode {mode!r}; expected 'analytic', 'autodiff' or 'finite_difference'")
 
 
+@full_precision
 def jacobian_diagnostics(jacobian: torch.Tensor, feature: torch.Tensor) -> dict[str, torch.Tensor]:
     """How well the descriptor still sees motion: conditioning of the IC-LK Jacobian, batch medians.
 
@@ -240,6 +247,7 @@ class InverseCompositionalLK(nn.Module):
         j64 = jac.double()
         return torch.linalg.solve(self.damped(j64.transpose(1, 2) @ j64), j64.transpose(1, 2)).to(jac.dtype)
 
+    @full_precision
     def forward(
         self,
         encoder: Encoder | nn.Module,
@@ -294,6 +302,7 @@ class InverseCompositionalLK(nn.Module):
         result.transform_ref_src = result.transform_ref_src.to(dtype)  # the caller's dtype
         return result
 
+    @full_precision
     def step_from(
         self,
         encoder: Encoder | nn.Module,

@@ -10,10 +10,12 @@ import torch
 import torch.nn.functional as F
 
 from lcreg.geometry import se3
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["cycle_consistency_mse", "lk_pose_loss", "rotation_translation_mse", "transform_mse", "weighted_pose_loss"]
 
 
+@full_precision
 def rotation_translation_mse(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """DCP/PRNet pose loss ``MSE(R_pred^T R_gt, I) + MSE(t_pred, t_gt)``."""
     rot_p, t_p = se3.split(transform_pred)
@@ -22,12 +24,14 @@ def rotation_translation_mse(transform_pred: torch.Tensor, transform_gt: torch.T
     return F.mse_loss(rot_p.transpose(1, 2) @ rot_g, eye) + F.mse_loss(t_p, t_g)
 
 
+@full_precision
 def transform_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch.Tensor:
     """``MSE(T_a T_b, I_4)`` (DeepGMR's and PointNetLK's pose loss with ``T_b`` the inverse ground truth)."""
     eye = torch.eye(4, dtype=transform_a.dtype, device=transform_a.device).expand_as(transform_a)
     return F.mse_loss(transform_a @ transform_b, eye)
 
 
+@full_precision
 def lk_pose_loss(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> torch.Tensor:
     """PointNetLK's pose loss ``16 MSE(T_pred T_gt^-1, I_4)``: the squared Frobenius norm, averaged over the batch.
 
@@ -38,6 +42,7 @@ def lk_pose_loss(transform_pred: torch.Tensor, transform_gt: torch.Tensor) -> to
     return 16.0 * transform_mse(transform_pred, se3.inverse(transform_gt))
 
 
+@full_precision
 def weighted_pose_loss(
     transform_pred: torch.Tensor, transform_gt: torch.Tensor, translation_weight: float = 1.0
 ) -> torch.Tensor:
@@ -57,6 +62,7 @@ def weighted_pose_loss(
     return ((rot - eye).pow(2).sum(dim=(1, 2)) + translation_weight * trans.pow(2).sum(dim=-1)).mean()
 
 
+@full_precision
 def cycle_consistency_mse(transform_a: torch.Tensor, transform_b: torch.Tensor) -> torch.Tensor:
     """``MSE(R_a R_b, I) + MSE(R_a t_b + t_a, 0)``: how far ``T_a T_b`` is from the identity.
 

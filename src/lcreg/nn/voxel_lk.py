@@ -37,6 +37,7 @@ from torch import nn
 
 from lcreg.checks import TooFewPointsError, check_points, check_same_batch
 from lcreg.geometry import se3, so3
+from lcreg.geometry.precision import full_precision
 from lcreg.nn.lk import Encoder, InverseCompositionalLK, twist_jacobian
 from lcreg.types import RegistrationResult
 
@@ -232,6 +233,7 @@ def _register_one(
     return g[0], converged, coarse_iters + iters, torch.cat([coarse_history, history]), voxels
 
 
+@full_precision
 def voxel_lk(
     solver: InverseCompositionalLK,
     encoder: Encoder | nn.Module,
