@@ -29,6 +29,7 @@ RUNS = {
     "bench_dvds_step --recipe": ["--recipe"],
     "bench_runtime": [],
     "bench_export": [],
+    "bench_precision": [],
     "compare_methods": [],
     "eval_modelnet40_dvds": [],
     "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],

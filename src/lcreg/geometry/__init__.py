@@ -8,4 +8,7 @@ iterations, losses) where a finiteness check would cost a host synchronisation p
 the boundary: models' ``forward``, ``lcreg.register``, DataModules and file readers, metrics. Functions that take whole
 clouds (``knn``, ``chamfer_distance``, ``weighted_kabsch``, ``estimate_normals``) validate them once, with a typed
 error naming the argument (:mod:`lcreg.checks`).
+
+Precision. Under autocast (mixed-precision training) every numerical function here computes in float32, whatever
+autocast asks for (:mod:`lcreg.geometry.precision`).
 """
