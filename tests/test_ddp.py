@@ -67,3 +67,77 @@ def test_ddp_fit_then_test_equals_one_process(tmp_path: Path) -> None:
     assert [row[3] for row in ddp_pairs] == [row[3] for row in single_pairs]  # each pair's class, gathered
     assert set(ddp) == set(single) and "test/rre_mean_deg" in ddp
     assert ddp == pytest.approx(single, rel=1e-5)
+
+
+# Early stopping under real DDP (two gloo processes): the stop decisions of ``MinimumEarlyStopping`` are collective
+# (``reduce_boolean_decision``), so a process that disagrees would hang the other one. Each process scores its own
+# scripted validations (``val/score`` unsynced, so the processes may differ) and writes the step it stopped at.
+EARLY_STOPPING_SCRIPT = """
+import sys
+from pathlib import Path
+
+import torch
+from lightning.pytorch import LightningModule, Trainer
+from torch.utils.data import DataLoader
+
+from lcreg.callbacks import MinimumEarlyStopping
+
+SCORES = {"recovers": [5.0, 4.0, 4.5, 4.6, 4.7, 3.0, 2.0, 1.5, 1.4, 1.6, 1.7, 1.8, 1.9, 2.0],
+          "nan": [5.0, float("nan"), 1.0, 0.5, 0.4, 0.3, 0.2, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]}
+
+
+class Scripted(LightningModule):
+    def __init__(self, scores):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(1))
+        self.scores = scores
+
+    def training_step(self, batch, batch_idx):
+        return (self.weight - batch).square().mean()
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val/score", self.scores[self.trainer.global_step - 1])
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def train_dataloader(self):
+        return DataLoader(torch.zeros(2), batch_size=1)
+
+    val_dataloader = train_dataloader
+
+
+out, per_rank = Path(sys.argv[1]), sys.argv[2:]
+trainer = Trainer(accelerator="cpu", strategy="ddp", devices=2, max_steps=14, min_steps=8, num_sanity_val_steps=0,
+                  logger=False, enable_checkpointing=False, enable_model_summary=False, enable_progress_bar=False,
+                  callbacks=[MinimumEarlyStopping("val/score", patience=2)], default_root_dir=out)
+trainer.fit(Scripted(SCORES[per_rank[trainer.global_rank]]))
+(out / f"rank{trainer.global_rank}").write_text(str(trainer.global_step))
+"""
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize(
+    ("per_rank", "stop"),
+    [
+        (("recovers", "recovers"), 11),  # both provisional below min_steps 8: the best at step 9, patience 2
+        (("recovers", "nan"), 8),  # rank 1 latches a non-finite stop at step 2: both stop at the minimum
+    ],
+)
+def test_minimum_early_stopping_decides_alike_on_two_ddp_processes(
+    tmp_path: Path, per_rank: tuple[str, str], stop: int
+) -> None:
+    script = tmp_path / "scripted_ddp.py"
+    script.write_text(EARLY_STOPPING_SCRIPT)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run(
+        [sys.executable, str(script), str(tmp_path), *per_rank],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert [int((tmp_path / f"rank{r}").read_text()) for r in (0, 1)] == [stop, stop]

@@ -73,3 +73,15 @@ def test_validation_metrics_under_autocast_equal_the_float32_ones() -> None:
     with torch.autocast("cpu", dtype=torch.bfloat16):
         cast = lcreg.metrics.functional.rotation_error_deg(noisy, batch.transform_ref_src)
     assert torch.equal(plain, cast)
+
+
+def test_local_consistency_under_autocast_is_computed_in_float32_from_the_descriptors() -> None:
+    """The encoder pass runs in bfloat16; the metric, softmaxes and KL after it in float32."""
+    batch = _batch()
+    lc, encoder = lcreg.LocalConsistency(num_local_points=16), lcreg.PointNetEncoder(channels=(16, 32))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        cast = lc(encoder, batch.points_src, batch.points_ref)
+        subsets = torch.cat([*lc.subsets(batch.points_src), *lc.subsets(batch.points_ref)])  # X1, X2, W(X1), W(X2)
+        feats = encoder(subsets)  # one pass, as LC's (BatchNorm sees the same batch)
+    assert feats.dtype == torch.bfloat16 and cast.dtype == torch.float32
+    assert torch.equal(cast, lc._symmetric_kl(feats.float()))

@@ -39,6 +39,7 @@ from torch import nn
 from lcreg.checks import check_points, check_rigid, check_same_batch, check_transform
 from lcreg.geometry import se3
 from lcreg.geometry.neighbors import gather_points, knn
+from lcreg.geometry.precision import full_precision
 
 __all__ = ["LocalConsistency", "barycenter_subsets"]
 
@@ -264,6 +265,14 @@ class LocalConsistency(nn.Module):
         check_points(points_src, "points_src", min_points=self.num_local_points)
         x1, x2, w1, w2 = self._paired_subsets(points_src, points_ref, transform_ref_src)
         feats = _descriptor(encoder, torch.cat([x1, x2, w1, w2]))  # (4B, K), one encoder pass
+        return self._symmetric_kl(feats)
+
+    @full_precision
+    def _symmetric_kl(self, feats: torch.Tensor) -> torch.Tensor:
+        """The loss from the descriptors ``(4B, K)`` of ``X1, X2, W(X1), W(X2)``, in float32 under autocast.
+
+        A KL of two close distributions is a small difference, which bfloat16 would round away.
+        """
         metric = self._metric_for(feats)
         if self.standardize:
             feats = (feats - feats.mean(-1, keepdim=True)) / feats.std(-1, keepdim=True).clamp_min(1e-6)
