@@ -3,8 +3,9 @@
 Autocast runs matrix products and convolutions in bfloat16 or float16, whose 8- and 11-bit mantissas are too coarse
 for geometry: a Procrustes cross-covariance rounded to bfloat16 moves the rotation by a fraction of a degree, and an
 IC-LK normal matrix or a nearest-neighbour search loses its meaning. Every numerical function of
-:mod:`lcreg.geometry`, and the solves of :mod:`lcreg.nn` and :mod:`lcreg.models` built on them, is therefore wrapped by
-:func:`full_precision`:
+:mod:`lcreg.geometry` is therefore wrapped by :func:`full_precision`, and so are the parts built on them that compute
+geometry or compare two close quantities: the IC-LK solve (``lcreg.nn.lk``, its encoder passes included), the
+Procrustes and GMM heads, the pose losses, local consistency's KL and the per-pair metrics:
 
 * under an active autocast (of the first tensor argument's device type) it casts bfloat16/float16 tensor arguments
   (also inside tuples, lists and dicts) to float32 and runs the function with autocast off, so the result is float32
