@@ -14,6 +14,8 @@ Procrustes and GMM heads, the pose losses, local consistency's KL and the per-pa
   policy of :mod:`lcreg.checks` says, since nothing asked for mixed precision.
 
 Gradients flow through the casts, so a network that runs in bfloat16 still trains through the float32 geometry.
+The guard covers autocast only: TF32 (``torch.set_float32_matmul_precision("high")``, ``allow_tf32``) rounds every
+float32 product to a 10-bit mantissa, geometry's included, so lcreg leaves torch's default ("highest") alone.
 Indexing and pooling helpers (``gather_points``, ``neighbour_max``) are not wrapped: they lose no precision, and
 casting their (large) feature tensors would only cost memory.
 """
