@@ -41,3 +41,11 @@ def test_the_main_job_trains_in_bf16_mixed_and_saves_float32_weights(tmp_path: P
     assert logged["val/rre_mean_deg"] >= 0.0 and all(math.isfinite(v) for v in logged.values())
     state = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
     assert {t.dtype for t in state.values() if t.is_floating_point()} == {torch.float32}
+
+
+@pytest.mark.usefixtures("isolated_cli")
+def test_bf16_true_stops_at_the_first_batch_with_a_typed_error_that_names_bf16_mixed() -> None:
+    """``bf16-true`` converts the weights and the batches to bfloat16: refused before any geometry runs in it."""
+    config = host_composition("dcp", data="embedded")
+    with pytest.raises(TypeError, match=r"DCP has torch.bfloat16 parameters.*bf16-mixed"):
+        main(["fit", *config, *TINY_RUN, *SYNTHETIC, "--trainer.precision=bf16-true"])

@@ -85,3 +85,14 @@ def test_local_consistency_under_autocast_is_computed_in_float32_from_the_descri
         feats = encoder(subsets)  # one pass, as LC's (BatchNorm sees the same batch)
     assert feats.dtype == torch.bfloat16 and cast.dtype == torch.float32
     assert torch.equal(cast, lc._symmetric_kl(feats.float()))
+
+
+@pytest.mark.parametrize("half", [torch.bfloat16, torch.float16])
+def test_a_half_precision_model_is_a_type_error_that_points_to_autocast(half: torch.dtype) -> None:
+    """``bf16-true``/``16-true`` (or ``.half()``) would run the geometry in half precision: refused at the boundary."""
+    batch = _batch()
+    model = _model("DCP").to(half)
+    with pytest.raises(TypeError, match="bf16-mixed"):
+        model.register(batch.points_src, batch.points_ref)
+    with pytest.raises(TypeError, match="bf16-mixed"):
+        model.training_step(batch, 0)

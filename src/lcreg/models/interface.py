@@ -17,7 +17,7 @@ import torch
 from lightning.pytorch import LightningModule
 
 from lcreg.checks import check_extent, check_points, check_same_batch, check_shape
-from lcreg.nn.dtypes import module_dtype, to_module_dtype
+from lcreg.nn.dtypes import check_compute_dtype, module_dtype, to_module_dtype
 from lcreg.types import RegistrationBatch, RegistrationResult
 
 __all__ = ["RegistrationInterface"]
@@ -136,8 +136,10 @@ class RegistrationInterface(LightningModule):
         """Raise a typed error (naming the argument) for bad clouds.
 
         Checks type, dtype, shape, size, NaN/Inf, one batch size, and clouds whose points all coincide
-        (:class:`~lcreg.checks.DegenerateCloudError`: no motion to recover).
+        (:class:`~lcreg.checks.DegenerateCloudError`: no motion to recover), and a model converted to half precision
+        (:func:`~lcreg.nn.dtypes.check_compute_dtype`).
         """
+        check_compute_dtype(self)
         check_points(points_src, "points_src", self.min_points)
         check_points(points_ref, "points_ref", self.min_points)
         check_same_batch(points_src=points_src, points_ref=points_ref)

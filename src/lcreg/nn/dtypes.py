@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["module_dtype", "to_module_dtype"]
+__all__ = ["check_compute_dtype", "module_dtype", "to_module_dtype"]
 
 
 def module_dtype(module: nn.Module) -> torch.dtype | None:
@@ -24,16 +24,36 @@ def module_dtype(module: nn.Module) -> torch.dtype | None:
     return None
 
 
+def check_compute_dtype(module: nn.Module) -> None:
+    """Refuse a module whose parameters are float16 or bfloat16: its geometry would compute in half precision.
+
+    Raises:
+        TypeError: Naming the module and the way to mixed precision (autocast, :mod:`lcreg.geometry.precision`).
+    """
+    dtype = module_dtype(module)
+    if dtype in (torch.float16, torch.bfloat16):
+        raise TypeError(
+            f"{type(module).__name__} has {dtype} parameters, but lcreg models compute in float32 or float64: for "
+            "mixed precision keep float32 weights and use autocast (Lightning's `--trainer.precision bf16-mixed` or "
+            "`16-mixed`), not `bf16-true`/`16-true`, `.half()` or `.bfloat16()`"
+        )
+
+
 def to_module_dtype(module: nn.Module, value: Any) -> Any:
     """``value`` with every floating tensor (top level, or inside a tuple/list/dict) cast to ``module``'s dtype.
 
     Args:
         module: The module that computes.
         value: A tensor, a container of tensors, or anything else (returned unchanged).
+
+    Raises:
+        TypeError: If ``module`` computes in float16 or bfloat16 (its geometry would too; autocast is the way to
+            mixed precision, :mod:`lcreg.geometry.precision`).
     """
     dtype = module_dtype(module)
     if dtype is None:
         return value
+    check_compute_dtype(module)
     return _cast(value, dtype)
 
 
