@@ -13,6 +13,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from lcreg.geometry.precision import REDUCED_DTYPES
+
 __all__ = ["check_compute_dtype", "module_dtype", "to_module_dtype"]
 
 
@@ -31,7 +33,7 @@ def check_compute_dtype(module: nn.Module) -> None:
         TypeError: Naming the module and the way to mixed precision (autocast, :mod:`lcreg.geometry.precision`).
     """
     dtype = module_dtype(module)
-    if dtype in (torch.float16, torch.bfloat16):
+    if dtype in REDUCED_DTYPES:
         raise TypeError(
             f"{type(module).__name__} has {dtype} parameters, but lcreg models compute in float32 or float64: for "
             "mixed precision keep float32 weights and use autocast (Lightning's `--trainer.precision bf16-mixed` or "
