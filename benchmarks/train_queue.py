@@ -74,6 +74,7 @@ from lcreg.experiments.benchmarking import (
     read_metrics,
     training_device,
 )
+from lcreg.experiments.reproduce.retest import is_retest_output
 
 REPO = Path(__file__).resolve().parents[1]
 RESULT_FILES = ("*.jsonl", "metrics*.csv", "hparams.yaml", "*.md", "*.png")
@@ -352,7 +353,8 @@ def keep_best(source: Path, target: Path) -> list[Path]:
     from lcreg.weights.export import export_weights
 
     written = []
-    for row in (row for log in sorted(source.glob("*.jsonl")) for row in ResultLog(log).rows):
+    logs = (log for log in sorted(source.glob("*.jsonl")) if not is_retest_output(log))
+    for row in (row for log in logs for row in ResultLog(log).rows):
         weights = Path(row.get("best_checkpoint") or row.get("weights") or "")
         name = re.sub(r"[^a-z0-9._-]+", "_", f"{row.get('variant')}-seed{row.get('seed')}".lower())
         if "variant" not in row or (target / f"{name}.pt").exists() or not weights.is_file():
@@ -448,7 +450,7 @@ def status_line(job: Job, results: Path, runs: Path | None = None) -> str:
     ``running`` (with the runner's pid): a runner here holds the job's lock in ``runs`` (:func:`job_lock`).
     """
     done = (results / job.id / "DONE.json").is_file()
-    logs = [p for p in (results / job.id / "runs").glob("*.jsonl") if p.name != "models.jsonl"]
+    logs = result_logs(results / job.id / "runs")
     finished = sum(len(p.read_text(encoding="utf-8").splitlines()) for p in logs)
     pid = None if done or runs is None else holder(job, runs)
     state = "done" if done else f"{'pending' if pid is None else f'running, pid {pid},'} ({finished} result rows)"
@@ -476,8 +478,13 @@ RUNS_HEADER = (
 def result_rows(job: Job, results: Path) -> list[dict]:
     """The rows of the job's committed result logs (``<results>/<id>/runs/*.jsonl``, as :func:`status_line` counts
     them), in file and line order."""
-    logs = sorted(p for p in (results / job.id / "runs").glob("*.jsonl") if p.name != "models.jsonl")
-    return [row for log in logs for row in ResultLog(log).rows]
+    return [row for log in result_logs(results / job.id / "runs") for row in ResultLog(log).rows]
+
+
+def result_logs(folder: Path) -> list[Path]:
+    """The training rows' JSONL logs in ``folder``, sorted: not the shared models' ``models.jsonl`` (an evaluation
+    experiment's) nor a retest's rows (``lcreg reproduce --retest``: the same runs tested again)."""
+    return sorted(p for p in folder.glob("*.jsonl") if p.name != "models.jsonl" and not is_retest_output(p))
 
 
 def selection(row: dict) -> tuple[int | None, str, float | None]:
@@ -552,9 +559,11 @@ PROGRESS_KEYS = ("val/rre_median_deg", "val/rre_clip5_deg", "val/recall_r2_t0p01
 
 def active_runs(job: Job, runs: Path, hours: float) -> list[Path]:
     """The ``metrics.csv`` files of ``job``'s run folder written in the last ``hours`` (its runs training now; a run
-    set aside as lost, under ``abandoned/``, or finished, :func:`finished_runs`, is not one), oldest first."""
+    set aside as lost, under ``abandoned/``, a retest's test, or finished, :func:`finished_runs`, is not one), oldest
+    first."""
     folder, since = runs / job.id, time.time() - 3600 * hours
-    files = [f for f in folder.rglob("metrics.csv") if "abandoned" not in f.parts] if folder.is_dir() else []
+    found = folder.rglob("metrics.csv") if folder.is_dir() else ()
+    files = [f for f in found if "abandoned" not in f.parts and not is_retest_output(f)]
     finished = finished_runs(folder) if files else set()
     files = [f for f in files if f.parent.relative_to(folder).as_posix() not in finished]
     return sorted((f for f in files if f.stat().st_mtime >= since), key=lambda f: f.stat().st_mtime)

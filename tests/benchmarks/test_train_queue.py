@@ -849,6 +849,34 @@ def test_progress_shows_each_run_training_now_with_its_last_and_best_validation(
     assert cells[8] == "0.7 @ 99 (best 0.75 @ 49)"  # recall: highest is best
 
 
+def test_a_retests_rows_and_logs_are_not_runs_of_the_job(tmp_path: Path) -> None:
+    """``lcreg reproduce --retest`` writes ``<stem>.retest-<precision>.jsonl`` beside the sweep's rows (each naming the
+    run's weights) and a test log in each run's ``retest-<precision>/`` folder: neither is a finished or a training
+    run of the job (status, runs.md, keep_best, progress)."""
+    from lcreg.baselines.idam import IDAM
+    from lcreg.weights.export import save
+
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    results, runs = tmp_path / "results", tmp_path / "runs"
+    seed = runs / "j" / "runs" / "converge" / "lc" / "idam_X" / "seed0"
+    weights = save(IDAM(emb_dims=8, gnn_channels=(8,), hidden=4, num_iters=1), seed / "selected_weights.pt")
+    row = {"variant": "idam/X", "seed": 0, "metrics_csv": f"/m/j/{seed.relative_to(runs / 'j')}/run/metrics.csv"}
+    retest = {"variant": "idam/X", "seed": 0, "precision": "32-true", "weights": str(weights)}
+    for folder in (results / "j" / "runs", runs / "j"):
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "lc.jsonl").write_text(json.dumps(row) + "\n")
+        (folder / "lc.retest-32-true.jsonl").write_text(json.dumps(retest) + "\n")
+    (seed / "retest-32-true" / "version_0").mkdir(parents=True)
+    (seed / "retest-32-true" / "version_0" / "metrics.csv").write_text("epoch,step,test/rmse_r_deg\n0,0,3.0\n")
+    assert queue.result_rows(job, results) == [row]
+    assert "(1 result rows)" in queue.status_line(job, results)
+    assert queue.keep_best(runs / "j", tmp_path / "best") == []  # the sweep's row names no weights here
+    assert queue.active_runs(job, runs, hours=3.0) == []
+
+
 def test_stop_bound_is_where_lightnings_early_stopping_ends_the_run(tmp_path: Path) -> None:
     """The step by which a run stops unless it improves, checked against Lightning's own ``EarlyStopping`` fed the
     same validations: the step-0 validation of the starting weights is its first score

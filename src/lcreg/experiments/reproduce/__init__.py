@@ -8,7 +8,8 @@ data;
 * :mod:`~lcreg.experiments.reproduce.ablation`, :mod:`~lcreg.experiments.reproduce.lc`: the experiments, thin specs
 over the registry;
 * :mod:`~lcreg.experiments.reproduce.sweep`: train, select on validation, test, one resumable JSONL row per run
-  (:func:`lcreg.experiments.benchmarking.fit`);
+  (:func:`lcreg.experiments.benchmarking.fit`); :mod:`~lcreg.experiments.reproduce.retest`: the kept weights of finished
+  runs tested again under another precision (``--retest``);
 * :mod:`~lcreg.experiments.reproduce.runtime`: the runtime table (nothing trained: ms per pair per method, points,
 seed);
 * :mod:`~lcreg.experiments.reproduce.conditions`: evaluation experiments (models trained once, shared; every method ×

@@ -31,6 +31,7 @@ from lcreg.experiments.reproduce.parallel import WorkersFailedError, run_workers
 from lcreg.experiments.reproduce.plots import plot_sweep
 from lcreg.experiments.reproduce.recall_curves import RECALL_CURVES, plot_recall_curves, render_recall_curves
 from lcreg.experiments.reproduce.report import render
+from lcreg.experiments.reproduce.retest import PRECISIONS, MissingWeightsError, render_retest, retest_path, retest_sweep
 from lcreg.experiments.reproduce.robustness import ROBUSTNESS, plot_robustness, render_robustness
 from lcreg.experiments.reproduce.runtime import (
     RUNTIME,
@@ -42,7 +43,7 @@ from lcreg.experiments.reproduce.runtime import (
 )
 from lcreg.experiments.reproduce.spec import Experiment
 from lcreg.experiments.reproduce.stops import plot_learning_curves, with_metrics_files
-from lcreg.experiments.reproduce.sweep import Sweep, failed_runs, finished_rows, run_sweep
+from lcreg.experiments.reproduce.sweep import KEY_FIELDS, Sweep, failed_runs, finished_rows, run_sweep
 
 __all__ = [
     "EVALUATIONS",
@@ -156,6 +157,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--report-only", action="store_true", help="write the table and plots from the JSONL only")
     parser.add_argument(
+        "--retest",
+        choices=PRECISIONS,
+        metavar="PRECISION",
+        help="ablation, lc: train nothing; test every finished run's kept weights again on its own test pairs under "
+        f"this trainer.precision ({', '.join(PRECISIONS)}), beside its own test, in <stem>.retest-<PRECISION>.md "
+        "and .jsonl (with --report-only: the table from that JSONL only)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -261,6 +270,7 @@ def reproduce(
         ("--points", args.points is not None),
         ("--train-objects", args.train_objects is not None),
         ("--set", bool(args.settings)),
+        ("--retest", args.retest is not None),
     )
     for option, value in chosen:
         if value and not isinstance(experiment, Experiment):
@@ -281,6 +291,8 @@ def reproduce(
         sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points, settings=settings)
     except ValueError as err:  # Experiment.with_points owns the bound on --points
         raise ReproduceUsageError(f"--points: {err}") from None
+    if args.retest is not None:
+        return _retest(sweep, args, command, progress)
     failure = None
     if args.report_only:
         log = sweep.open_log()
@@ -319,6 +331,21 @@ def _report(sweep: Sweep, log: ResultLog, command: str, out: Path) -> list[Path]
     written = [write_text(sweep.file_stem.with_suffix(".md"), report)]
     written += [sweep.log_path] if sweep.log_path.is_file() else []
     return written + plot_sweep(sweep, rows) + curves
+
+
+def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
+    """Test the sweep's kept weights again under ``--retest`` (or, with ``--report-only``, only report them)."""
+    if args.jobs > 1:
+        raise ReproduceUsageError("--retest tests one run after another; leave out --jobs")
+    if args.report_only:
+        log = ResultLog(retest_path(sweep, args.retest, ".jsonl"), KEY_FIELDS)
+    else:
+        try:
+            log = retest_sweep(sweep, args.retest, progress)
+        except MissingWeightsError as err:
+            raise ReproduceUsageError(str(err)) from None
+    written = [write_text(retest_path(sweep, args.retest, ".md"), render_retest(sweep, log, args.retest, command))]
+    return written + ([log.path] if log.path.is_file() else [])
 
 
 def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:

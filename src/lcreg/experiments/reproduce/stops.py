@@ -21,7 +21,14 @@ from lcreg.experiments.benchmarking import LR_SERIES, lr_changes, markdown_table
 from lcreg.experiments.reproduce.budgets import Preset
 from lcreg.experiments.reproduce.spec import Experiment, Rows
 
-__all__ = ["metrics_file", "plot_learning_curves", "stopped_early", "stops_table", "with_metrics_files"]
+__all__ = [
+    "metrics_file",
+    "plot_learning_curves",
+    "recorded_file",
+    "stopped_early",
+    "stops_table",
+    "with_metrics_files",
+]
 
 STOPS_HEADER = [
     "variant",
@@ -46,7 +53,16 @@ def metrics_file(row: Mapping[str, Any], out: str | Path | None = None) -> Path 
     Returns:
         The file, or ``None`` when neither is found (or the row names none).
     """
-    recorded = row.get("metrics_csv")
+    return recorded_file(row, "metrics_csv", out)
+
+
+def recorded_file(row: Mapping[str, Any], field: str, out: str | Path | None = None) -> Path | None:
+    """The file a row's ``field`` names (e.g. ``weights``): the recorded path, else its longest tail under ``out``.
+
+    Returns:
+        The file, or ``None`` when neither is found (or the row names none).
+    """
+    recorded = row.get(field)
     if not recorded:
         return None
     path = Path(recorded)

@@ -1,0 +1,136 @@
+"""``lcreg reproduce ... --retest PRECISION``: a sweep's kept weights tested again on the same pairs, nothing trained."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from _reproduce_outputs import read_jsonl  # type: ignore[import-not-found]
+from lcreg.__main__ import main
+from lcreg.experiments.reproduce.retest import is_retest_output
+from lcreg.experiments.reproduce.sweep import METRICS
+
+pytestmark = pytest.mark.usefixtures("isolated_cli")
+
+SWEEP = ["reproduce", "lc", "--budget", "smoke", "--only", "idam/X"]
+BF16 = "--set=trainer.precision=bf16-mixed"
+
+
+def _sweep(out: Path, *extra: str, seeds: tuple[str, ...] = ("0",)) -> list[dict]:
+    main([*SWEEP, "--seeds", *seeds, "--out", str(out), *extra])
+    return read_jsonl(out / "lc.jsonl")
+
+
+def _retest(out: Path, precision: str, *extra: str, seeds: tuple[str, ...] = ("0",)) -> list[dict]:
+    main([*SWEEP, "--seeds", *seeds, "--out", str(out), *extra, "--retest", precision])
+    return read_jsonl(out / f"lc.retest-{precision}.jsonl")
+
+
+def _assert_same_test(row: dict, retested: dict) -> None:
+    for key in METRICS:
+        assert retested[key] == pytest.approx(row[key], rel=1e-6, abs=1e-9), key
+
+
+def test_a_retest_at_the_runs_own_precision_gives_its_test_again(tmp_path: Path, capsys) -> None:
+    """The same weights, pairs and precision: every metric of the row again, from a run rebuilt without training;
+    its per-pair errors and the precision it ran in are in the run's ``retest-<precision>/`` folder."""
+    rows = _sweep(tmp_path, seeds=("0", "1"))
+    capsys.readouterr()
+    retested = _retest(tmp_path, "32-true", seeds=("0", "1"))
+    assert [(r["variant"], r["seed"], r["precision"], r["trained_precision"]) for r in retested] == [
+        ("idam/X", 0, "32-true", "32-true"),
+        ("idam/X", 1, "32-true", "32-true"),
+    ]
+    for row, again in zip(rows, retested, strict=True):
+        assert {k: again[k] for k in ("budget", "data")} == {k: row[k] for k in ("budget", "data")}
+        _assert_same_test(row, again)
+        logs = Path(row["metrics_csv"]).parent.parent / "retest-32-true"
+        (per_pair,) = logs.rglob("test_per_pair.csv")
+        assert len(per_pair.read_text().splitlines()) == 1 + row["num_test_pairs"]
+        (config,) = logs.rglob("config.yaml")
+        assert yaml.safe_load(config.read_text())["trainer"]["precision"] == "32-true"
+    report = (tmp_path / "lc.retest-32-true.md").read_text()
+    assert "| idam/X | 0 | 32-true |" in report and "| idam/X | 2 seeds | 32-true |" in report
+    assert (tmp_path / "lc.jsonl").read_text().count("\n") == 2  # the sweep's own rows are untouched
+    capsys.readouterr()
+    assert _retest(tmp_path, "32-true", seeds=("0", "1")) == retested  # a rerun skips what was retested
+    assert capsys.readouterr().out.count("retested before, skipped") == 2
+
+
+def test_a_bf16_run_is_retested_in_float32_and_in_bf16_again(tmp_path: Path) -> None:
+    """A run trained and tested under bf16-mixed: ``--retest bf16-mixed`` gives its own test again (so the rebuilt
+    run is the same), ``--retest 32-true`` runs the same weights in float32 and says what the run trained in."""
+    (row,) = _sweep(tmp_path, BF16)
+    assert row["overrides"] == {"trainer.precision": "bf16-mixed"}
+    (again,) = _retest(tmp_path, "bf16-mixed", BF16)
+    _assert_same_test(row, again)
+    (float32,) = _retest(tmp_path, "32-true", BF16)
+    assert (float32["precision"], float32["trained_precision"]) == ("32-true", "bf16-mixed")
+    logs = Path(row["metrics_csv"]).parent.parent / "retest-32-true"
+    (config,) = logs.rglob("config.yaml")
+    assert yaml.safe_load(config.read_text())["trainer"]["precision"] == "32-true"
+    assert "| idam/X | 0 | bf16-mixed |" in (tmp_path / "lc.retest-32-true.md").read_text()
+
+
+def test_a_copy_of_the_output_folder_finds_its_weights_and_missing_weights_are_one_clear_line(
+    tmp_path: Path, capsys
+) -> None:
+    """The training queue commits a copy of ``--out`` elsewhere: the weights are found under it by the recorded path's
+    tail. Without them the command ends with exit code 2 and one line naming the file, after the runs it could test."""
+    (row,) = _sweep(tmp_path / "trained", seeds=("0",))
+    copy = tmp_path / "copy"
+    shutil.copytree(tmp_path / "trained", copy)
+    shutil.rmtree(tmp_path / "trained")
+    (retested,) = _retest(copy, "32-true")
+    _assert_same_test(row, retested)
+    assert Path(retested["weights"]).is_relative_to(copy)
+    main([*SWEEP, "--seeds", "1", "--out", str(copy)])
+    seed1 = read_jsonl(copy / "lc.jsonl")[-1]
+    Path(seed1["weights"]).unlink()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        _retest(copy, "32-true", seeds=("0", "1"))
+    assert stop.value.code == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("lcreg reproduce: error: idam/X seed 1: its kept weights ") and "\n" not in error
+    assert seed1["weights"] in error
+    assert len(read_jsonl(copy / "lc.retest-32-true.jsonl")) == 1
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["runtime", "--budget", "smoke", "--retest", "32-true"], "--retest applies to"),
+        (["lc", "--budget", "smoke", "--only", "idam/X", "--jobs", "2", "--retest", "32-true"], "leave out --jobs"),
+    ],
+)
+def test_retest_is_refused_where_it_means_nothing(argv: list[str], message: str, tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["reproduce", *argv, "--out", str(tmp_path)])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_report_only_writes_the_retest_table_from_its_jsonl(tmp_path: Path) -> None:
+    _sweep(tmp_path)
+    _retest(tmp_path, "32-true")
+    (tmp_path / "lc.retest-32-true.md").unlink()
+    main([*SWEEP, "--seeds", "0", "--out", str(tmp_path), "--retest", "32-true", "--report-only"])
+    assert "| idam/X | 0 | 32-true |" in (tmp_path / "lc.retest-32-true.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("path", "retest"),
+    [
+        ("out/lc.retest-32-true.jsonl", True),
+        ("out/lc.retest-bf16-mixed.md", True),
+        ("out/runs/converge/lc/idam_X/seed0/retest-32-true/version_0/metrics.csv", True),
+        ("out/lc.jsonl", False),
+        ("out/runs/converge/lc/idam_X/seed0/run/metrics.csv", False),
+        ("out/runs/converge/lc/retest_X/seed0/run/metrics.csv", False),
+    ],
+)
+def test_retest_outputs_are_told_from_a_runs_files(path: str, retest: bool) -> None:
+    assert is_retest_output(Path(path)) is retest
