@@ -1,4 +1,4 @@
-"""``lcreg reproduce ... --retest PRECISION``: a sweep's kept weights tested again on the same pairs, nothing trained."""
+"""``lcreg reproduce ... --retest PRECISION``: kept weights tested again on the same pairs, nothing trained."""
 
 from __future__ import annotations
 
