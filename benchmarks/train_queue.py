@@ -325,7 +325,10 @@ def finished_runs(source: Path) -> set[str]:
     machine trained it); what follows the job id is the run folder. A sweep's row (``lcreg reproduce``: its
     ``weights``) does not count where its folder holds a ``last.ckpt`` again: a sweep deletes a finished run's
     checkpoints, so that is a run of another budget or data training in the same folder (session 38: the row of
-    PRNet's LC run at lr 1e-3 hid the run at 2.2e-4 from ``progress`` and its resume state from :func:`keep_resume`).
+    PRNet's LC run at lr 1e-3 hid the run at 2.2e-4 from ``progress`` and its resume state from :func:`keep_resume`),
+    unless the checkpoint the row selected is there too: that is the run's own resume state, kept while it trained
+    and restored on a new machine after it finished (session 49: seed 0 of ``idam_bf16_512`` listed as training, and
+    its stale checkpoints kept again at every sync, since a sweep deletes them before it writes the row).
     """
     marker, folders = f"/{source.name}/", set()
     for log in source.rglob("*.jsonl"):
@@ -334,7 +337,9 @@ def finished_runs(source: Path) -> set[str]:
             if marker not in metrics:
                 continue
             folder = metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv")
-            if not (row.get("weights") and (source / folder / "checkpoints" / "last.ckpt").is_file()):
+            checkpoints = source / folder / "checkpoints"
+            restored = bool(row.get("selected")) and (checkpoints / str(row["selected"])).is_file()
+            if not (row.get("weights") and (checkpoints / "last.ckpt").is_file()) or restored:
                 folders.add(folder)
     return folders
 

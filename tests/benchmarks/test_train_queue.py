@@ -519,6 +519,28 @@ def test_a_sweep_run_training_again_in_a_finished_runs_folder_is_in_progress(tmp
     assert queue.finished_runs(source) == {folder}  # a learning_curves.py row keeps its checkpoints: finished
 
 
+def test_a_finished_sweep_runs_restored_resume_state_does_not_make_it_a_run_in_progress(tmp_path: Path) -> None:
+    """Session 49: a sync kept a sweep run's resume state while it trained; it finished (its row written, its
+    checkpoints deleted) on that machine, and a new machine restored the kept copy. With the row's selected checkpoint
+    among them, the folder's checkpoints are that finished run's: it is not training, and no sync keeps them again."""
+    import torch
+
+    queue = load("train_queue")
+    source = tmp_path / "runs" / "j"
+    run = source / "runs" / "converge" / "lc" / "idam_X" / "seed0" / "run"
+    selected = "step004400-val_rre_clip5_deg1.4251.ckpt"
+    row = {"variant": "idam/X", "seed": 0, "weights": f"{run.parent}/selected_weights.pt", "selected": selected}
+    (run / "checkpoints").mkdir(parents=True)
+    (source / "lc.jsonl").write_text(json.dumps({**row, "metrics_csv": f"/m/j/{run.relative_to(source)}/metrics.csv"}))
+    torch.save({"callbacks": {}}, run / "checkpoints" / "last.ckpt")
+    assert queue.finished_runs(source) == set()  # another budget's run training in the folder (session 38)
+    torch.save({"callbacks": {}}, run / "checkpoints" / selected)  # the restored copy of the run's own state
+    assert queue.finished_runs(source) == {run.relative_to(source).as_posix()}
+    kept = tmp_path / "kept"
+    (kept / "old").mkdir(parents=True)
+    assert queue.keep_resume(source, kept) == [] and not (kept / "old").exists()  # the stale copy goes
+
+
 def test_restore_does_not_bring_back_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
     """Session 30: a new machine restarted a run from scratch (its old metrics moved to ``abandoned/1/``), then the
     runner was restarted before any sync; ``restore`` copied the committed old files back beside the new run's, so
