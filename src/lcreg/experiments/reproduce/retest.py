@@ -13,7 +13,6 @@ are not changed.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -31,7 +30,7 @@ from lcreg.experiments.benchmarking import (
 )
 from lcreg.experiments.reproduce.budgets import DataChoice, RunBudget
 from lcreg.experiments.reproduce.stops import recorded_file
-from lcreg.experiments.reproduce.sweep import KEY_FIELDS, METRICS, Sweep, finished_rows
+from lcreg.experiments.reproduce.sweep import KEY_FIELDS, METRICS, Sweep, finished_rows, run_values
 from lcreg.weights import load_into
 
 __all__ = [
@@ -41,7 +40,7 @@ __all__ = [
     "render_retest",
     "retest_path",
     "retest_sweep",
-    "test_weights",
+    "retest_weights",
     "trained_precision",
 ]
 
@@ -64,7 +63,7 @@ def trained_precision(row: Mapping[str, Any]) -> str:
     return str((row.get("overrides") or {}).get("trainer.precision", DEFAULT_PRECISION))
 
 
-def test_weights(
+def retest_weights(
     name: str,
     budget: RunBudget,
     data: DataChoice,
@@ -90,12 +89,7 @@ def test_weights(
         The test metrics of :data:`~lcreg.experiments.reproduce.sweep.METRICS` (degrees; translations in the data's
         units).
     """
-    values = {
-        **budget.fit_overrides(log_dir, seed),
-        **data.overrides(budget),
-        **copy.deepcopy(dict(overrides)),  # parsing turns dicts into Namespaces in place
-        "trainer.precision": precision,
-    }
+    values = {**run_values(budget, data, Path(log_dir), seed, overrides), "trainer.precision": precision}
     cli = build_cli_for(name, (), values)
     load_into(cli.model, weights)
     (tested,) = cli.trainer.test(cli.model, datamodule=cli.datamodule, verbose=False)
@@ -122,7 +116,8 @@ def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] =
     for key, rows in finished_rows(sweep, sweep.open_log()).items():
         variant = variants[key]
         for row in rows:
-            if log.done(**{field: row[field] for field in KEY_FIELDS}):
+            fields = {field: row[field] for field in KEY_FIELDS}
+            if log.done(**fields):
                 progress(f"{key} seed {row['seed']}: retested before, skipped")
                 continue
             weights = recorded_file(row, "weights", sweep.out)
@@ -135,10 +130,9 @@ def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] =
             seed, overrides = int(row["seed"]), sweep.overrides(variant)
             log_dir = sweep.run_dir(variant, seed) / f"{RETEST_TAG}{precision}"
             test = partial(
-                test_weights, variant.method, budget, sweep.data, seed, overrides, weights, precision, log_dir
+                retest_weights, variant.method, budget, sweep.data, seed, overrides, weights, precision, log_dir
             )
             metrics, seconds = timed(test)
-            fields = {field: row[field] for field in KEY_FIELDS}
             log.append(
                 {
                     **fields,

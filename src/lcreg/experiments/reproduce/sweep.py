@@ -53,6 +53,7 @@ __all__ = [
     "finished_rows",
     "pending_runs",
     "run_sweep",
+    "run_values",
     "train_and_test",
 ]
 
@@ -196,7 +197,7 @@ def train_and_test(
         (:func:`~lcreg.experiments.benchmarking.peak_memory_mib`; ``overrides`` when the variant has any).
     """
     recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
-    values = {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(recorded)}
+    values = run_values(budget, data, run_dir, seed, recorded)
     device = training_device()
     result, peak_mib = peak_memory_mib(
         lambda: fit(name, values, monitor=budget.monitor, resume=budget.converge), device
@@ -232,6 +233,16 @@ def train_and_test(
         **({"overrides": recorded} if recorded else {}),
         **{key: float(tested[f"test/{key}"]) for key in METRICS},
     }
+
+
+def run_values(
+    budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The ``lcreg fit`` values of one run: its budget's (logs under ``run_dir``), its data's, then ``overrides``.
+
+    ``overrides`` is copied: parsing turns the dicts it is given into Namespaces, in place.
+    """
+    return {**budget.fit_overrides(run_dir, seed), **data.overrides(budget), **copy.deepcopy(dict(overrides))}
 
 
 def _step_cap(trainer: Any, budget: RunBudget) -> int:
