@@ -48,6 +48,7 @@ from lcreg.experiments.benchmarking import (
     peak_rss_increase_mib,
     read_metrics,
     registration_speed,
+    significant,
     synthetic_overrides,
     time_call,
     time_calls,
@@ -510,6 +511,29 @@ def test_markdown_table_format() -> None:
 def test_format_mean_std() -> None:
     assert format_mean_std([1.0, 3.0]) == "2 ± 1.4"
     assert format_mean_std([0.5], ".1f", ".1f", scale=100.0) == "50.0 ± 0.0"
+    # The IDAM bf16 seeds' RMSE(R): a spread of 1.02 was printed "± 1", as if known to one digit.
+    assert format_mean_std([5.259, 5.827, 3.841]) == "4.98 ± 1.0"
+    assert format_mean_std([2.0]) == "2 ± 0"
+
+
+@pytest.mark.parametrize("digits", [1, 2, 3])
+def test_significant_rounds_as_format_and_keeps_its_digits(digits: int) -> None:
+    """Numerically `.{digits}g` rounding, in fixed point with exactly ``digits`` significant digits."""
+    exponents = torch.empty(400, dtype=torch.float64).uniform_(-6, 4, generator=torch.Generator().manual_seed(0))
+    values = torch.cat([10**exponents, torch.tensor([0.996, 9.96, 99.6], dtype=torch.float64)])
+    for value in [*values.tolist(), *(-values).tolist()]:
+        text = significant(value, digits)
+        assert "e" not in text and float(text) == pytest.approx(float(f"{value:.{digits}g}"), rel=1e-12), value
+        assert len(text.lstrip("-").replace(".", "").lstrip("0")) == digits or (text.endswith("0") and "." not in text)
+    assert [significant(v) for v in (1.02, 0.1, 0.0039, 123.4, 0.996, 0.0, -1.02)] == [
+        "1.0",
+        "0.10",
+        "0.0039",
+        "120",
+        "1.0",
+        "0",
+        "-1.0",
+    ]
 
 
 def test_result_log_resume_skips_finished_rows(tmp_path: Path) -> None:

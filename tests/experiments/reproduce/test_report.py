@@ -43,7 +43,7 @@ def test_lc_table_has_paper_ours_and_ratio_per_series(tmp_path: Path) -> None:
         "| ours: LC (matched) + X |"  # not in the paper: no paper column, no ratio
     )
     dcp = table[2].split(" | ")
-    assert dcp[1:] == ["DCP-v2", "4.834", "9.67 ± 0.1", "2.00×", "3.950", "9.67 ± 0.1", "2.45×", "9.67 ± 0.1 |"]
+    assert dcp[1:] == ["DCP-v2", "4.834", "9.67 ± 0.10", "2.00×", "3.950", "9.67 ± 0.10", "2.45×", "9.67 ± 0.10 |"]
 
 
 def test_zero_paper_values_have_no_ratio_and_pipes_are_escaped() -> None:
@@ -237,5 +237,5 @@ def test_the_other_table_gives_the_mean_rte_over_the_rows_that_recorded_it(tmp_p
         for line in text.splitlines()
         if line.startswith("| hosts |") and len(cells := line.split(" | ")) > column
     }
-    assert cells[("DCP-v2", "LC + X")] == "0.002 ± 0.001"
+    assert cells[("DCP-v2", "LC + X")] == "0.002 ± 0.0010"
     assert cells[("DCP-v2", "X")].endswith(" (2 of 3)") and cells[("IDAM", "X")] == "–"

@@ -94,6 +94,7 @@ from lcreg.experiments.benchmarking.writers import (
     mean_std_row,
     output_path,
     report_table,
+    significant,
     training_device,
     write_text,
 )
@@ -159,6 +160,7 @@ __all__ = [
     "report_table",
     "run_files",
     "run_fresh_process",
+    "significant",
     "split_batches",
     "summary_rows",
     "summary_table",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import platform
 import tempfile
 from collections import Counter
@@ -25,6 +26,7 @@ __all__ = [
     "mean_std_row",
     "output_path",
     "report_table",
+    "significant",
     "write_text",
 ]
 
@@ -51,11 +53,32 @@ def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]] = ())
     return "\n".join([markdown_row(header), "|---" * len(header) + "|", *(markdown_row(row) for row in rows)])
 
 
-def format_mean_std(values: Sequence[float], mean_fmt: str = ".3g", std_fmt: str = ".2g", scale: float = 1.0) -> str:
-    """``"mean ± std"`` of ``values`` times ``scale`` (sample standard deviation; 0 for a single value)."""
+def significant(value: float, digits: int = 2) -> str:
+    """``value`` to ``digits`` significant digits in fixed-point notation, trailing zeros kept.
+
+    1.02 is ``"1.0"``, not ``format``'s ``"1"`` (``.2g``), which reads as a spread known to one digit; 0 is ``"0"``,
+    123 is ``"120"``.
+    """
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    exponent = math.floor(math.log10(abs(value)))
+    decimals = digits - 1 - exponent
+    if math.floor(math.log10(abs(round(value, decimals)))) > exponent:  # rounding carried: 0.996 is "1.0", not "1.00"
+        decimals -= 1
+    return f"{round(value, decimals):.{max(decimals, 0)}f}"
+
+
+def format_mean_std(
+    values: Sequence[float], mean_fmt: str = ".3g", std_fmt: str | None = None, scale: float = 1.0
+) -> str:
+    """``"mean ± std"`` of ``values`` times ``scale`` (sample standard deviation; 0 for a single value).
+
+    ``std_fmt``: a format spec for the spread; ``None`` (default) gives it two significant digits (:func:`significant`).
+    """
     t = torch.tensor(list(values), dtype=torch.float64) * scale
     std = float(t.std()) if len(t) > 1 else 0.0
-    return f"{float(t.mean()):{mean_fmt}} ± {std:{std_fmt}}"
+    spread = significant(std) if std_fmt is None else f"{std:{std_fmt}}"
+    return f"{float(t.mean()):{mean_fmt}} ± {spread}"
 
 
 def _metric_cell(key: str, value: float) -> str:
