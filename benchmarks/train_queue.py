@@ -8,6 +8,7 @@
                                                                  # each syncs and commits its job every 10 minutes
     python benchmarks/train_queue.py stop --runs /work/runs/converge                  # end them and their training
     python benchmarks/train_queue.py start --runs /work/runs/converge --runner r3     # one runner, the others go on
+    python benchmarks/train_queue.py start --runs /work/runs/converge --until 12:25   # the machine goes at 12:25 UTC
     python benchmarks/train_queue.py runs --out docs/results/converge/runs.md         # every finished run's stop
     python benchmarks/train_queue.py progress --runs /work/runs/converge              # the runs training now
     python benchmarks/train_queue.py --smoke                                          # seconds: a tiny queue
@@ -38,7 +39,10 @@ is known by the name ``start`` gives its command line, :func:`runs_as`, so a job
 make ``stop`` of that runner end its old one). ``runs`` tabulates every
 finished run of the committed results: the step at which it stopped, why, and the step its rule selected
 (:func:`runs_table`). ``progress`` shows the runs training now: each one's last validation, its best so far and the step
-by which it stops unless a validation improves (:func:`progress_table`, :func:`stop_bound`).
+by which it stops unless a validation improves (:func:`progress_table`, :func:`stop_bound`). ``--until`` (``run``,
+``start``) is when this machine is expected to go: a ``machine_bound`` job (its checkpoints are too large to keep, so
+its runs resume only here) is not begun when its ``wall_hours`` would end after it; the runner goes on with its next
+job, and the machine-bound one waits for a session that can finish it (:func:`cannot_finish`).
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import tomllib
@@ -110,6 +115,10 @@ class Job:
     keep_best: bool = False
     test_command: str | None = None
     val_command: str | None = None
+    machine_bound: bool = False
+    """Its checkpoints exceed :data:`RESUME_MAX_BYTES`: a run resumes only on the machine that began it."""
+    wall_hours: float | None = None
+    """Wall-clock hours from its first step to done with its runner's cores (``machine_bound`` jobs need it)."""
 
     def follow_up_argv(self, kind: str, checkpoint: Path, out: Path) -> list[str]:
         """The job's ``<kind>_command`` (:data:`FOLLOW_UPS`) for one finished run (``{checkpoint}``, ``{out}``: the path
@@ -203,7 +212,51 @@ def load_jobs(path: Path) -> list[Job]:
     ids = [job.id for job in jobs]
     if len(set(ids)) != len(ids):
         raise ValueError(f"{path}: job ids must be unique, got {ids}")
+    for job in jobs:
+        if job.machine_bound and not (isinstance(job.wall_hours, int | float) and job.wall_hours > 0):
+            raise ValueError(
+                f"{path}: job {job.id!r} is machine_bound: give its wall_hours (> 0), got {job.wall_hours}"
+            )
     return jobs
+
+
+def until_time(text: str, now: datetime | None = None) -> datetime:
+    """``--until``: ``HH:MM`` (UTC; the next such time, so ``01:00`` at 23:00 is tomorrow's) or an ISO date and time
+    (UTC unless it names a zone).
+
+    Raises:
+        argparse.ArgumentTypeError: If ``text`` is neither.
+    """
+    now = now or datetime.now(UTC)
+    try:
+        if re.fullmatch(r"\d{1,2}:\d{2}", text):
+            hour, minute = map(int, text.split(":"))
+            at = now.replace(hour=hour, minute=minute, second=0, microsecond=0)
+            return at if at > now else at + timedelta(days=1)
+        at = datetime.fromisoformat(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(
+            f"--until: expected HH:MM (UTC) or an ISO date and time, got {text!r} ({err})"
+        ) from None
+    return at if at.tzinfo else at.replace(tzinfo=UTC)
+
+
+def cannot_finish(job: Job, runs: Path, until: datetime | None, now: datetime | None = None) -> str | None:
+    """Why ``run`` does not begin ``job`` here before ``until`` (the machine's expected end), or ``None`` if it may.
+
+    Only a ``machine_bound`` job is held back, and only when none of its runs has begun on this machine (no run folder
+    under ``runs``; one that has resumes): a run cut off with the machine starts again from step 0 on the next one,
+    so its hours would be lost. Its ``wall_hours`` (from step 0) must end before ``until``.
+    """
+    if until is None or not job.machine_bound or (runs / job.id).exists():
+        return None
+    left_h = (until - (now or datetime.now(UTC))).total_seconds() / 3600
+    if job.wall_hours is not None and job.wall_hours <= left_h:
+        return None
+    return (
+        f"machine-bound (its runs resume only here), about {job.wall_hours:g} h from step 0, {max(left_h, 0):.2f} h "
+        f"left before --until {until:%Y-%m-%d %H:%M} UTC: not begun; it waits for a session that can finish it"
+    )
 
 
 def sync(job: Job, runs: Path, results: Path, done: bool | None = None) -> int:
@@ -450,7 +503,8 @@ def set_aside_here(committed: Path, destination: Path) -> bool:
 
 
 def status_line(job: Job, results: Path, runs: Path | None = None) -> str:
-    """``id  section  done|pending|running (<k> result rows: finished runs, earlier rules' included)  estimate  what``.
+    """``id  section  done|pending|running (<k> result rows: finished runs, earlier rules' included)  estimate  what``;
+    a ``machine_bound`` job's estimate adds its ``wall_hours``.
 
     ``running`` (with the runner's pid): a runner here holds the job's lock in ``runs`` (:func:`job_lock`).
     """
@@ -460,6 +514,7 @@ def status_line(job: Job, results: Path, runs: Path | None = None) -> str:
     pid = None if done or runs is None else holder(job, runs)
     state = "done" if done else f"{'pending' if pid is None else f'running, pid {pid},'} ({finished} result rows)"
     hours = f"{job.gpu_hours} GPU-h" if job.section == "gpu" else f"{job.cpu_hours} CPU-h (cap {job.cap_hours})"
+    hours += f", machine-bound: {job.wall_hours:g} h from step 0" if job.machine_bound else ""
     return f"{job.id:<24} {job.section:<4} {state:<28} {hours:<22} {job.what}"
 
 
@@ -928,6 +983,7 @@ def start_runners(
     results: Path,
     named: bool = False,
     keeping: Keeping = Keeping(),
+    until: datetime | None = None,
 ) -> list[int]:
     """Launch each runner of ``queue`` in the background (its own session, one thread) from ``checkout``; returns
     their pids. Each command line names its runner (``--runner``), by which ``stop`` finds it.
@@ -937,6 +993,7 @@ def start_runners(
             Otherwise they are all of the queue's: refuse if any runner of ``runs`` runs. Two runners never train
             one job at once whatever their lists (the job's lock, :func:`holder`).
         keeping: Passed to each runner as ``run --sync-every`` and ``--commit``.
+        until: Passed to each runner as ``run --until`` (:func:`cannot_finish`).
 
     Raises:
         SystemExit: If runners of ``runs`` (of ``runners``, when ``named``) are running already (``stop`` them first).
@@ -956,6 +1013,7 @@ def start_runners(
         argv += ["--runner", runner.name]
         argv += [] if keeping.sync_every_min is None else ["--sync-every", f"{keeping.sync_every_min:g}"]
         argv += ["--commit"] if keeping.commit else []
+        argv += [] if until is None else ["--until", until.isoformat()]
         with open(runs / "logs" / f"{runner.name}.log", "a", encoding="utf-8") as log:
             process = subprocess.Popen(
                 argv, cwd=checkout, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
@@ -1058,6 +1116,14 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
         help="run, sync, start: commit each job's results folder (alone) after every sync that changed it",
     )
     parser.add_argument(
+        "--until",
+        type=until_time,
+        default=None,
+        metavar="HH:MM",
+        help="run, start: when this machine is expected to go (UTC, or an ISO date and time): a machine_bound job "
+        "whose wall_hours end after it is not begun; the runner goes on with its next job",
+    )
+    parser.add_argument(
         "--checkout",
         type=Path,
         default=None,
@@ -1084,7 +1150,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         checkout = args.checkout or queue_worktree()
         queue = args.queue if args.queue != default_queue(REPO) else default_queue(checkout)  # the worktree's own
         keeping = Keeping(START_SYNC_MIN if args.sync_every is None else args.sync_every, args.commit)
-        start_runners(runners, checkout, queue, args.runs, args.results, named, keeping)
+        start_runners(runners, checkout, queue, args.runs, args.results, named, keeping, args.until)
         return
     jobs = chosen_jobs(load_jobs(args.queue), args.only)
     if args.action == "runs":
@@ -1112,6 +1178,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             if minutes is not None and minutes <= 0:
                 print(f"queue: {job.id}: no time left of --max-minutes; it runs on the next call", flush=True)
                 sys.exit(1)
+            if why := cannot_finish(job, args.runs, args.until):
+                print(f"queue: {job.id}: {why}", flush=True)
+                continue
             with job_lock(job, args.runs) as lock_fd:
                 if lock_fd is None:
                     print(f"queue: {job.id}: another runner holds {args.runs / job.id}.lock; skipped", flush=True)

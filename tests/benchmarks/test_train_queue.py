@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import json
@@ -9,6 +10,7 @@ import os
 import shlex
 import sys
 import time
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from types import ModuleType
 
@@ -1010,3 +1012,77 @@ def test_a_runner_is_known_by_the_name_start_gives_it_or_else_by_exactly_its_job
     assert not queue.runs_as(["train_queue.py", "run", "--only", "x", "z", "--runs", "/r"], runner)
     assert queue.option_values(["a", "--only", "x", "y", "--jobs", "2"], "--only") == ["x", "y"]
     assert queue.option_values(["a"], "--runner") == []
+
+
+def _machine_bound_queue(folder: Path, wall_hours: float) -> Path:
+    """Job "big" (machine-bound, ``wall_hours``), then "small" (resumable); each makes its run folder and exits."""
+    file = folder / "q.toml"
+    make = "python -c \\\"import pathlib; pathlib.Path('{runs}').mkdir(parents=True, exist_ok=True)\\\""
+    big = f'[[job]]\nid = "big"\nsection = "cpu"\nwhat = "x"\ncommand = "{make}"\nmachine_bound = true\n'
+    small = f'[[job]]\nid = "small"\nsection = "cpu"\nwhat = "x"\ncommand = "{make}"\n'
+    file.write_text(f"{big}wall_hours = {wall_hours}\n{small}")
+    return file
+
+
+def test_a_machine_bound_job_that_cannot_finish_before_until_waits_and_the_next_job_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Session 49's lesson: a DCP-v2 run begun too late ends with the machine and starts again from step 0 on the
+    next one. Before, a runner began its next job whatever the time left."""
+    queue = load("train_queue")
+    file = _machine_bound_queue(tmp_path, wall_hours=2.0)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    args = ["run", "--queue", str(file), "--runs", str(runs), "--results", str(res)]
+    soon = (datetime.now(UTC) + timedelta(hours=1)).isoformat()
+    queue.main([*args, "--until", soon])
+    assert "queue: big: machine-bound (its runs resume only here), about 2 h from step 0" in capsys.readouterr().out
+    assert not (runs / "big").exists() and not (res / "big" / "DONE.json").exists()
+    assert (res / "small" / "DONE.json").is_file()  # the runner went on with its next job
+    assert "pending (0 result rows)" in (line := queue.status_line(queue.load_jobs(file)[0], res, runs))
+    assert "machine-bound: 2 h from step 0" in line
+    queue.main([*args, "--until", (datetime.now(UTC) + timedelta(hours=2.5)).isoformat()])
+    assert (res / "big" / "DONE.json").is_file()  # time enough: it runs
+
+
+def test_a_machine_bound_job_begun_here_resumes_whatever_the_time_left(tmp_path: Path) -> None:
+    queue = load("train_queue")
+    big, _ = queue.load_jobs(_machine_bound_queue(tmp_path, wall_hours=2.0))
+    until, now = datetime(2026, 12, 6, 12, 25, tzinfo=UTC), datetime(2026, 12, 6, 11, 0, tzinfo=UTC)
+    assert queue.cannot_finish(big, tmp_path / "runs", until, now) is not None
+    assert queue.cannot_finish(big, tmp_path / "runs", until, now - timedelta(hours=1)) is None  # 2.4 h left
+    assert queue.cannot_finish(big, tmp_path / "runs", None, now) is None  # no --until: as before
+    (tmp_path / "runs" / "big").mkdir(parents=True)
+    assert queue.cannot_finish(big, tmp_path / "runs", until, now) is None  # its runs resume here
+    resumable = dataclasses.replace(big, machine_bound=False)
+    assert queue.cannot_finish(resumable, tmp_path / "other", until, until) is None  # a new machine resumes it
+
+
+def test_until_is_the_next_such_utc_time_or_an_iso_time_and_start_passes_it_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    queue = load("train_queue")
+    late = datetime(2026, 12, 6, 23, 0, tzinfo=UTC)
+    assert queue.until_time("23:30", late) == datetime(2026, 12, 6, 23, 30, tzinfo=UTC)
+    assert queue.until_time("01:00", late) == datetime(2026, 12, 7, 1, 0, tzinfo=UTC)  # past midnight: tomorrow's
+    assert queue.until_time("2026-12-07T02:00", late) == datetime(2026, 12, 7, 2, 0, tzinfo=UTC)
+    for bad in ("noon", "25:00"):
+        with pytest.raises(argparse.ArgumentTypeError, match="--until: expected HH:MM"):
+            queue.until_time(bad, late)
+    *_, args = sleeping_runners(tmp_path, two_jobs=1)
+    launched: list[list[str]] = []
+
+    class Launched:
+        pid = -1
+
+    def popen(argv: list[str], **_: object) -> Launched:
+        launched.append(argv)
+        return Launched()
+
+    monkeypatch.setattr(queue.subprocess, "Popen", popen)
+    monkeypatch.setattr(queue, "nice_group", lambda pid, nice: True)
+    queue.main(["start", *args, "--until", "2026-12-06T12:25"])
+    assert len(launched) == 2 and all(
+        argv[argv.index("--until") + 1] == "2026-12-06T12:25:00+00:00" for argv in launched
+    )
+    with pytest.raises(ValueError, match="'big' is machine_bound: give its wall_hours"):
+        queue.load_jobs(_machine_bound_queue(tmp_path, wall_hours=0))
