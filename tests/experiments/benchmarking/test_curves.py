@@ -248,9 +248,9 @@ def test_summary_rows_first_last_best_over_seeds() -> None:
             "val/rre_mean_deg",
             "D",
             "2",
-            f"{format_mean_std([10.0, 12.0], '.4g', '.2g')} @ 19",
-            f"{format_mean_std([6.0, 5.0], '.4g', '.2g')} @ 59",
-            format_mean_std([4.0, 5.0], ".4g", ".2g"),  # seed 0 at step 39, seed 1 at step 59
+            f"{format_mean_std([10.0, 12.0], '.4g')} @ 19",
+            f"{format_mean_std([6.0, 5.0], '.4g')} @ 59",
+            format_mean_std([4.0, 5.0], ".4g"),  # seed 0 at step 39, seed 1 at step 59
             "39/59",
         ],
         ["val/rre_mean_deg", "recipe", "1", "9 @ 19", "3 @ 39", "3", "39"],  # one seed: no ± 0
