@@ -75,6 +75,34 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_runs(tmp_path: Pa
     assert matched["overrides"]["model.init_args.loss_terms"][0]["init_args"]["weight"] == 51.6
 
 
+def test_a_sweep_cut_off_after_a_run_keeps_the_report_of_that_run(tmp_path: Path, monkeypatch) -> None:
+    real = lcreg.experiments.reproduce.sweep.fit
+    fits: list[str] = []
+
+    def fit_then_cut_off(*args: Any, **kwargs: Any) -> Any:  # the session ends during the second run
+        fits.append("fit")
+        if len(fits) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lcreg.experiments.reproduce.sweep, "fit", fit_then_cut_off)
+    with pytest.raises(KeyboardInterrupt):
+        main(["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X", "--out", str(tmp_path)])
+    text = (tmp_path / "lc.md").read_text()  # session 51: a report written only at a sweep's end was 10 sessions stale
+    assert "Runs finished: 1 of 2" in text and len(read_jsonl(tmp_path / "lc.jsonl")) == 1
+
+
+def test_workers_call_on_finish_after_each_run_that_finished(tmp_path: Path) -> None:
+    from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
+
+    ok = [WorkerRun(f"a seed {k}", (sys.executable, "-c", "pass"), tmp_path / f"{k}.log") for k in range(2)]
+    bad = WorkerRun("b seed 0", (sys.executable, "-c", "import sys; sys.exit(3)"), tmp_path / "b.log")
+    finished: list[int] = []
+    with pytest.raises(WorkersFailedError):
+        run_workers([ok[0], bad, ok[1]], jobs=2, progress=lambda _: None, on_finish=lambda: finished.append(1))
+    assert finished == [1, 1]
+
+
 def _fake_train(calls: list[tuple[str, int]]) -> Any:
     def train(
         name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Any

@@ -294,16 +294,22 @@ def reproduce(
     if args.retest is not None:
         return _retest(sweep, args, command, progress)
     failure = None
+
+    def refresh(*_: object) -> None:  # after each finished run: a sweep cut off later keeps its report
+        if not args.no_report:
+            progress(f"report of the runs finished so far: {_report(sweep, sweep.open_log(), command, out)[0]}")
+
     if args.report_only:
         log = sweep.open_log()
     elif args.jobs > 1:
         try:
-            run_workers(worker_runs(sweep, _worker_options(args, out), not args.resume), args.jobs, progress)
+            runs = worker_runs(sweep, _worker_options(args, out), not args.resume)
+            run_workers(runs, args.jobs, progress, on_finish=refresh)
         except WorkersFailedError as err:  # the finished runs are reported first
             failure = err
         log = sweep.open_log()
     else:
-        log = run_sweep(sweep, progress=progress, rerun=not args.resume)
+        log = run_sweep(sweep, progress=progress, rerun=not args.resume, on_row=refresh)
     if args.no_report:
         return []
     written = _report(sweep, log, command, out)

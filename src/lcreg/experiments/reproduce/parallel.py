@@ -77,8 +77,16 @@ def worker_runs(sweep: Sweep, options: Sequence[str], rerun: bool) -> list[Worke
     ]
 
 
-def run_workers(runs: Sequence[WorkerRun], jobs: int, progress: Callable[[str], None] = print) -> None:
+def run_workers(
+    runs: Sequence[WorkerRun],
+    jobs: int,
+    progress: Callable[[str], None] = print,
+    on_finish: Callable[[], object] | None = None,
+) -> None:
     """Run ``runs`` at most ``jobs`` at a time and wait for all of them.
+
+    ``on_finish`` is called after each worker that exits 0 (its row is in the JSONL), e.g. to write the report of
+    what has finished so far while the others train.
 
     Raises:
         ValueError: If ``jobs`` < 1.
@@ -103,6 +111,8 @@ def run_workers(runs: Sequence[WorkerRun], jobs: int, progress: Callable[[str], 
                 del running[run]
                 progress(f"{run.name}: {'finished' if code == 0 else f'exit {code}'}")
                 failed += [(run.name, code)] if code else []
+                if code == 0 and on_finish is not None:
+                    on_finish()
     if failed:
         raise WorkersFailedError(failed)
 

@@ -267,6 +267,7 @@ def run_sweep(
     train: Trainer | None = None,
     progress: Callable[[str], None] = lambda _: None,
     rerun: bool = False,
+    on_row: Callable[[ResultLog], object] | None = None,
 ) -> ResultLog:
     """Train and test every unfinished (variant, seed) of ``sweep``, appending each row as it ends.
 
@@ -275,6 +276,8 @@ def run_sweep(
         train: The run itself (``None``: :func:`train_and_test`).
         progress: Called with one line per run (skipped or finished).
         rerun: Run finished runs again too (their new rows are appended; the newest row of a run counts).
+        on_row: Called with the log after each appended row, e.g. to write the report of what has finished so far
+            (a sweep cut off later keeps a report of its finished runs).
 
     Returns:
         The JSONL log with every finished row.
@@ -294,6 +297,8 @@ def run_sweep(
                 fields = {"failed": one_line(str(err), 300)}
             row = log.append({**sweep.key(variant, seed), "preset": sweep.preset, **fields})
             progress(f"{variant.key} seed {seed}: {_outcome(row)}")
+            if on_row is not None:
+                on_row(log)
     return log
 
 
