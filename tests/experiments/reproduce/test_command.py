@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 import yaml
 
+import lcreg.experiments.reproduce.command
 import lcreg.experiments.reproduce.sweep
 from _reproduce_outputs import assert_png_drawn, count_calls, read_jsonl  # type: ignore[import-not-found]
 from lcreg.__main__ import main
@@ -90,6 +91,16 @@ def test_a_sweep_cut_off_after_a_run_keeps_the_report_of_that_run(tmp_path: Path
         main(["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X", "--out", str(tmp_path)])
     text = (tmp_path / "lc.md").read_text()  # session 51: a report written only at a sweep's end was 10 sessions stale
     assert "Runs finished: 1 of 2" in text and len(read_jsonl(tmp_path / "lc.jsonl")) == 1
+
+
+@pytest.mark.parametrize(("every_s", "reports"), [(1e9, 1), (0.0, 3)])
+def test_reports_while_a_sweep_trains_are_at_least_report_every_s_apart(
+    every_s: float, reports: int, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "REPORT_EVERY_S", every_s)
+    main(["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "2", "--only", "idam/X", "--out", str(tmp_path)])
+    assert capsys.readouterr().out.count("report of the runs finished so far") == reports  # the first run writes one
+    assert "Runs finished: 3 of 3" in (tmp_path / "lc.md").read_text()
 
 
 def test_workers_call_on_finish_after_each_run_that_finished(tmp_path: Path) -> None:

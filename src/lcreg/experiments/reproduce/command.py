@@ -16,6 +16,7 @@ import json
 import os
 import re
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, get_args
@@ -65,6 +66,9 @@ EVALUATIONS: dict[str, EvalExperiment] = {"robustness": ROBUSTNESS, "recall-curv
 PLANNED: tuple[str, ...] = ()
 """Experiments named by the command but not available yet."""
 AVAILABLE = (*EXPERIMENTS, *TIMINGS, *EVALUATIONS)
+REPORT_EVERY_S = 60.0
+"""Least seconds between two reports written while a sweep trains (the first finished run writes one, the sweep's end
+another): a report with its curves takes seconds, many short runs would spend more on reports than on training."""
 WRITERS = {
     "robustness": (render_robustness, plot_robustness),
     "recall-curves": (render_recall_curves, plot_recall_curves),
@@ -294,10 +298,13 @@ def reproduce(
     if args.retest is not None:
         return _retest(sweep, args, command, progress)
     failure = None
+    written_at = -REPORT_EVERY_S
 
-    def refresh(*_: object) -> None:  # after each finished run: a sweep cut off later keeps its report
-        if not args.no_report:
+    def refresh(*_: object) -> None:  # after a finished run: a sweep cut off later keeps its report
+        nonlocal written_at
+        if not args.no_report and time.monotonic() - written_at >= REPORT_EVERY_S:
             progress(f"report of the runs finished so far: {_report(sweep, sweep.open_log(), command, out)[0]}")
+            written_at = time.monotonic()
 
     if args.report_only:
         log = sweep.open_log()
