@@ -103,6 +103,23 @@ def test_reports_while_a_sweep_trains_are_at_least_report_every_s_apart(
     assert "Runs finished: 3 of 3" in (tmp_path / "lc.md").read_text()
 
 
+def test_a_report_that_fails_while_a_sweep_trains_does_not_stop_the_sweep(tmp_path: Path, monkeypatch, capsys) -> None:
+    real = lcreg.experiments.reproduce.command._report
+    reports: list[str] = []
+
+    def broken_then_real(*args: Any, **kwargs: Any) -> Any:  # e.g. matplotlib failing on the first mid-sweep report
+        reports.append("report")
+        if len(reports) == 1:
+            raise RuntimeError("no display")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "REPORT_EVERY_S", 0.0)
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", broken_then_real)
+    main(["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X", "--out", str(tmp_path)])
+    assert "report not written (RuntimeError: no display); training goes on" in capsys.readouterr().out
+    assert len(read_jsonl(tmp_path / "lc.jsonl")) == 2 and "Runs finished: 2 of 2" in (tmp_path / "lc.md").read_text()
+
+
 def test_workers_call_on_finish_after_each_run_that_finished(tmp_path: Path) -> None:
     from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
 

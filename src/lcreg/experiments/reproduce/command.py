@@ -302,9 +302,13 @@ def reproduce(
 
     def refresh(*_: object) -> None:  # after a finished run: a sweep cut off later keeps its report
         nonlocal written_at
-        if not args.no_report and time.monotonic() - written_at >= REPORT_EVERY_S:
+        if args.no_report or time.monotonic() - written_at < REPORT_EVERY_S:
+            return
+        try:
             progress(f"report of the runs finished so far: {_report(sweep, sweep.open_log(), command, out)[0]}")
-            written_at = time.monotonic()
+        except Exception as err:  # a side product: training goes on, and the sweep's end reports again
+            progress(f"report not written ({type(err).__name__}: {err}); training goes on, rows in {sweep.log_path}")
+        written_at = time.monotonic()
 
     if args.report_only:
         log = sweep.open_log()
