@@ -392,6 +392,32 @@ def test_a_budget_lr_trains_at_that_lr_and_keys_its_runs_apart(tmp_path: Path) -
     assert converge["prnet"].describe() == converge["dcp"].describe() + ", lr 0.00022"
 
 
+def test_a_set_lr_replaces_the_budget_lr_in_the_key_so_runs_keep_their_key_when_the_budget_adopts_it(
+    tmp_path: Path,
+) -> None:
+    """Session 52: runs trained at a ``--set`` lr stay finished when the budget later trains at that lr by default."""
+    from dataclasses import replace
+
+    from lcreg.experiments.reproduce.budgets import LR_KEY
+
+    plain = RunBudget(steps=1, points=64, batch=2, checks=1)
+    settings = ((LR_KEY, 3e-4), ("trainer.precision", "bf16-mixed"))
+    variant = LC.variant("idam/X")
+    own, adopted = (
+        replace(LC.select(["idam/X"]), budgets={"smoke": {"idam": b}}) for b in (plain, replace(plain, lr=3e-4))
+    )
+    before = Sweep(own, "smoke", (0,), DataChoice(None), tmp_path, settings=settings)
+    after = Sweep(adopted, "smoke", (0,), DataChoice(None), tmp_path, settings=settings)
+    assert after.key(variant, 0) == before.key(variant, 0) and after.run_dir(variant, 0) == before.run_dir(variant, 0)
+    assert "lr 0.0003" not in after.key(variant, 0)["budget"].partition(";")[0]  # named once, in the settings
+    without_set = Sweep(adopted, "smoke", (0,), DataChoice(None), tmp_path, settings=settings[1:])
+    assert without_set.key(variant, 0)["budget"].startswith(plain.describe() + ", lr 0.0003; set")
+    calls: list[tuple[str, int]] = []
+    run_sweep(before, _fake_train(calls))
+    run_sweep(after, _fake_train(calls))
+    assert calls == [("idam", 0)]  # the adopted budget found the run finished
+
+
 def test_jobs_trains_runs_in_worker_processes_with_the_rows_of_a_serial_sweep(tmp_path: Path) -> None:
     import subprocess
 

@@ -18,7 +18,7 @@ import copy
 import hashlib
 import json
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -36,7 +36,7 @@ from lcreg.experiments.benchmarking import (
     timed,
     training_device,
 )
-from lcreg.experiments.reproduce.budgets import DataChoice, Preset, RunBudget
+from lcreg.experiments.reproduce.budgets import LR_KEY, DataChoice, Preset, RunBudget
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
 from lcreg.models.base import NonFiniteTrainingError
 from lcreg.weights import load_into
@@ -161,14 +161,21 @@ class Sweep(PresetRun):
         return self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
-        """The :data:`KEY_FIELDS` of a run."""
-        budget = self.experiment.budget(self.preset, variant).describe() + self.settings_text()
+        """The :data:`KEY_FIELDS` of a run.
+
+        A ``--set`` of the learning rate (:data:`LR_KEY`) replaces the budget's own, so the key names only the set one:
+        a run keeps its key when its budget later adopts an lr that runs had been given by ``--set``.
+        """
+        budget = self.experiment.budget(self.preset, variant)
+        if LR_KEY in dict(self.settings):
+            budget = replace(budget, lr=None)
+        budget_text = budget.describe() + self.settings_text()
         name = self.experiment.name
         return {
             "experiment": name,
             "variant": variant.key,
             "seed": seed,
-            "budget": budget,
+            "budget": budget_text,
             "data": self.data.describe(),
         }
 
