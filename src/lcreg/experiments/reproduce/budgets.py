@@ -28,6 +28,7 @@ from lcreg.experiments.benchmarking import (
 )
 
 __all__ = [
+    "CONVERGE_DCP",
     "CONVERGE_EPOCHS_OF_8",
     "CONVERGE_LK",
     "CONVERGE_PRNET",
@@ -160,6 +161,13 @@ CONVERGE_PRNET = replace(CONVERGE_SMALL_BATCH, lr=2.2e-4)
 seeds reached validation median RRE 1.68-1.91° by step 399 against 2.30-3.73° at 1e-3, on the same script and
 validation pairs (``docs/results/converge/gpu_prnet_lr_256/``, H100; ``prnet_lr_256``, CPU). Decided on validation,
 before any PRNet test number at this lr; X and LC + X alike."""
+CONVERGE_DCP = replace(CONVERGE_SMALL_BATCH, lr=2.5e-4)
+"""``converge`` for DCP-v2: :data:`CONVERGE_SMALL_BATCH` at lr 2.5e-4 (upstream's 1e-3 at batch 32, scaled linearly
+to batch 8). Decided by the rule fixed before its runs (``benchmarks/train_queue.toml``, ``dcp_bf16_lr_256``): 3 seeds
+at 2.5e-4 against 3 at 1e-3, all in bf16-mixed on the CPU, were better beyond the spread on both rotation figures
+(test RMSE(R) 4.70 ± 0.66° against 5.90 ± 0.16°, MAE(R) 2.76 ± 0.40° against 3.64 ± 0.13°, 164 pairs;
+``docs/results/converge/dcp_bf16_lr_seed2_256/lr_rule.md``). X and LC + X alike; the runs at 1e-3 keep their rows
+under the old key."""
 CONVERGE_EPOCHS_OF_8 = RunBudget(steps=5016, points=512, batch=8, checks=57, patience=8, val_pairs=4)
 """``converge`` for IDAM and DeepGMR (about 1 s per step at 512 × 8): validated once per epoch (88 steps of 8 pairs,
 so epoch-stepped schedulers such as DeepGMR's ``ReduceLROnPlateau`` always see a validation loss), at most 57

@@ -19,9 +19,9 @@ import yaml
 from lcreg.config import configs_root
 from lcreg.experiments.benchmarking import METHODS, read_metrics
 from lcreg.experiments.reproduce.budgets import (
+    CONVERGE_DCP,
     CONVERGE_EPOCHS_OF_8,
     CONVERGE_PRNET,
-    CONVERGE_SMALL_BATCH,
     Preset,
     RunBudget,
 )
@@ -45,7 +45,7 @@ BUDGETS: dict[Preset, dict[str, RunBudget]] = {
         "deepgmr": RunBudget(steps=220, points=512, batch=8, checks=4),
     },
     "converge": {
-        "dcp": CONVERGE_SMALL_BATCH,
+        "dcp": CONVERGE_DCP,
         "prnet": CONVERGE_PRNET,
         "idam": CONVERGE_EPOCHS_OF_8,
         "deepgmr": CONVERGE_EPOCHS_OF_8,
@@ -142,7 +142,9 @@ NOTES = (
     "passes over the 705 training objects of modelnet40_mini; `paper` trains 200 epochs (the paper's protocol) "
     "at the hosts' original batch sizes. `converge` trains PRNet at lr 2.2e-4, upstream's 1e-3 scaled linearly to "
     "batch 8 of its 36 (at 1e-3 every PRNet run got worse after step 100-300: `docs/results/converge/"
-    "gpu_prnet_lr_256/`), X and LC + X alike.",
+    "gpu_prnet_lr_256/`), and DCP-v2 at 2.5e-4, upstream's 1e-3 scaled to batch 8 of its 32 (3 seeds at each rate: "
+    "better beyond the spread on both rotation figures, `docs/results/converge/dcp_bf16_lr_seed2_256/lr_rule.md`), "
+    "X and LC + X alike.",
 )
 
 LC = Experiment(

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lcreg.experiments.benchmarking import METHODS, ResultLog, markdown_table
-from lcreg.experiments.reproduce.budgets import CONVERGE_LK, CONVERGE_SMALL_BATCH, Preset, RunBudget
+from lcreg.experiments.reproduce.budgets import CONVERGE_DCP, CONVERGE_LK, Preset, RunBudget
 from lcreg.experiments.reproduce.conditions import (
     Condition,
     EvalBudget,
@@ -51,7 +51,7 @@ _LK = RunBudget(steps=48, points=512, batch=16, checks=3)
 BUDGETS: dict[Preset, EvalBudget] = {
     "smoke": EvalBudget({"*": RunBudget(steps=2, points=64, batch=2, checks=1)}, points=160, pairs=2, scene_pairs=1),
     "cpu": EvalBudget({"*": _LK, "dcp": RunBudget(steps=30, points=256, batch=8, checks=2)}, points=1024),
-    "converge": EvalBudget({"*": CONVERGE_LK, "dcp": CONVERGE_SMALL_BATCH}, points=1024),
+    "converge": EvalBudget({"*": CONVERGE_LK, "dcp": CONVERGE_DCP}, points=1024),
     "paper": EvalBudget({"*": RunBudget(epochs=200, points=1024)}, points=1024),
 }
 """``cpu``: 48 steps × 16 pairs × 512 points per learned method (DCP-v2: 30 × 8 × 256, its step costs 4 times more),
