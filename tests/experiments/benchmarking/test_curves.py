@@ -111,6 +111,8 @@ def test_run_files_takes_a_file_a_folder_or_a_glob(tmp_path: Path) -> None:
     assert run_files(tmp_path / "runs") == [a, b]
     assert run_files(str(tmp_path / "runs" / "x" / "version_*" / "metrics.csv")) == [a, b]
     assert run_files(str(tmp_path / "runs" / "x" / "version_*")) == [a, b]
+    write(tmp_path / "runs" / "x" / "version_1" / "retest-32-true" / "metrics.csv", SPARSE_CSV)  # a test, not a seed
+    assert run_files(tmp_path / "runs") == [a, b] and run_files(str(tmp_path / "runs" / "x" / "version_*")) == [a, b]
     with pytest.raises(FileNotFoundError, match=r"no metrics\.csv"):
         run_files(tmp_path / "nothing*")
 

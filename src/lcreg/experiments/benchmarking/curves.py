@@ -284,6 +284,15 @@ def read_metrics(path: str | Path) -> Metrics:
     return {key: _series(points) for key, (_, points) in sorted(chosen.items())}
 
 
+def _training_logs(folder: Path) -> list[Path]:
+    """The ``metrics.csv`` files below ``folder``, sorted, without ``lcreg reproduce --retest``'s logs.
+
+    Those lie in ``retest-<precision>/`` folders beside a run's own log and are tests of it, not more seeds.
+    """
+    found = sorted(folder.rglob("metrics.csv"))
+    return [f for f in found if not any(p.startswith("retest-") for p in f.relative_to(folder).parts)]
+
+
 def run_files(pattern: str | Path) -> list[Path]:
     """The ``metrics.csv`` files of ``pattern``: a file, a folder (searched recursively) or a glob, sorted.
 
@@ -292,12 +301,12 @@ def run_files(pattern: str | Path) -> list[Path]:
     """
     path = Path(pattern)
     if path.is_dir():
-        files = sorted(path.rglob("metrics.csv"))
+        files = _training_logs(path)
     elif path.is_file():
         files = [path]
     else:
         files = sorted(Path(p) for p in glob.glob(str(pattern), recursive=True))
-        files = [f for found in files for f in ([found] if found.is_file() else sorted(found.rglob("metrics.csv")))]
+        files = [f for found in files for f in ([found] if found.is_file() else _training_logs(found))]
     if not files:
         raise FileNotFoundError(f"no metrics.csv at {str(pattern)!r}")
     return files
