@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -318,6 +319,52 @@ def test_set_gives_every_run_of_a_sweep_a_config_value_and_keys_its_runs_apart(t
     calls: list[tuple[str, int]] = []
     run_sweep(Sweep(LC.select(["idam/X"]), "smoke", (0,), DataChoice(None), tmp_path), _fake_train(calls))
     assert calls == [("idam", 0)]  # without the setting: another run
+
+
+def test_a_run_never_trains_in_the_folder_of_another_keys_run(tmp_path: Path) -> None:
+    """Session 53: a budget whose lr changed trained in the old runs' folders, so the old rows pointed at new files.
+
+    PRNet's first ``converge`` rows (no lr) in ``lc_dcp_prnet_converge/lc.jsonl`` record the ``selected_weights.pt``
+    and ``metrics.csv`` of the lr-2.2e-4 runs that later trained in the same ``prnet_X/seed<k>`` folders.
+    """
+    from dataclasses import replace
+
+    plain = RunBudget(steps=1, points=64, batch=2, checks=1)
+    first, changed = (
+        replace(LC.select(["idam/X"]), budgets={"smoke": {"idam": b}}) for b in (plain, replace(plain, lr=3e-4))
+    )
+    folders: list[Path] = []
+
+    def train(name: str, budget: RunBudget, data: DataChoice, run_dir: Path, seed: int, overrides: Any) -> Any:
+        folders.append(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "selected_weights.pt").write_text(budget.describe())
+        return {"rmse_r_deg": 1.0, "train_s": 0.0, "weights": str(run_dir / "selected_weights.pt")}
+
+    sweeps = [Sweep(e, "smoke", (0,), DataChoice(None), tmp_path) for e in (first, changed)]
+    for sweep in sweeps:
+        run_sweep(sweep, train)
+    assert folders[0].parent.name == "idam_X" and folders[1].parent.name.startswith("idam_X_key")
+    rows = read_jsonl(tmp_path / "lc.jsonl")
+    assert [Path(r["weights"]).read_text() for r in rows] == [plain.describe(), plain.describe() + ", lr 0.0003"]
+    run_sweep(sweeps[1], train, rerun=True)  # the same key: its own folder again
+    assert folders[2] == folders[1]
+    from lcreg.experiments.reproduce.sweep import RUN_KEY_FILE  # after the checks that fail without it
+
+    variant = LC.variant("idam/X")
+    for folder in folders[:2]:  # folders of runs from before the key file: the newest row recorded there owns one
+        (folder / RUN_KEY_FILE).unlink()
+    assert [s.run_dir(variant, 0) for s in sweeps] == folders[:2]
+    elsewhere = tmp_path / "other"  # a row written on another machine: its path differs but for the run folder
+    elsewhere_row = {**rows[0], "weights": "/gpu/box/runs/smoke/lc/idam_X/seed0/selected_weights.pt"}
+    (elsewhere / "lc.jsonl").parent.mkdir()
+    (elsewhere / "lc.jsonl").write_text(json.dumps(elsewhere_row) + "\n")
+    moved = replace(sweeps[1], out=elsewhere)
+    assert moved.run_dir(variant, 0).parent.name == folders[1].parent.name
+    assert replace(sweeps[0], out=elsewhere).run_dir(variant, 0) == elsewhere / "runs/smoke/lc/idam_X/seed0"
+    (folders[0] / RUN_KEY_FILE).write_text("{")
+    with pytest.raises(ValueError, match=f"{RUN_KEY_FILE}: not a run key"):
+        sweeps[1].run_dir(variant, 0)
 
 
 @pytest.mark.parametrize("bad", ["milestones=[60]", "model.init_args.x", "model.init_args.x=[1", ".a.b=1"])

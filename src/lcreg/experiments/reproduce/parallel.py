@@ -67,13 +67,14 @@ def worker_runs(sweep: Sweep, options: Sequence[str], rerun: bool) -> list[Worke
         rerun: Rerun finished runs too (``--no-resume``).
     """
     head = [sys.executable, "-m", "lcreg", "reproduce", sweep.experiment.name, *options, "--no-report"]
+    log = sweep.open_log()
     return [
         WorkerRun(
             f"{variant.key} seed {seed}",
             (*head, "--only", _escape(variant.key), "--seeds", str(seed), *(["--no-resume"] if rerun else [])),
-            sweep.run_dir(variant, seed) / "worker.log",
+            sweep.run_dir(variant, seed, log) / "worker.log",
         )
-        for variant, seed in pending_runs(sweep, rerun)
+        for variant, seed in pending_runs(sweep, rerun, log)
     ]
 
 

@@ -45,12 +45,15 @@ from lcreg.weights.export import save
 __all__ = [
     "KEY_FIELDS",
     "METRICS",
+    "RUN_KEY_FILE",
     "OutputFiles",
     "PresetRun",
     "Sweep",
     "Trainer",
+    "claim_folder",
     "failed_runs",
     "finished_rows",
+    "folder_owner",
     "pending_runs",
     "run_sweep",
     "run_values",
@@ -146,19 +149,33 @@ class Sweep(PresetRun):
         """``"; set key=value, ..."`` (JSON values) for the budget key, ``""`` without :attr:`settings`."""
         return "; set " + ", ".join(f"{k}={json.dumps(v)}" for k, v in self.settings) if self.settings else ""
 
-    def run_dir(self, variant: Variant, seed: int) -> Path:
+    def run_dir(self, variant: Variant, seed: int, log: ResultLog | None = None) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``.
 
         With :attr:`points` the variant's folder is ``<variant>_<points>pts``, with a ``train_objects`` subset of the
         data ``<variant>_train<n>`` (e.g. ``idam_X_train0.5``), with :attr:`settings` ``..._set<hash>`` (8 hex digits
         of :meth:`settings_text`): a run of another size, on other training objects or with other settings never
-        resumes from the checkpoint of an unfinished run of the budget's own.
+        resumes from the checkpoint of an unfinished run of the budget's own. A folder that holds another key's run
+        (:func:`folder_owner`: a budget whose lr or steps changed since, other data) is not reused, since the new
+        run would overwrite that run's ``selected_weights.pt`` and take over its row's logs: the run then trains in
+        ``<variant>..._key<hash>/seed<k>`` (8 hex digits of its key).
+
+        Args:
+            variant: The run's variant.
+            seed: Its seed.
+            log: The sweep's JSONL log if already open (default: opened here).
         """
         size = "" if self.points is None else f"_{self.points}pts"
         subset = "" if self.data.train_objects is None else f"_train{self.data.train_objects:g}"
         digest = hashlib.sha1(self.settings_text().encode()).hexdigest()[:8]
         folder = variant.key.replace("/", "_") + size + subset + (f"_set{digest}" if self.settings else "")
-        return self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
+        base = self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
+        key = self.key(variant, seed)
+        owner = folder_owner(base, log or self.open_log())
+        if owner is None or owner == key:
+            return base
+        own = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:8]
+        return base.parent.with_name(f"{folder}_key{own}") / base.name
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
         """The :data:`KEY_FIELDS` of a run.
@@ -297,7 +314,9 @@ def run_sweep(
             if (variant.key, seed) not in pending:
                 progress(f"{variant.key} seed {seed}: finished before, skipped")
                 continue
-            run = partial(train or train_and_test, variant.method, budget, sweep.data, sweep.run_dir(variant, seed))
+            run_dir = sweep.run_dir(variant, seed, log)
+            claim_folder(run_dir, sweep.key(variant, seed))
+            run = partial(train or train_and_test, variant.method, budget, sweep.data, run_dir)
             try:
                 fields = run(seed, sweep.overrides(variant))
             except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
@@ -307,6 +326,48 @@ def run_sweep(
             if on_row is not None:
                 on_row(log)
     return log
+
+
+RUN_KEY_FILE = "run_key.json"
+"""The key (:data:`KEY_FIELDS`) of the run a sweep trains in a run folder, written there as the run starts."""
+
+
+def claim_folder(run_dir: Path, key: Mapping[str, Any]) -> None:
+    """Write ``key`` to ``run_dir/``:data:`RUN_KEY_FILE` (the folder's owner, :func:`folder_owner`)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / RUN_KEY_FILE).write_text(json.dumps(dict(key), indent=1) + "\n", encoding="utf-8")
+
+
+def folder_owner(run_dir: Path, log: ResultLog) -> dict[str, Any] | None:
+    """The key of the run trained in ``run_dir``, ``None`` if none is known.
+
+    Its :data:`RUN_KEY_FILE`; for a folder without one (runs started before session 53), the key of the newest row
+    of ``log`` whose ``weights`` or ``metrics_csv`` lie in a folder of the same ``<preset>/<experiment>/<variant>/
+    seed<k>`` (the row's absolute path may be another machine's).
+
+    Raises:
+        ValueError: The key file is not a JSON object (damaged); names the file.
+    """
+    marker = run_dir / RUN_KEY_FILE
+    if marker.is_file():
+        try:
+            owner = json.loads(marker.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{marker}: not a run key ({err}); delete it if no run of this folder is kept") from err
+        if not isinstance(owner, dict):
+            raise ValueError(f"{marker}: not a run key (a JSON object); delete it if no run of this folder is kept")
+        return owner
+    tail = run_dir.parts[-4:]
+    recorded = [row for row in log.rows if any(_lies_in(row.get(f), tail) for f in ("weights", "metrics_csv"))]
+    return {field: recorded[-1].get(field) for field in KEY_FIELDS} if recorded else None
+
+
+def _lies_in(path: object, tail: tuple[str, ...]) -> bool:
+    """Whether the recorded file ``path`` lies in a folder whose path ends with the parts ``tail``."""
+    if not isinstance(path, str):
+        return False
+    parts = Path(path).parts
+    return any(parts[i : i + len(tail)] == tail for i in range(len(parts) - len(tail)))
 
 
 def pending_runs(sweep: Sweep, rerun: bool, log: ResultLog | None = None) -> list[tuple[Variant, int]]:
