@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import itertools
 import json
 import os
@@ -402,19 +403,23 @@ def keep_best(source: Path, target: Path) -> list[Path]:
 
     The logs are ``source/runs.jsonl`` (``learning_curves.py``: each row's ``best_checkpoint``) and a sweep's
     ``source/<experiment>.jsonl`` (``lcreg reproduce``: each row's ``weights``, the tested ``selected_weights.pt``; a
-    variant such as ``idam/X`` is written ``idam_x``). Run folders need not outlive a session, so the weights a job
-    may ship or probe later are kept beside its committed logs (slim inference weights,
+    variant such as ``idam/X`` is written ``idam_x``; a later row of that variant and seed with another budget or data,
+    ``idam_x-seed1-key<hash>``, so that the first run's file does not stand for it). Run folders need not outlive a
+    session, so the weights a job may ship or probe later are kept beside its committed logs (slim inference weights,
     :func:`lcreg.weights.export.export_weights`, about 0.6 MB for DVDs). A run whose file exists or whose weights are
     gone is skipped; weights over the file limit are reported and skipped. Returns the files written.
     """
     from lcreg.weights import PretrainedSizeError
     from lcreg.weights.export import export_weights
 
-    written = []
+    written, first_key = [], dict[str, str]()
     logs = (log for log in sorted(source.glob("*.jsonl")) if not is_retest_output(log))
     for row in (row for log in logs for row in ResultLog(log).rows):
         weights = Path(row.get("best_checkpoint") or row.get("weights") or "")
         name = re.sub(r"[^a-z0-9._-]+", "_", f"{row.get('variant')}-seed{row.get('seed')}".lower())
+        key = json.dumps([row.get("budget"), row.get("data")])
+        if first_key.setdefault(name, key) != key:  # a run of the same variant and seed at a changed budget or data
+            name += "-key" + hashlib.sha1(key.encode()).hexdigest()[:8]
         if "variant" not in row or (target / f"{name}.pt").exists() or not weights.is_file():
             continue
         metadata = {"job_row": json.dumps(row, sort_keys=True), "machine": machine_line(training_device())}

@@ -349,7 +349,15 @@ def test_keep_best_keeps_a_sweeps_selected_weights(tmp_path: Path, monkeypatch: 
     for key, value in model.state_dict().items():
         torch.testing.assert_close(kept.state_dict()[key], value, rtol=0, atol=0, msg=key)
     assert queue.keep_best(source, target) == []  # kept once
+    # Session 53: a later run of the same variant and seed at another budget (a changed lr) was never kept, since the
+    # first run's file had its name.
+    later = save(model, source / "runs" / "idam_X_key1" / "seed1" / "selected_weights.pt")
+    rows.append({"variant": "idam/X", "seed": 1, "budget": "lr 0.0003", "weights": str(later)})
+    (source / "lc.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    (kept_later,) = queue.keep_best(source, target)
+    assert kept_later.name.startswith("idam_x-seed1-key") and queue.keep_best(source, target) == []
     (target / "idam_x-seed1.pt").unlink()
+    kept_later.unlink()
     import lcreg.weights.export as export_module
 
     monkeypatch.setattr(export_module, "MAX_FILE_BYTES", 100)
