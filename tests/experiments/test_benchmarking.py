@@ -509,11 +509,15 @@ def test_markdown_table_format() -> None:
 
 
 def test_format_mean_std() -> None:
-    assert format_mean_std([1.0, 3.0]) == "2 ± 1.4"
+    # Session 53: a mean of 2.00 was printed "2" (``.3g``), as if known to one digit.
+    assert format_mean_std([1.0, 3.0]) == "2.00 ± 1.4"
+    assert format_mean_std([0.99, 1.01, 1.0], digits=4) == "1.000 ± 0.010"
+    assert format_mean_std([1234.0, 1236.0]) == "1240 ± 1.4"  # fixed point, not 1.24e+03
     assert format_mean_std([0.5], ".1f", ".1f", scale=100.0) == "50.0 ± 0.0"
     # The IDAM bf16 seeds' RMSE(R): a spread of 1.02 was printed "± 1", as if known to one digit.
     assert format_mean_std([5.259, 5.827, 3.841]) == "4.98 ± 1.0"
-    assert format_mean_std([2.0]) == "2 ± 0"
+    assert format_mean_std([2.0]) == "2.00 ± 0"
+    assert format_mean_std([2.0], ".3g") == "2 ± 0"  # an explicit format is kept
 
 
 @pytest.mark.parametrize("digits", [1, 2, 3])

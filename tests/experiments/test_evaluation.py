@@ -66,7 +66,7 @@ def test_mean_std_row_over_seeds() -> None:
     reports = [evaluate(_Oracle(gt), _batches(gt, 4), "a"), evaluate(_Oracle(bad), _batches(gt, 4), "b")]
     row = mean_std_row(reports, "two seeds")
     # recall 100 % and 50 %: mean 75 %, sample std 35.4 %
-    assert row.startswith("| two seeds |") and "75 ± 35 %" in row and row.endswith("| 4 |")
+    assert row.startswith("| two seeds |") and "75.0 ± 35 %" in row and row.endswith("| 4 |")
 
 
 def test_choose_start_angle_takes_the_lowest_mean_rre_and_breaks_ties_towards_fewer_starts() -> None:

@@ -250,9 +250,9 @@ def test_summary_rows_first_last_best_over_seeds() -> None:
             "val/rre_mean_deg",
             "D",
             "2",
-            f"{format_mean_std([10.0, 12.0], '.4g')} @ 19",
-            f"{format_mean_std([6.0, 5.0], '.4g')} @ 59",
-            format_mean_std([4.0, 5.0], ".4g"),  # seed 0 at step 39, seed 1 at step 59
+            f"{format_mean_std([10.0, 12.0], digits=4)} @ 19",
+            f"{format_mean_std([6.0, 5.0], digits=4)} @ 59",
+            format_mean_std([4.0, 5.0], digits=4),  # seed 0 at step 39, seed 1 at step 59
             "39/59",
         ],
         ["val/rre_mean_deg", "recipe", "1", "9 @ 19", "3 @ 39", "3", "39"],  # one seed: no ± 0
@@ -266,7 +266,7 @@ def test_summary_rows_first_last_best_over_seeds() -> None:
             "19/39",
         ],
     ]
-    assert rows[0][3] == "11 ± 1.4 @ 19" and rows[2][5] == "50.0 ± 14.1 %"
+    assert rows[0][3] == "11.00 ± 1.4 @ 19" and rows[2][5] == "50.0 ± 14.1 %"
 
 
 def test_summary_table_is_markdown(tmp_path: Path) -> None:

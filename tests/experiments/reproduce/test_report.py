@@ -49,8 +49,8 @@ def test_lc_table_has_paper_ours_and_ratio_per_series(tmp_path: Path) -> None:
 def test_zero_paper_values_have_no_ratio_and_pipes_are_escaped() -> None:
     rows = {v.key: [row(0.01)] for v in ABLATION.variants}
     table = metric_table(ABLATION, rows, "mae_t")
-    assert "| models | A | 0.002 | 0.01 ± 0 | 5.00× |" in table
-    assert "| D | 0.000 | 0.01 ± 0 | – |" in table  # the paper prints 0.000
+    assert "| models | A | 0.002 | 0.0100 ± 0 | 5.00× |" in table
+    assert "| D | 0.000 | 0.0100 ± 0 | – |" in table  # the paper prints 0.000
     assert "\\|X1\\| = 96" in table and table.count("ours / paper") == 2  # two objectives, one paper column
 
 
@@ -237,5 +237,5 @@ def test_the_other_table_gives_the_mean_rte_over_the_rows_that_recorded_it(tmp_p
         for line in text.splitlines()
         if line.startswith("| hosts |") and len(cells := line.split(" | ")) > column
     }
-    assert cells[("DCP-v2", "LC + X")] == "0.002 ± 0.0010"
+    assert cells[("DCP-v2", "LC + X")] == "0.00200 ± 0.0010"
     assert cells[("DCP-v2", "X")].endswith(" (2 of 3)") and cells[("IDAM", "X")] == "–"

@@ -424,7 +424,7 @@ def _value_cell(key: str, values: Sequence[float]) -> str:
         return f"{100 * values[0]:.1f} %" if percent else f"{values[0]:.4g}"
     if percent:
         return format_mean_std(values, ".1f", ".1f", scale=100.0) + " %"
-    return format_mean_std(values, ".4g")
+    return format_mean_std(values, digits=4)
 
 
 def _steps_cell(steps: Sequence[int]) -> str:

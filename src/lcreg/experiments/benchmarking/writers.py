@@ -69,16 +69,27 @@ def significant(value: float, digits: int = 2) -> str:
 
 
 def format_mean_std(
-    values: Sequence[float], mean_fmt: str = ".3g", std_fmt: str | None = None, scale: float = 1.0
+    values: Sequence[float],
+    mean_fmt: str | None = None,
+    std_fmt: str | None = None,
+    scale: float = 1.0,
+    digits: int = 3,
 ) -> str:
     """``"mean ± std"`` of ``values`` times ``scale`` (sample standard deviation; 0 for a single value).
 
-    ``std_fmt``: a format spec for the spread; ``None`` (default) gives it two significant digits (:func:`significant`).
+    Args:
+        values: The values (e.g. one per seed).
+        mean_fmt: A format spec for the mean; ``None`` (default) gives it ``digits`` significant digits with trailing
+            zeros kept (:func:`significant`: 2.00, not ``.3g``'s 2, which reads as a mean known to one digit).
+        std_fmt: A format spec for the spread; ``None`` (default) gives it two significant digits.
+        scale: Multiplies every value (100 for a percentage).
+        digits: Significant digits of the mean when ``mean_fmt`` is ``None``.
     """
     t = torch.tensor(list(values), dtype=torch.float64) * scale
     std = float(t.std()) if len(t) > 1 else 0.0
+    mean = float(t.mean())
     spread = significant(std) if std_fmt is None else f"{std:{std_fmt}}"
-    return f"{float(t.mean()):{mean_fmt}} ± {spread}"
+    return f"{significant(mean, digits) if mean_fmt is None else format(mean, mean_fmt)} ± {spread}"
 
 
 def _metric_cell(key: str, value: float) -> str:

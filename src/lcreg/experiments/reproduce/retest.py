@@ -196,7 +196,7 @@ def _cells(row: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
 
 
 def _mean_cells(pairs: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]]) -> list[str]:
-    return [format_mean_std([float(p[k][m]) for p in pairs], ".4g") for m in TABLE_METRICS for k in (0, 1)]
+    return [format_mean_std([float(p[k][m]) for p in pairs], digits=4) for m in TABLE_METRICS for k in (0, 1)]
 
 
 def _precisions(pairs: Sequence[tuple[Mapping[str, Any], Mapping[str, Any]]]) -> str:
