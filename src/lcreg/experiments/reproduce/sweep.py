@@ -367,7 +367,7 @@ def _lies_in(path: object, tail: tuple[str, ...]) -> bool:
     if not isinstance(path, str):
         return False
     parts = Path(path).parts
-    return any(parts[i : i + len(tail)] == tail for i in range(len(parts) - len(tail)))
+    return any(parts[i : i + len(tail)] == tail for i in range(len(parts) - len(tail) + 1))
 
 
 def pending_runs(sweep: Sweep, rerun: bool, log: ResultLog | None = None) -> list[tuple[Variant, int]]:
