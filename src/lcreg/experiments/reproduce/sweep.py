@@ -167,15 +167,14 @@ class Sweep(PresetRun):
         """
         size = "" if self.points is None else f"_{self.points}pts"
         subset = "" if self.data.train_objects is None else f"_train{self.data.train_objects:g}"
-        digest = hashlib.sha1(self.settings_text().encode()).hexdigest()[:8]
-        folder = variant.key.replace("/", "_") + size + subset + (f"_set{digest}" if self.settings else "")
+        settings = f"_set{_digest(self.settings_text())}" if self.settings else ""
+        folder = variant.key.replace("/", "_") + size + subset + settings
         base = self.out / "runs" / self.preset / self.experiment.name / folder / f"seed{seed}"
         key = self.key(variant, seed)
         owner = folder_owner(base, log or self.open_log())
         if owner is None or owner == key:
             return base
-        own = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:8]
-        return base.parent.with_name(f"{folder}_key{own}") / base.name
+        return base.parent.with_name(f"{folder}_key{_digest(json.dumps(key, sort_keys=True))}") / base.name
 
     def key(self, variant: Variant, seed: int) -> dict[str, Any]:
         """The :data:`KEY_FIELDS` of a run.
@@ -326,6 +325,11 @@ def run_sweep(
             if on_row is not None:
                 on_row(log)
     return log
+
+
+def _digest(text: str) -> str:
+    """8 hex digits of ``text``'s SHA-1: the suffix of a run folder that ``--set`` values or a key tell apart."""
+    return hashlib.sha1(text.encode()).hexdigest()[:8]
 
 
 RUN_KEY_FILE = "run_key.json"
