@@ -80,6 +80,7 @@ from lcreg.experiments.benchmarking import (
     read_metrics,
     training_device,
 )
+from lcreg.experiments.reproduce.command import REPORT_NOT_WRITTEN_EXIT_CODE
 from lcreg.experiments.reproduce.retest import is_retest_output
 
 REPO = Path(__file__).resolve().parents[1]
@@ -787,8 +788,9 @@ def run_job(
         print(f"queue: {job.id}: stopped at the time limit ({max_minutes:.2g} min); resumes next call", flush=True)
         keep(job, runs, results, keeping, "time limit")
         return False
-    copied = sync(job, runs, results, done=code == 0)
-    if code != 0:
+    report_failed = code == REPORT_NOT_WRITTEN_EXIT_CODE and job.argv(runs, results)[:2] == ["lcreg", "reproduce"]
+    copied = sync(job, runs, results, done=code == 0 or report_failed)
+    if code != 0 and not report_failed:
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
         if keeping.commit:
             commit_results(results, job.id, f"exit code {code}")
@@ -796,6 +798,9 @@ def run_job(
     # The wall time of this last call only (earlier calls of a resumed job are in its rows' own training times).
     machine = machine_line(training_device())
     done = {"last_call_s": round(time.monotonic() - start, 1), "machine": machine, "files": copied}
+    if report_failed:  # its runs all finished: running it again would only fail to report again, blocking the runner
+        print(f"queue: {job.id}: every run finished, its report was not written: run it with --report-only", flush=True)
+        done["report"] = f"not written (exit code {code}): rerun the command with --report-only"
     (results / job.id / "DONE.json").write_text(json.dumps(done) + "\n", encoding="utf-8")
     print(f"queue: {job.id}: done, last call {done['last_call_s']:.0f} s", flush=True)
     if keeping.commit:

@@ -82,6 +82,20 @@ def test_run_marks_only_a_successful_job_done(tmp_path: Path) -> None:
     queue.main(["run", "--only", "ok", *args])  # a done job is not run again (its folder exists: mkdir would fail)
 
 
+def test_a_reproduce_job_whose_report_failed_is_done_and_the_runner_goes_on(tmp_path: Path, monkeypatch) -> None:
+    queue = load("train_queue")  # exit 3: every run finished, the report was not written (session 54)
+    monkeypatch.setitem(queue.INTERPRETERS, "lcreg", [sys.executable, "-c", "raise SystemExit(3)"])
+    file = tmp_path / "q.toml"
+    file.write_text(
+        '[[job]]\nid = "sweep"\nsection = "cpu"\nwhat = "x"\ncommand = "lcreg reproduce lc --budget converge '
+        '--out {runs}"\n[[job]]\nid = "next"\nsection = "cpu"\nwhat = "x"\ncommand = "python -c pass"\n'
+    )
+    queue.main(["run", "--queue", str(file), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "res")])
+    done = json.loads((tmp_path / "res" / "sweep" / "DONE.json").read_text())
+    assert done["report"] == "not written (exit code 3): rerun the command with --report-only"
+    assert "report" not in json.loads((tmp_path / "res" / "next" / "DONE.json").read_text())
+
+
 def git(repo: Path, *words: str) -> str:
     import subprocess
 

@@ -121,6 +121,44 @@ def test_a_report_that_fails_while_a_sweep_trains_does_not_stop_the_sweep(tmp_pa
     assert len(read_jsonl(tmp_path / "lc.jsonl")) == 2 and "Runs finished: 2 of 2" in (tmp_path / "lc.md").read_text()
 
 
+def test_a_report_that_fails_at_a_sweeps_end_exits_3_naming_the_kept_rows(tmp_path: Path, monkeypatch, capsys) -> None:
+    real = lcreg.experiments.reproduce.command._report
+
+    def broken(*args: Any, **kwargs: Any) -> Any:  # before session 54: a traceback, exit 1, the queue stalled on it
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", broken)
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    assert exit_.value.code == lcreg.experiments.reproduce.command.REPORT_NOT_WRITTEN_EXIT_CODE == 3
+    err = capsys.readouterr().err
+    assert "report not written (RuntimeError: no display)" in err and str(tmp_path / "lc.jsonl") in err
+    assert "--report-only" in err and len(read_jsonl(tmp_path / "lc.jsonl")) == 1 and not (tmp_path / "lc.md").exists()
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", real)
+    main([*args, "--report-only"])  # what the message says: the kept row is reported, nothing trains again
+    assert "Runs finished: 1 of 1" in (tmp_path / "lc.md").read_text()
+
+
+def test_a_workers_failure_keeps_its_exit_code_when_the_report_fails_too(tmp_path: Path, monkeypatch, capsys) -> None:
+    from lcreg.experiments.reproduce.parallel import WorkersFailedError
+
+    def stopped(*args: Any, **kwargs: Any) -> None:  # a worker stopped by SIGTERM: its run resumes (exit 143)
+        raise WorkersFailedError([("idam/X seed 1", 143)])
+
+    def broken(*args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "run_workers", stopped)
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", broken)
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit) as exit_:
+        main([*args, "--jobs", "2"])
+    captured = capsys.readouterr()
+    assert exit_.value.code == 143 and "1 run(s) did not finish: idam/X seed 1 (exit 143)" in captured.err
+    assert "report not written (RuntimeError: no display)" in captured.out
+
+
 def test_workers_call_on_finish_after_each_run_that_finished(tmp_path: Path) -> None:
     from lcreg.experiments.reproduce.parallel import WorkerRun, WorkersFailedError, run_workers
 

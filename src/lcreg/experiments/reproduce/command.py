@@ -75,8 +75,27 @@ WRITERS = {
 }
 
 
+REPORT_NOT_WRITTEN_EXIT_CODE = 3
+"""Exit status of ``lcreg reproduce`` when every run finished (its row is in the JSONL) but the report at the end
+could not be written: the training queue counts the job as done; ``--report-only`` writes the report later."""
+
+
 class ReproduceUsageError(ValueError):
     """A bad argument of ``lcreg reproduce`` (exit code 2 on the command line)."""
+
+
+class ReportNotWrittenError(RuntimeError):
+    """The report of finished runs could not be written (exit code :data:`REPORT_NOT_WRITTEN_EXIT_CODE`).
+
+    Nothing is lost: every finished run is a row of the JSONL it names, and ``--report-only`` writes the report.
+    """
+
+    def __init__(self, log_path: Path, cause: BaseException) -> None:
+        self.log_path = log_path
+        super().__init__(
+            f"report not written ({type(cause).__name__}: {one_line(str(cause), 300)}); the finished runs are kept "
+            f"in {log_path}: rerun the same command with --report-only to write it (LCREG_DEBUG=1 shows the traceback)"
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -264,6 +283,7 @@ def reproduce(
         ReproduceUsageError: Unknown or planned experiment, ``--only`` matching nothing, bad seeds or ``--jobs``,
             missing data.
         WorkersFailedError: With ``--jobs``, some runs ended with an error (after the report of the others).
+        ReportNotWrittenError: Every run ended, but writing the report failed.
     """
     experiment = _experiment(args.experiment, args.only)
     if args.jobs < 1 or (args.jobs > 1 and not isinstance(experiment, Experiment)):
@@ -323,10 +343,28 @@ def reproduce(
         log = run_sweep(sweep, progress=progress, rerun=not args.resume, on_row=refresh)
     if args.no_report:
         return []
-    written = _report(sweep, log, command, out)
+    try:
+        written = _guarded(lambda: _report(sweep, log, command, out), sweep.log_path)
+    except ReportNotWrittenError as err:
+        if failure is None:
+            raise
+        progress(str(err))  # the workers' failure, and its exit code (resume or not), wins over the report's
+        raise failure from err
     if failure is not None:
         raise failure
     return written
+
+
+def _guarded(write: Callable[[], list[Path]], log_path: Path) -> list[Path]:
+    """Call ``write`` (a report of rows already in ``log_path``); any error in it is a :class:`ReportNotWrittenError`.
+
+    The report is written after the runs have finished: a plotting or rendering failure must neither hide that they
+    finished (the training queue would run the job again forever) nor look like a failed run.
+    """
+    try:
+        return write()
+    except Exception as err:
+        raise ReportNotWrittenError(log_path, err) from err
 
 
 def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
@@ -361,25 +399,32 @@ def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Call
             log = retest_sweep(sweep, args.retest, progress)
         except MissingWeightsError as err:
             raise ReproduceUsageError(str(err)) from None
-    written = [write_text(retest_path(sweep, args.retest, ".md"), render_retest(sweep, log, args.retest, command))]
+    md = retest_path(sweep, args.retest, ".md")
+    written = _guarded(lambda: [write_text(md, render_retest(sweep, log, args.retest, command))], log.path)
     return written + ([log.path] if log.path.is_file() else [])
 
 
 def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
     """Measure (or only report) the runtime experiment; the Markdown report, the JSONL and the PNG."""
     log = run.open_log() if args.report_only else measure_runtime(run, progress=progress, rerun=not args.resume)
-    written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
-    written += [run.log_path] if run.log_path.is_file() else []
-    return written + plot_runtime(run, log)
+
+    def write() -> list[Path]:
+        written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
+        return written + ([run.log_path] if run.log_path.is_file() else []) + plot_runtime(run, log)
+
+    return _guarded(write, run.log_path)
 
 
 def _evaluate(run: EvalRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
     """Train and evaluate (or only report) an evaluation experiment; the Markdown report, the JSONL and the PNG."""
     log = run.open_log() if args.report_only else run_conditions(run, progress=progress, rerun=not args.resume)
     render_report, plot = WRITERS[run.experiment.name]
-    written = [write_text(run.file_stem.with_suffix(".md"), render_report(run, log, command))]
-    written += [run.log_path] if run.log_path.is_file() else []
-    return written + plot(run, log)
+
+    def write() -> list[Path]:
+        written = [write_text(run.file_stem.with_suffix(".md"), render_report(run, log, command))]
+        return written + ([run.log_path] if run.log_path.is_file() else []) + plot(run, log)
+
+    return _guarded(write, run.log_path)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -397,6 +442,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         except WorkersFailedError as err:
             sys.stderr.write(f"lcreg reproduce: {err}\n")
             raise SystemExit(err.exit_code) from None
+        except ReportNotWrittenError as err:
+            sys.stderr.write(f"lcreg reproduce: {err}\n")
+            raise SystemExit(REPORT_NOT_WRITTEN_EXIT_CODE) from None
     for path in written:
         print(f"wrote {path}")
 
