@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+import lcreg.experiments.reproduce.command
 import lcreg.experiments.reproduce.runtime
 from _reproduce_outputs import count_calls, read_jsonl  # type: ignore[import-not-found]
 from lcreg.__main__ import main
@@ -64,3 +65,16 @@ def test_only_matching_nothing_is_a_usage_error(tmp_path: Path, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["reproduce", "runtime", "--budget", "smoke", "--only", "nope", "--out", str(tmp_path)])
     assert exc.value.code == 2 and "matches no method of runtime" in capsys.readouterr().err
+
+
+def test_a_runtime_report_that_fails_exits_3_and_keeps_the_measurements(tmp_path: Path, monkeypatch, capsys) -> None:
+    def broken(*args: object, **kwargs: object) -> str:
+        raise RuntimeError("no display")
+
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "render_runtime", broken)
+    args = ["reproduce", "runtime", "--budget", "smoke", "--seeds", "0", "--only", "icp", "--out", str(tmp_path)]
+    with pytest.raises(SystemExit) as exit_:
+        main(args)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 3 and "report not written (RuntimeError: no display)" in err  # before: a traceback
+    assert str(tmp_path / "runtime.jsonl") in err and len(read_jsonl(tmp_path / "runtime.jsonl")) == 1
