@@ -123,11 +123,8 @@ def test_a_report_that_fails_while_a_sweep_trains_does_not_stop_the_sweep(tmp_pa
 
 def test_a_report_that_fails_at_a_sweeps_end_exits_3_naming_the_kept_rows(tmp_path: Path, monkeypatch, capsys) -> None:
     real = lcreg.experiments.reproduce.command._report
-
-    def broken(*args: Any, **kwargs: Any) -> Any:  # before session 54: a traceback, exit 1, the queue stalled on it
-        raise RuntimeError("no display")
-
-    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", broken)
+    # before session 54: a traceback, exit 1, the queue stalled on it
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", _broken_report)
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
     with pytest.raises(SystemExit) as exit_:
         main(args)
@@ -140,17 +137,29 @@ def test_a_report_that_fails_at_a_sweeps_end_exits_3_naming_the_kept_rows(tmp_pa
     assert "Runs finished: 1 of 1" in (tmp_path / "lc.md").read_text()
 
 
+def test_a_report_only_that_fails_names_its_cause_not_report_only_again(tmp_path: Path, monkeypatch, capsys) -> None:
+    args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "--only", "idam/X", "--out", str(tmp_path)]
+    main(args)
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", _broken_report)
+    with pytest.raises(SystemExit) as exit_:
+        main([*args, "--report-only"])  # before session 55 its hint was this very command
+    err = capsys.readouterr().err
+    assert exit_.value.code == 3 and "report not written (RuntimeError: no display)" in err
+    assert "fix its cause and rerun this command to write it" in err and "with --report-only" not in err
+
+
+def _broken_report(*args: Any, **kwargs: Any) -> Any:
+    raise RuntimeError("no display")
+
+
 def test_a_workers_failure_keeps_its_exit_code_when_the_report_fails_too(tmp_path: Path, monkeypatch, capsys) -> None:
     from lcreg.experiments.reproduce.parallel import WorkersFailedError
 
     def stopped(*args: Any, **kwargs: Any) -> None:  # a worker stopped by SIGTERM: its run resumes (exit 143)
         raise WorkersFailedError([("idam/X seed 1", 143)])
 
-    def broken(*args: Any, **kwargs: Any) -> Any:
-        raise RuntimeError("no display")
-
     monkeypatch.setattr(lcreg.experiments.reproduce.command, "run_workers", stopped)
-    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", broken)
+    monkeypatch.setattr(lcreg.experiments.reproduce.command, "_report", _broken_report)
     args = ["reproduce", "lc", "--budget", "smoke", "--seeds", "0", "1", "--only", "idam/X", "--out", str(tmp_path)]
     with pytest.raises(SystemExit) as exit_:
         main([*args, "--jobs", "2"])

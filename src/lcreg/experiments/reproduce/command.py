@@ -90,11 +90,13 @@ class ReportNotWrittenError(RuntimeError):
     Nothing is lost: every finished run is a row of the JSONL it names, and ``--report-only`` writes the report.
     """
 
-    def __init__(self, log_path: Path, cause: BaseException) -> None:
+    def __init__(self, log_path: Path, cause: BaseException, report_only: bool = False) -> None:
         self.log_path = log_path
+        # Under --report-only the same command would fail the same way: its cause is what to fix.
+        then = "fix its cause and rerun this command" if report_only else "rerun the same command with --report-only"
         super().__init__(
             f"report not written ({type(cause).__name__}: {one_line(str(cause), 300)}); the finished runs are kept "
-            f"in {log_path}: rerun the same command with --report-only to write it (LCREG_DEBUG=1 shows the traceback)"
+            f"in {log_path}: {then} to write it (LCREG_DEBUG=1 shows the traceback)"
         )
 
 
@@ -344,7 +346,7 @@ def reproduce(
     if args.no_report:
         return []
     try:
-        written = _guarded(lambda: _report(sweep, log, command, out), sweep.log_path)
+        written = _guarded(lambda: _report(sweep, log, command, out), sweep.log_path, args.report_only)
     except ReportNotWrittenError as err:
         if failure is None:
             raise
@@ -355,16 +357,17 @@ def reproduce(
     return written
 
 
-def _guarded(write: Callable[[], list[Path]], log_path: Path) -> list[Path]:
+def _guarded(write: Callable[[], list[Path]], log_path: Path, report_only: bool) -> list[Path]:
     """Call ``write`` (a report of rows already in ``log_path``); any error in it is a :class:`ReportNotWrittenError`.
 
     The report is written after the runs have finished: a plotting or rendering failure must neither hide that they
-    finished (the training queue would run the job again forever) nor look like a failed run.
+    finished (the training queue would run the job again forever) nor look like a failed run. ``report_only``: the
+    command was ``--report-only`` already, so the error's hint names the cause instead of that option.
     """
     try:
         return write()
     except Exception as err:
-        raise ReportNotWrittenError(log_path, err) from err
+        raise ReportNotWrittenError(log_path, err, report_only) from err
 
 
 def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
@@ -400,7 +403,11 @@ def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Call
         except MissingWeightsError as err:
             raise ReproduceUsageError(str(err)) from None
     md = retest_path(sweep, args.retest, ".md")
-    written = _guarded(lambda: [write_text(md, render_retest(sweep, log, args.retest, command))], log.path)
+
+    def write() -> list[Path]:
+        return [write_text(md, render_retest(sweep, log, args.retest, command))]
+
+    written = _guarded(write, log.path, args.report_only)
     return written + ([log.path] if log.path.is_file() else [])
 
 
@@ -412,7 +419,7 @@ def _time(run: RuntimeRun, args: argparse.Namespace, command: str, progress: Cal
         written = [write_text(run.file_stem.with_suffix(".md"), render_runtime(run, log, command))]
         return written + ([run.log_path] if run.log_path.is_file() else []) + plot_runtime(run, log)
 
-    return _guarded(write, run.log_path)
+    return _guarded(write, run.log_path, args.report_only)
 
 
 def _evaluate(run: EvalRun, args: argparse.Namespace, command: str, progress: Callable[[str], None]) -> list[Path]:
@@ -424,7 +431,7 @@ def _evaluate(run: EvalRun, args: argparse.Namespace, command: str, progress: Ca
         written = [write_text(run.file_stem.with_suffix(".md"), render_report(run, log, command))]
         return written + ([run.log_path] if run.log_path.is_file() else []) + plot(run, log)
 
-    return _guarded(write, run.log_path)
+    return _guarded(write, run.log_path, args.report_only)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
