@@ -150,7 +150,9 @@ FOLLOW_UPS = ("val", "test")
 ``<results>/<id>/val/``, ``test_command`` (the one test) under ``test/``."""
 INTERPRETERS = {"python": [sys.executable], "lcreg": [sys.executable, "-c", LCREG_MAIN]}
 """How a command's first word runs: ``python`` is this interpreter, ``lcreg`` its ``lcreg.__main__``."""
-PARALLEL_COMMANDS = (["lcreg", "reproduce"], ["python", "benchmarks/learning_curves.py"])
+REPRODUCE = ["lcreg", "reproduce"]
+"""The first two words of an ``lcreg reproduce`` job (its exit code 3: every run finished, the report failed)."""
+PARALLEL_COMMANDS = (REPRODUCE, ["python", "benchmarks/learning_curves.py"])
 """Commands that take ``--jobs`` (the first two words of a job's command)."""
 
 
@@ -788,7 +790,7 @@ def run_job(
         print(f"queue: {job.id}: stopped at the time limit ({max_minutes:.2g} min); resumes next call", flush=True)
         keep(job, runs, results, keeping, "time limit")
         return False
-    report_failed = code == REPORT_NOT_WRITTEN_EXIT_CODE and job.argv(runs, results)[:2] == ["lcreg", "reproduce"]
+    report_failed = code == REPORT_NOT_WRITTEN_EXIT_CODE and job.argv(runs, results)[:2] == REPRODUCE
     copied = sync(job, runs, results, done=code == 0 or report_failed)
     if code != 0 and not report_failed:
         print(f"queue: {job.id}: exit code {code}; not marked done ({copied} result files copied)", flush=True)
