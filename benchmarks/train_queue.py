@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
 import hashlib
 import itertools
 import json
@@ -934,13 +935,28 @@ def stop_runners(runs: Path, grace_s: float = 60.0, runners: Sequence[Runner] | 
 
 
 def queue_worktree() -> Path:
-    """A worktree of the repository at ``HEAD`` beside it (``wt-queue-<short sha>``), made if missing."""
+    """A worktree of the repository at ``HEAD`` beside it (``wt-queue-<short sha>``), made if missing.
+
+    Two ``start`` calls at once (one per runner) take turns under a lock in the git directory, and the worktree is
+    checked out under a ``.partial`` name first and then moved: its path exists only once every file is in it, even
+    if a ``start`` is killed while it checks out.
+    """
     git = ["git", "-C", str(REPO)]
-    sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
-    tree = REPO.parent / f"wt-queue-{sha.stdout.strip()}"
-    if not tree.is_dir():
-        subprocess.run([*git, "worktree", "prune"], check=True)
-        subprocess.run([*git, "worktree", "add", "--detach", str(tree), "HEAD"], check=True, capture_output=True)
+
+    def out(*args: str) -> str:
+        return subprocess.run([*git, *args], capture_output=True, text=True, check=True).stdout.strip()
+
+    tree = REPO.parent / f"wt-queue-{out('rev-parse', '--short', 'HEAD')}"
+    lock = Path(out("rev-parse", "--path-format=absolute", "--git-common-dir")) / "wt-queue.lock"
+    with lock.open("a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # released when the file closes
+        if not tree.is_dir():
+            partial = tree.with_name(tree.name + ".partial")
+            if partial.exists():  # left by a killed `start`
+                shutil.rmtree(partial)
+            out("worktree", "prune")
+            out("worktree", "add", "--detach", str(partial), "HEAD")
+            out("worktree", "move", str(partial), str(tree))
     return tree
 
 

@@ -8,7 +8,9 @@ import dataclasses
 import json
 import os
 import shlex
+import subprocess
 import sys
+import threading
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -796,6 +798,49 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     assert len(signalled) >= 4  # two runners and their two training processes
     assert queue.runner_pids(runs) == [] and not any(map(queue.alive, signalled))
     assert all(queue.holder(job, runs) is None for job in queue.load_jobs(file))
+
+
+def test_two_starts_at_once_both_get_the_whole_worktree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second `start` while the first checks out the worktree waits for it, not runs a half-made tree."""
+    queue = load("train_queue")
+    repo = tmp_path / "repo"
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    (repo / "benchmarks").mkdir()
+    (repo / "benchmarks" / "train_queue.py").write_text("print()\n")
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "queue"], check=True)
+    sha = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True).stdout
+    (tmp_path / f"wt-queue-{sha.strip()}.partial").mkdir()  # a killed `start`'s leftover
+    (tmp_path / f"wt-queue-{sha.strip()}.partial" / "junk").write_text("")
+    monkeypatch.setattr(queue, "REPO", repo)
+    checking_out, go = threading.Event(), threading.Event()
+    real_run = subprocess.run
+
+    def slow_checkout(cmd: list[str], **kwargs: object) -> subprocess.CompletedProcess[str]:
+        if cmd[3:5] == ["worktree", "add"]:  # git makes the folder, then fills it
+            Path(cmd[-2]).mkdir()
+            checking_out.set()
+            go.wait(30)
+        return real_run(cmd, **kwargs)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(queue.subprocess, "run", slow_checkout)
+    got: list[tuple[Path, bool]] = []
+
+    def start() -> None:
+        tree = queue.queue_worktree()
+        got.append((tree, (tree / "benchmarks" / "train_queue.py").is_file()))
+
+    first, second = threading.Thread(target=start), threading.Thread(target=start)
+    first.start()
+    assert checking_out.wait(30)
+    second.start()
+    second.join(1.0)  # it must not return while the first checks out
+    go.set()
+    first.join(30)
+    second.join(30)
+    assert got == [(tmp_path / f"wt-queue-{sha.strip()}", True)] * 2
+    assert not (tmp_path / f"wt-queue-{sha.strip()}.partial").exists()
 
 
 def test_runs_tabulates_each_finished_runs_stop_and_selected_step_under_its_budget(tmp_path: Path) -> None:
