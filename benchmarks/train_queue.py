@@ -386,7 +386,8 @@ def finished_runs(source: Path) -> set[str]:
     PRNet's LC run at lr 1e-3 hid the run at 2.2e-4 from ``progress`` and its resume state from :func:`keep_resume`),
     unless the checkpoint the row selected is there too: that is the run's own resume state, kept while it trained
     and restored on a new machine after it finished (session 49: seed 0 of ``idam_bf16_512`` listed as training, and
-    its stale checkpoints kept again at every sync, since a sweep deletes them before it writes the row).
+    its stale checkpoints kept again at every sync, since a sweep deletes them before it writes the row), or kept by
+    the sweep itself for a run its step cap cut off (since session 56, for ``lcreg reproduce --continue-from``).
     """
     marker, folders = f"/{source.name}/", set()
     for log in source.rglob("*.jsonl"):

@@ -264,7 +264,7 @@ class LcregCLI(LightningCLI):
         """A resumed run that logged nothing (resumed at its step cap) keeps its ``metrics.csv`` as it was."""
         from lcreg.resume import restore_unlogged_metrics
 
-        restore_unlogged_metrics(self._kept_metrics)
+        restore_unlogged_metrics(self._kept_metrics, self.trainer.loggers)
 
     def parse_arguments(self, parser: LightningArgumentParser, args: ArgsType) -> None:
         """Parse ``args``: arguments, a dict, or :class:`ConfigLayers` (:func:`instantiate`).

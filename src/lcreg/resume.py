@@ -10,8 +10,9 @@ searched there.
 
 from __future__ import annotations
 
+import csv
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -157,7 +158,7 @@ def keep_previous_metrics(log_dir: Path) -> Path | None:
     return target
 
 
-def restore_unlogged_metrics(kept: Path | None) -> None:
+def restore_unlogged_metrics(kept: Path | None, loggers: Sequence[Any] = ()) -> None:
     """Undo :func:`keep_previous_metrics` when the resumed run logged nothing (no new ``metrics.csv``).
 
     A run resumed at its step cap (or stopped before its first log) trains no step: the renamed file goes back to
@@ -165,9 +166,29 @@ def restore_unlogged_metrics(kept: Path | None) -> None:
 
     Args:
         kept: What :func:`keep_previous_metrics` returned.
+        loggers: The trainer's loggers, if it logs on (e.g. a test): each ``CSVLogger`` appends to the file put back.
     """
     if kept is not None and kept.is_file() and not (metrics := kept.parent / "metrics.csv").exists():
         kept.rename(metrics)
+        for logger in loggers:
+            _append_to(logger, metrics)
+
+
+def _append_to(logger: Any, metrics: Path) -> None:
+    """Let a ``CSVLogger`` that has written nothing yet append to ``metrics``, an earlier segment's file.
+
+    Lightning's CSV writer rewrites its file with the columns it has logged itself whenever a new column comes: on a
+    file it did not write, the earlier columns made it fail (session 56: a converge run resumed at its cap and then
+    tested, ``ValueError: dict contains fields not in fieldnames``). It learns the file's columns first.
+    """
+    writer = getattr(logger, "experiment", None) if type(logger).__name__ == "CSVLogger" else None
+    keys = getattr(writer, "metrics_keys", None)
+    if not isinstance(keys, list) or not metrics.is_file():
+        return
+    with metrics.open(newline="", encoding="utf-8") as file:
+        header = next(csv.reader(file), [])
+    keys.extend(key for key in header if key not in keys)
+    keys.sort()  # as the writer keeps them
 
 
 SETTING_SECTIONS = ("model", "data")

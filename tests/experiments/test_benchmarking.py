@@ -331,6 +331,23 @@ def test_a_run_resumed_at_its_cap_keeps_one_metrics_file(tmp_path: Path) -> None
     assert (log_dir / "metrics.csv").read_text(encoding="utf-8") == before
 
 
+def test_a_run_resumed_at_its_cap_is_tested_into_its_metrics_file(tmp_path: Path) -> None:
+    # Session 56: a converge run cut off after its last step but before its row (e.g. in its test) resumed at its cap,
+    # trained nothing, and its test then failed in Lightning's CSV writer ("dict contains fields not in fieldnames").
+    data = {**TINY_DVDS, **synthetic_overrides(pairs=2, num_points=32), "trainer.logger.init_args.version": "seed0"}
+    run = converge_overrides(max_steps=2, val_every=2, patience=50, run_dir=tmp_path, name="r")
+    first = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    log_dir = Path(first.trainer.log_dir or "")
+    before = read_metrics(log_dir / "metrics.csv")
+    again = fit("dvds", {**run, **data}, validate_first=True, monitor=CONVERGE_METRIC, resume=True)
+    (tested,) = again.trainer.test(again.model, datamodule=again.datamodule, verbose=False)
+    after = read_metrics(log_dir / "metrics.csv")
+    assert sorted(p.name for p in log_dir.glob("metrics*.csv")) == ["metrics.csv"]
+    old, new = before[CONVERGE_METRIC], after[CONVERGE_METRIC]
+    assert (list(new.steps), list(new.values)) == (list(old.steps), list(old.values)) and len(old.steps) == 2
+    assert list(after["test/rre_mean_deg"].values) == [pytest.approx(tested["test/rre_mean_deg"])]  # added
+
+
 def test_a_run_started_again_sets_aside_the_curve_of_a_lost_run(tmp_path: Path) -> None:
     # A new machine restores a run's committed metrics files but not its checkpoints: the run starts from scratch,
     # and the lost run's rows must not be read as earlier segments of the new curve.

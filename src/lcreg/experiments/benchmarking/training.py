@@ -264,7 +264,7 @@ def fit(
             raise
         raise SystemExit(TERMINATED_EXIT_CODE) from stop
     finally:
-        restore_unlogged_metrics(kept)
+        restore_unlogged_metrics(kept, cli.trainer.loggers)
     best = getattr(callback, "best_model_path", "")
     if not best:
         raise RuntimeError(f"training {name} wrote no checkpoint (did validation run? see val_check_interval)")

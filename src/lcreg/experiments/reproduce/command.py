@@ -18,6 +18,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NoReturn, get_args
 
@@ -27,6 +28,7 @@ from lcreg.experiments.benchmarking import ResultLog, write_text
 from lcreg.experiments.reproduce.ablation import ABLATION
 from lcreg.experiments.reproduce.budgets import DEFAULT_ROOT, PRESETS, DataChoice, Preset
 from lcreg.experiments.reproduce.conditions import EvalExperiment, EvalRun, run_conditions
+from lcreg.experiments.reproduce.continuation import ContinuationError
 from lcreg.experiments.reproduce.lc import LC
 from lcreg.experiments.reproduce.parallel import WorkersFailedError, run_workers, worker_runs
 from lcreg.experiments.reproduce.plots import plot_sweep
@@ -44,7 +46,14 @@ from lcreg.experiments.reproduce.runtime import (
 )
 from lcreg.experiments.reproduce.spec import Experiment
 from lcreg.experiments.reproduce.stops import plot_learning_curves, with_metrics_files
-from lcreg.experiments.reproduce.sweep import KEY_FIELDS, Sweep, failed_runs, finished_rows, run_sweep
+from lcreg.experiments.reproduce.sweep import (
+    KEY_FIELDS,
+    Sweep,
+    continued_runs,
+    failed_runs,
+    finished_rows,
+    run_sweep,
+)
 
 __all__ = [
     "EVALUATIONS",
@@ -166,6 +175,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="ablation, lc: a config value of every run, after its variant's own: a dotted key as `lcreg fit` takes "
         "it and a YAML value, e.g. --set model.init_args.lr_scheduler.init_args.milestones=[60] (repeatable; part of "
         "each row's budget key and run folder)",
+    )
+    parser.add_argument(
+        "--continue-from",
+        metavar="DIR",
+        help="ablation, lc (converge budget): an earlier --out whose runs stopped at their step cap; each run here "
+        "starts from that run's last state instead of step 0, under a higher --set trainer.max_steps (same budget, "
+        "data and other settings; it ends as a run trained from step 0 to the higher cap would)",
     )
     parser.add_argument(
         "--only",
@@ -297,6 +313,7 @@ def reproduce(
         ("--train-objects", args.train_objects is not None),
         ("--set", bool(args.settings)),
         ("--retest", args.retest is not None),
+        ("--continue-from", args.continue_from is not None),
     )
     for option, value in chosen:
         if value and not isinstance(experiment, Experiment):
@@ -317,6 +334,8 @@ def reproduce(
         sweep = Sweep(experiment, args.budget, seeds, data, out, stem, points=args.points, settings=settings)
     except ValueError as err:  # Experiment.with_points owns the bound on --points
         raise ReproduceUsageError(f"--points: {err}") from None
+    if args.continue_from is not None:
+        sweep = _continuing(sweep, Path(args.continue_from), not args.resume or args.retest is not None)
     if args.retest is not None:
         return _retest(sweep, args, command, progress)
     failure = None
@@ -357,6 +376,27 @@ def reproduce(
     return written
 
 
+def _continuing(sweep: Sweep, earlier: Path, refused: bool) -> Sweep:
+    """``sweep`` continuing the capped runs of ``earlier`` (``--continue-from``), each checked before any run trains.
+
+    Raises:
+        ReproduceUsageError: With ``--no-resume`` or ``--retest`` (``refused``), a missing folder, or a pending run
+            without an earlier run to continue (the message names it and why).
+    """
+    if refused:
+        raise ReproduceUsageError(
+            "--continue-from trains runs on from their earlier state: not with --no-resume or --retest"
+        )
+    if not earlier.is_dir():
+        raise ReproduceUsageError(f"--continue-from: no folder {earlier}")
+    continuing = replace(sweep, continues=earlier)
+    try:
+        continued_runs(continuing, rerun=False)
+    except ContinuationError as err:
+        raise ReproduceUsageError(f"--continue-from: {err}") from None
+    return continuing
+
+
 def _guarded(write: Callable[[], list[Path]], log_path: Path, report_only: bool) -> list[Path]:
     """Call ``write`` (a report of rows already in ``log_path``); any error in it is a :class:`ReportNotWrittenError`.
 
@@ -377,6 +417,7 @@ def _worker_options(args: argparse.Namespace, out: Path) -> list[str]:
     size = [] if args.points is None else ["--points", str(args.points)]
     subset = [] if args.train_objects is None else ["--train-objects", str(args.train_objects)]
     settings = [f"--set={key}={json.dumps(value)}" for key, value in dict(args.settings).items()]
+    settings += [] if args.continue_from is None else ["--continue-from", str(args.continue_from)]
     options = ["--budget", args.budget, "--root", str(args.root), "--out", str(out), *protocol, *crop, *size]
     return [*options, *subset, *settings]
 

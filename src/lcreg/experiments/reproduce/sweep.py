@@ -37,8 +37,17 @@ from lcreg.experiments.benchmarking import (
     training_device,
 )
 from lcreg.experiments.reproduce.budgets import LR_KEY, DataChoice, Preset, RunBudget
+from lcreg.experiments.reproduce.continuation import (
+    CAP_KEY,
+    CappedRun,
+    ContinuationError,
+    capped_run,
+    continue_into,
+    keeps_resume_state,
+)
 from lcreg.experiments.reproduce.spec import Experiment, Rows, Variant
 from lcreg.models.base import NonFiniteTrainingError
+from lcreg.resume import LAST
 from lcreg.weights import load_into
 from lcreg.weights.export import save
 
@@ -137,6 +146,10 @@ class Sweep(PresetRun):
     """``(dotted key, value)`` config values of every run, applied after its variant's own (``--set``): part of each
     row's budget key (:meth:`key`) and of its run folder, so such runs never stand for or resume the budget's own."""
 
+    continues: Path | None = None
+    """An earlier output folder whose runs, cut off by their step cap, these runs continue under their higher cap
+    (``--continue-from``; :mod:`lcreg.experiments.reproduce.continuation`); ``None``: every run starts at step 0."""
+
     def __post_init__(self) -> None:
         if self.points is not None:
             object.__setattr__(self, "experiment", self.experiment.with_points(self.points))
@@ -148,6 +161,25 @@ class Sweep(PresetRun):
     def settings_text(self) -> str:
         """``"; set key=value, ..."`` (JSON values) for the budget key, ``""`` without :attr:`settings`."""
         return "; set " + ", ".join(f"{k}={json.dumps(v)}" for k, v in self.settings) if self.settings else ""
+
+    def step_cap(self, variant: Variant) -> int | None:
+        """The step cap of ``variant``'s runs: a ``trainer.max_steps`` value, else its budget's steps."""
+        return self.overrides(variant).get(CAP_KEY, self.experiment.budget(self.preset, variant).steps)
+
+    def continued_run(self, variant: Variant, seed: int) -> CappedRun | None:
+        """The earlier run in :attr:`continues` that the run of ``variant`` and ``seed`` continues (``None``: none).
+
+        Raises:
+            ContinuationError: :attr:`continues` is set but holds no run this one can continue (the message says
+                why), or the budget is not a ``converge`` one.
+        """
+        if self.continues is None:
+            return None
+        budget = self.experiment.budget(self.preset, variant)
+        if not budget.converge:
+            raise ContinuationError(f"{variant.key}: the {self.preset} budget has no early stop; nothing to continue")
+        log = ResultLog(self.continues / self.log_path.name, KEY_FIELDS)
+        return capped_run(log, self.key(variant, seed), self.overrides(variant), int(self.step_cap(variant) or 0))
 
     def run_dir(self, variant: Variant, seed: int, log: ResultLog | None = None) -> Path:
         """Logs and checkpoints of one run: ``<out>/runs/<preset>/<experiment>/<variant>/seed<k>``.
@@ -215,9 +247,10 @@ def train_and_test(
 
     Returns:
         Row fields: the test metrics (:data:`METRICS`), the selected checkpoint (its name; its weights are kept
-        as ``selected_weights.pt``, the Lightning checkpoints are deleted) and its validation error, the steps run,
-        the pair counts, the sizes, the times, the machine that trained it and the training's peak memory
-        (:func:`~lcreg.experiments.benchmarking.peak_memory_mib`; ``overrides`` when the variant has any).
+        as ``selected_weights.pt``; the Lightning checkpoints are deleted, but for the resume state of a run that
+        reached its cap) and its validation error, the steps run, the pair counts, the sizes, the times, the machine
+        that trained it and the training's peak memory (:func:`~lcreg.experiments.benchmarking.peak_memory_mib`;
+        ``overrides`` when the variant has any).
     """
     recorded = copy.deepcopy(dict(overrides))  # parsing turns the dicts it is given into Namespaces, in place
     values = run_values(budget, data, run_dir, seed, recorded)
@@ -230,12 +263,14 @@ def train_and_test(
     test = partial(result.trainer.test, result.model, datamodule=result.datamodule, verbose=False)
     results, test_s = timed(test)
     tested = results[0]
-    weights = _keep_weights_only(result.model, result.best_checkpoint, run_dir)
+    steps, cap = int(result.trainer.global_step), _step_cap(result.trainer, budget)
+    capped = keeps_resume_state(budget.converge, steps, cap)
+    weights = _keep_weights_only(result.model, result.best_checkpoint, run_dir, keep_resume=capped)
     dm: Any = result.datamodule
     return {
         "method": name,
         "configs": list(method(name).config_files()),
-        "steps": int(result.trainer.global_step),
+        "steps": steps,
         "epochs": int(result.trainer.current_epoch),
         "train_s": round(result.seconds, 1),
         "test_s": round(test_s, 1),
@@ -246,7 +281,7 @@ def train_and_test(
         "best_val_rre_mean_deg": None if best_val is None or budget.converge else float(best_val),
         "selected_on": budget.monitor,
         "best_val": None if best_val is None else float(best_val),
-        "stopped_early": budget.converge and int(result.trainer.global_step) < _step_cap(result.trainer, budget),
+        "stopped_early": budget.converge and steps < cap,
         "metrics_csv": str(Path(result.trainer.log_dir or run_dir) / "metrics.csv"),
         "num_val_pairs": len(dm.val_set),
         "num_test_pairs": len(dm.test_set),
@@ -273,15 +308,19 @@ def _step_cap(trainer: Any, budget: RunBudget) -> int:
     return int(trainer.max_steps) if int(trainer.max_steps) > 0 else int(budget.steps or 0)
 
 
-def _keep_weights_only(model: torch.nn.Module, best: Path, run_dir: Path) -> Path:
+def _keep_weights_only(model: torch.nn.Module, best: Path, run_dir: Path, keep_resume: bool = False) -> Path:
     """Save the tested (selected) weights as ``<run_dir>/selected_weights.pt`` and delete the run's checkpoints.
 
     A finished run needs no training state: the Lightning checkpoints (optimiser moments, ``last.ckpt``) are up to
-    three times the weights (about 70 MB for DCP-v2 or PRNet), times every run of a sweep.
+    three times the weights (about 70 MB for DCP-v2 or PRNet), times every run of a sweep. ``keep_resume``: a run its
+    step cap cut off keeps ``last.ckpt`` and ``best`` (the state a higher cap continues,
+    :mod:`lcreg.experiments.reproduce.continuation`).
     """
     path = save(model, run_dir / "selected_weights.pt")  # the one weights format: lcreg.pretrained reads it
+    kept = {LAST, best.name} if keep_resume else set()
     for checkpoint in best.parent.glob("*.ckpt"):
-        checkpoint.unlink()
+        if checkpoint.name not in kept:
+            checkpoint.unlink()
     return path
 
 
@@ -307,6 +346,7 @@ def run_sweep(
     """
     log = sweep.open_log()
     pending = {(variant.key, seed) for variant, seed in pending_runs(sweep, rerun, log)}
+    sources = continued_runs(sweep, rerun, log)  # checked before any run trains
     for variant in sweep.experiment.variants:
         budget = sweep.experiment.budget(sweep.preset, variant)
         for seed in sweep.seeds:
@@ -315,12 +355,16 @@ def run_sweep(
                 continue
             run_dir = sweep.run_dir(variant, seed, log)
             claim_folder(run_dir, sweep.key(variant, seed))
+            source = sources.get((variant.key, seed))
+            if source is not None and continue_into(source, run_dir / source.log_dir.relative_to(source.run_dir)):
+                progress(f"{variant.key} seed {seed}: continues {source.run_dir} from step {source.steps}")
+            continued = {} if source is None else {"continues": str(source.run_dir), "continued_from": source.steps}
             run = partial(train or train_and_test, variant.method, budget, sweep.data, run_dir)
             try:
                 fields = run(seed, sweep.overrides(variant))
             except NonFiniteTrainingError as err:  # a diverged run is a result: recorded, not retried on resume
                 fields = {"failed": one_line(str(err), 300)}
-            row = log.append({**sweep.key(variant, seed), "preset": sweep.preset, **fields})
+            row = log.append({**sweep.key(variant, seed), "preset": sweep.preset, **fields, **continued})
             progress(f"{variant.key} seed {seed}: {_outcome(row)}")
             if on_row is not None:
                 on_row(log)
@@ -385,6 +429,18 @@ def pending_runs(sweep: Sweep, rerun: bool, log: ResultLog | None = None) -> lis
     log = log or sweep.open_log()
     runs = [(v, s) for v in sweep.experiment.variants for s in sweep.seeds]
     return [(v, s) for v, s in runs if rerun or not log.done(**sweep.key(v, s))]
+
+
+def continued_runs(sweep: Sweep, rerun: bool, log: ResultLog | None = None) -> dict[tuple[str, int], CappedRun]:
+    """The earlier run each pending run of ``sweep`` continues, by (variant key, seed) (empty without ``continues``).
+
+    Raises:
+        ContinuationError: A pending run has no earlier run to continue (:meth:`Sweep.continued_run`).
+    """
+    if sweep.continues is None:
+        return {}
+    pending = pending_runs(sweep, rerun, log)
+    return {(variant.key, seed): source for variant, seed in pending if (source := sweep.continued_run(variant, seed))}
 
 
 def _outcome(row: dict[str, Any]) -> str:
