@@ -120,3 +120,11 @@ def test_continue_from_on_the_command_line_refuses_what_it_cannot_continue(tmp_p
             main([*base, *extra])
         assert info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "lc.jsonl").exists()
+
+
+def test_the_workers_of_jobs_continue_the_same_runs(tmp_path: Path) -> None:
+    from lcreg.experiments.reproduce.command import _worker_options, build_parser
+
+    args = build_parser().parse_args(["lc", "--budget", "converge", "--continue-from", str(tmp_path), "--jobs", "2"])
+    worker = build_parser().parse_args(["lc", "--only", "dcp/X", "--seeds", "0", *_worker_options(args, tmp_path)])
+    assert worker.continue_from == str(tmp_path) and worker.budget == "converge"
