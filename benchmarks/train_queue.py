@@ -1025,13 +1025,14 @@ def start_runners(
         until: Passed to each runner as ``run --until`` (:func:`cannot_finish`).
 
     Raises:
-        SystemExit: If runners of ``runs`` (of ``runners``, when ``named``) are running already (``stop`` them first).
+        SystemExit: If runners of ``runs`` (of ``runners``, when ``named``) are running already (``stop`` them first),
+            or one ended with an error at once (:func:`check_started`).
     """
     if running := runner_pids(runs, runners if named else None):
         raise SystemExit(f"runners of {runs} are running already (pids {running}): `train_queue.py stop` first")
     (runs / "logs").mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(checkout / "src"), "PYTHONUNBUFFERED": "1"}
-    pids = []
+    started: list[tuple[Runner, subprocess.Popen[bytes]]] = []
     for runner in runners:
         argv = ["nice", "-n", str(RUNNER_NICE), sys.executable, str(checkout / "benchmarks" / "train_queue.py")]
         argv += ["run", "--section", "cpu"]
@@ -1051,8 +1052,34 @@ def start_runners(
         runs_at_once = f" ({runner.jobs} runs at once)" if runner.jobs > 1 else ""
         runs_at_once += f" ({runner.threads} threads each)" if runner.threads > 1 else ""
         print(f"queue: runner {runner.name} (pid {process.pid}): {' '.join(runner.only)}{runs_at_once}", flush=True)
-        pids.append(process.pid)
-    return pids
+        started.append((runner, process))
+    check_started(started, runs / "logs")
+    return [process.pid for _, process in started]
+
+
+START_CHECK_S = 3.0
+"""Seconds :func:`start_runners` waits before it checks that no runner has failed at once."""
+
+
+def check_started(started: Sequence[tuple[Runner, subprocess.Popen[bytes]]], logs: Path) -> None:
+    """Fail if a runner just started has ended with an error within :data:`START_CHECK_S` (e.g. a checkout without
+    ``train_queue.py``: session 56's second ``start`` found a half-made worktree, and its runner died unseen for
+    minutes). A runner that ends cleanly (nothing it may begin before ``--until``) is no failure.
+
+    Raises:
+        SystemExit: Naming each failed runner, its exit code and the end of its log.
+    """
+    deadline = time.monotonic() + START_CHECK_S
+    while time.monotonic() < deadline and any(process.poll() is None for _, process in started):
+        time.sleep(0.1)
+    failed = [(runner, process.returncode) for runner, process in started if process.poll() not in (None, 0)]
+    if failed:
+        tails = [
+            f"runner {r.name} ended at once (exit code {code}); {logs / f'{r.name}.log'} ends:\n"
+            + "\n".join((logs / f"{r.name}.log").read_text(encoding="utf-8").splitlines()[-5:])
+            for r, code in failed
+        ]
+        raise SystemExit("\n".join(tails))
 
 
 def selected(job: Job, args: argparse.Namespace) -> bool:

@@ -800,6 +800,18 @@ def test_start_launches_the_runners_and_stop_ends_them_with_their_jobs(
     assert all(queue.holder(job, runs) is None for job in queue.load_jobs(file))
 
 
+def test_start_fails_when_a_runner_ends_with_an_error_at_once(tmp_path: Path) -> None:
+    """Session 56: a runner started from a half-made worktree died at once, unseen until `progress` 8 minutes later."""
+    queue = load("train_queue")
+    _, runs, args = sleeping_runners(tmp_path, two_jobs=1)
+    args[args.index("--checkout") + 1] = str(tmp_path / "empty")  # no benchmarks/train_queue.py there
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit, match=r"runner one ended at once \(exit code 2\)") as err:
+        queue.main(["start", *args])
+    assert "can't open file" in str(err.value) and "runner two ended at once" in str(err.value)
+    assert queue.runner_pids(runs) == []
+
+
 def test_two_starts_at_once_both_get_the_whole_worktree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A second `start` while the first checks out the worktree waits for it, not runs a half-made tree."""
     queue = load("train_queue")
