@@ -320,24 +320,28 @@ def drop_set_aside(source: Path, target: Path) -> list[Path]:
 
 def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
     """Keep the resume state of the runs in progress: the checkpoint folder of each ``last.ckpt`` under ``source``
-    whose run no JSONL row lists as finished (:func:`finished_runs`; a ``jobs = N`` runner trains N at once).
+    whose run no JSONL row lists as finished (:func:`finished_runs`; a ``jobs = N`` runner trains N at once), and of
+    each finished run whose row says the sweep kept it (:func:`capped_runs`: its step cap cut it off).
 
     Each such folder's :func:`resume_files` (``last.ckpt`` and the selected checkpoint its callbacks' state names)
     are kept in ``target`` when they are at most :data:`RESUME_MAX_BYTES`, so a run longer than a session resumes on
-    the next machine (:func:`restore`) instead of starting again; the previous copy goes (its runs have finished
-    since, or are kept again). A done job keeps nothing; a run folder without any ``last.ckpt`` (a new machine,
+    the next machine (:func:`restore`) instead of starting again, and a capped run can be continued there under a
+    higher cap (``lcreg reproduce --continue-from``); the previous copy goes (its runs have finished since, or are
+    kept again). A done job keeps only its capped runs' state; a run folder without any ``last.ckpt`` (a new machine,
     before :func:`restore`) leaves the kept copy alone. Returns the files copied.
     """
-    if done:
-        shutil.rmtree(target, ignore_errors=True)
-        return []
     lasts = sorted(source.rglob("last.ckpt")) if source.is_dir() else []
     if not lasts:  # e.g. a new machine before `run` restored the kept copy: keep it
+        if done and any(source.rglob("*.jsonl")):  # the job finished here: only its capped runs' state stays
+            _prune(target, capped_runs(source))
         return []
-    finished = finished_runs(source)
+    finished, capped = finished_runs(source), capped_runs(source)
     shutil.rmtree(target, ignore_errors=True)
     copied = []
-    for folder in (last.parent for last in lasts if last.parent.parent.relative_to(source).as_posix() not in finished):
+    for folder in (last.parent for last in lasts):
+        run = folder.parent.relative_to(source).as_posix()
+        if run not in capped and (done or run in finished):
+            continue
         last = folder / "last.ckpt"  # too large alone (a DVDs run's): not read for the checkpoints it names
         files = [last] if last.stat().st_size > RESUME_MAX_BYTES else resume_files(folder)
         if sum(f.stat().st_size for f in files) > RESUME_MAX_BYTES:
@@ -348,6 +352,30 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
             destination.parent.mkdir(parents=True, exist_ok=True)
             copied.append(Path(shutil.copy2(path, destination)))
     return copied
+
+
+def capped_runs(source: Path) -> set[str]:
+    """The run folders, relative to the job's folder ``source``, of the finished runs whose JSONL row says the sweep
+    kept their resume state (``kept_resume_state``: a ``converge`` run its step cap cut off, since session 56)."""
+    marker, folders = f"/{source.name}/", set()
+    for log in source.rglob("*.jsonl"):
+        for row in ResultLog(log).rows:
+            metrics = str(row.get("metrics_csv") or "")
+            if row.get("kept_resume_state") and marker in metrics:
+                folders.add(metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv"))
+    return folders
+
+
+def _prune(target: Path, runs: set[str]) -> None:
+    """Delete the files of ``target`` that lie outside the run folders ``runs`` (relative to ``target``)."""
+    for path in sorted(target.rglob("*"), reverse=True) if target.is_dir() else ():
+        inside = any(path.relative_to(target).as_posix().startswith(f"{run}/") for run in runs)
+        if path.is_file() and not inside:
+            path.unlink()
+        elif path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
+    if target.is_dir() and not any(target.iterdir()):
+        target.rmdir()
 
 
 def resume_files(folder: Path) -> list[Path]:

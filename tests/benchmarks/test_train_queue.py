@@ -467,6 +467,46 @@ def test_sync_keeps_the_run_in_progress_so_that_a_new_machine_resumes_it(
     assert not kept.exists()
 
 
+def test_a_done_job_keeps_the_resume_state_of_the_runs_its_cap_cut_off(tmp_path: Path) -> None:
+    """Session 56: a capped run's state (kept by the sweep, its row says so) is committed and restored, so that a higher
+    cap can continue it on a new machine (`lcreg reproduce --continue-from`); nothing else of a done job is kept."""
+    queue = load("train_queue")
+    file = tmp_path / "q.toml"
+    file.write_text('[[job]]\nid = "j"\nsection = "cpu"\nwhat = "x"\ncommand = "true"\n')
+    (job,) = queue.load_jobs(file)
+    runs, res = tmp_path / "runs", tmp_path / "res"
+    for seed in (0, 2):  # seed 0 reached its cap, seed 2 trains
+        folder = runs / "j" / "a" / f"seed{seed}" / "run" / "checkpoints"
+        folder.mkdir(parents=True)
+        for name in ("last.ckpt", "step000100-val.ckpt"):
+            (folder / name).write_bytes(f"{name} {seed}".encode())
+    rows = [
+        {"seed": seed, "metrics_csv": f"/elsewhere/runs/j/a/seed{seed}/run/metrics.csv", "weights": "w.pt"}
+        | ({"selected": "step000100-val.ckpt", "kept_resume_state": True} if seed == 0 else {})
+        for seed in (0, 1)  # seed 1 stopped early: no checkpoints
+    ]
+    (runs / "j" / "lc.jsonl").write_text("".join(json.dumps(row) + "\n" for row in rows))
+    kept = res / "j" / "resume"
+
+    def kept_runs() -> list[str]:
+        return sorted({p.relative_to(kept).parent.parent.as_posix() for p in kept.rglob("*.ckpt")})
+
+    queue.sync(job, runs, res)
+    assert kept_runs() == ["a/seed0/run", "a/seed2/run"]
+    (runs / "j" / "a" / "seed2" / "run" / "checkpoints" / "last.ckpt").unlink()  # seed 2 done (stopped early)
+    (res / "j" / "DONE.json").write_text("{}\n")
+    queue.sync(job, runs, res)
+    assert kept_runs() == ["a/seed0/run"]
+    for path in (runs / "j" / "a" / "seed0" / "run" / "checkpoints").iterdir():  # a sync after the state went
+        path.unlink()
+    queue.sync(job, runs, res)
+    assert kept_runs() == ["a/seed0/run"]  # the row still says it was kept: the copy stays
+    fresh = tmp_path / "fresh"
+    queue.sync(job, fresh, res)  # a new machine before restore
+    queue.restore(job, fresh, res)
+    assert (fresh / "j" / "a" / "seed0" / "run" / "checkpoints" / "last.ckpt").read_bytes() == b"last.ckpt 0"
+
+
 def test_sync_drops_the_committed_copies_of_metrics_a_restarted_run_set_aside(tmp_path: Path) -> None:
     """A run whose checkpoints were lost starts again and moves its old metrics to ``abandoned/1/``; the committed
     copies of the moved files go too, else the next report (or machine) reads them as segments of the new curve."""
@@ -1150,8 +1190,12 @@ def test_until_is_the_next_such_utc_time_or_an_iso_time_and_start_passes_it_on(
     *_, args = sleeping_runners(tmp_path, two_jobs=1)
     launched: list[list[str]] = []
 
-    class Launched:
+    class Launched:  # a runner that runs on
         pid = -1
+        returncode = None
+
+        def poll(self) -> None:
+            return None
 
     def popen(argv: list[str], **_: object) -> Launched:
         launched.append(argv)

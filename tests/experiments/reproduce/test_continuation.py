@@ -45,7 +45,7 @@ def _validations(row: dict) -> list[tuple[int, str]]:
 def test_a_capped_run_continued_under_a_higher_cap_ends_as_the_run_trained_to_that_cap(tmp_path: Path) -> None:
     """Before: a raised cap was a new run folder, trained from step 0 (session 55: 2,139 steps, 2 CPU-hours again)."""
     capped = _run(_sweep(tmp_path / "capped", 3))  # a cap mid-epoch, between two validations
-    assert capped["steps"] == 3 and capped["stopped_early"] is False
+    assert capped["steps"] == 3 and capped["stopped_early"] is False and capped["kept_resume_state"] is True
     checkpoints = Path(capped["metrics_csv"]).parent / "checkpoints"
     assert sorted(p.name for p in checkpoints.glob("*.ckpt")) == sorted(["last.ckpt", capped["selected"]])
 

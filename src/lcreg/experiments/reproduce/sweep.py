@@ -289,6 +289,7 @@ def train_and_test(
         **({"points_per_cloud": dm.points_per_cloud} if dm.points_per_cloud != dm.hparams.num_points else {}),
         "batch_size": dm.hparams.batch_size,
         **({"overrides": recorded} if recorded else {}),
+        **({"kept_resume_state": True} if capped else {}),  # last.ckpt kept: --continue-from, the queue's sync
         **{key: float(tested[f"test/{key}"]) for key in METRICS},
     }
 
