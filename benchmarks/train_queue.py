@@ -67,6 +67,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import tomllib
 import yaml
@@ -357,13 +358,19 @@ def keep_resume(source: Path, target: Path, done: bool = False) -> list[Path]:
 def capped_runs(source: Path) -> set[str]:
     """The run folders, relative to the job's folder ``source``, of the finished runs whose JSONL row says the sweep
     kept their resume state (``kept_resume_state``: a ``converge`` run its step cap cut off, since session 56)."""
-    marker, folders = f"/{source.name}/", set()
+    return {folder for row, folder in logged_runs(source) if row.get("kept_resume_state")}
+
+
+def logged_runs(source: Path) -> Iterator[tuple[dict[str, Any], str]]:
+    """Every row of the job's JSONL logs under ``source`` that names its ``metrics_csv``, with its run folder
+    relative to ``source``: what follows the job id in ``<runs>/<job id>/<run folder>/metrics.csv``, on whichever
+    machine trained it."""
+    marker = f"/{source.name}/"
     for log in source.rglob("*.jsonl"):
         for row in ResultLog(log).rows:
             metrics = str(row.get("metrics_csv") or "")
-            if row.get("kept_resume_state") and marker in metrics:
-                folders.add(metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv"))
-    return folders
+            if marker in metrics:
+                yield row, metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv")
 
 
 def _prune(target: Path, runs: set[str]) -> None:
@@ -417,17 +424,12 @@ def finished_runs(source: Path) -> set[str]:
     its stale checkpoints kept again at every sync, since a sweep deletes them before it writes the row), or kept by
     the sweep itself for a run its step cap cut off (since session 56, for ``lcreg reproduce --continue-from``).
     """
-    marker, folders = f"/{source.name}/", set()
-    for log in source.rglob("*.jsonl"):
-        for row in ResultLog(log).rows:
-            metrics = str(row.get("metrics_csv") or "")
-            if marker not in metrics:
-                continue
-            folder = metrics.rsplit(marker, 1)[1].removesuffix("/metrics.csv")
-            checkpoints = source / folder / "checkpoints"
-            restored = bool(row.get("selected")) and (checkpoints / str(row["selected"])).is_file()
-            if not (row.get("weights") and (checkpoints / "last.ckpt").is_file()) or restored:
-                folders.add(folder)
+    folders = set()
+    for row, folder in logged_runs(source):
+        checkpoints = source / folder / "checkpoints"
+        restored = bool(row.get("selected")) and (checkpoints / str(row["selected"])).is_file()
+        if not (row.get("weights") and (checkpoints / "last.ckpt").is_file()) or restored:
+            folders.add(folder)
     return folders
 
 
