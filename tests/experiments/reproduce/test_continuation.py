@@ -82,7 +82,7 @@ def _row_edited(out: Path, **fields: object) -> None:
     ("edit", "cap", "message"),
     [
         (None, 2, r"trained 2 steps; trainer.max_steps 2 is not above"),
-        ({"stopped_early": True}, 4, r"stopped early at step 2 \(its validation stopped improving\)"),
+        ({"stopped_early": True, "steps": 1}, 4, r"stopped early at step 1 \(its validation stopped improving\)"),
         ({"failed": "10 consecutive steps had a non-finite loss"}, 4, r"failed \(10 consecutive"),
         ({"overrides": {"trainer.max_steps": 2, "model.init_args.lr": 0.1}}, 4, r"has no run of this budget"),
         ("last.ckpt", 4, r"last.ckpt is missing: the run cannot be continued"),

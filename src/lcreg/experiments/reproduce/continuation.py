@@ -26,7 +26,7 @@ import torch
 
 from lcreg.checkpoints import read_checkpoint
 from lcreg.experiments.benchmarking import ResultLog
-from lcreg.experiments.reproduce.stops import recorded_file
+from lcreg.experiments.reproduce.stops import recorded_file, stopped_early
 from lcreg.resume import LAST, set_aside_metrics
 
 CAP_KEY = "trainer.max_steps"
@@ -99,7 +99,7 @@ def capped_run(log: ResultLog, key: Mapping[str, Any], overrides: Mapping[str, A
     if "failed" in row:
         raise ContinuationError(f"{name}: the run in {log.path} failed ({row['failed']}); nothing to continue")
     steps = int(row["steps"])
-    if row.get("stopped_early"):
+    if stopped_early(row):  # rows before session 44 compared a raised cap's steps with the budget's own
         raise ContinuationError(
             f"{name}: the run in {log.path} stopped early at step {steps} (its validation stopped improving), "
             "not at its cap: a higher cap does not continue it"
