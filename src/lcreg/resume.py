@@ -166,7 +166,8 @@ def restore_unlogged_metrics(kept: Path | None, loggers: Sequence[Any] = ()) -> 
 
     Args:
         kept: What :func:`keep_previous_metrics` returned.
-        loggers: The trainer's loggers, if it logs on (e.g. a test): each ``CSVLogger`` appends to the file put back.
+        loggers: The trainer's loggers, if it logs on (e.g. a test): each ``CSVLogger`` (or subclass) appends to the
+            file put back; other loggers are left alone.
     """
     if kept is not None and kept.is_file() and not (metrics := kept.parent / "metrics.csv").exists():
         kept.rename(metrics)
@@ -181,7 +182,9 @@ def _append_to(logger: Any, metrics: Path) -> None:
     file it did not write, the earlier columns made it fail (session 56: a converge run resumed at its cap and then
     tested, ``ValueError: dict contains fields not in fieldnames``). It learns the file's columns first.
     """
-    writer = getattr(logger, "experiment", None) if type(logger).__name__ == "CSVLogger" else None
+    from lightning.fabric.loggers import CSVLogger  # lazy: this module stays free of Lightning at import
+
+    writer = logger.experiment if isinstance(logger, CSVLogger) else None  # subclasses too
     keys = getattr(writer, "metrics_keys", None)
     if not isinstance(keys, list) or not metrics.is_file():
         return
