@@ -36,6 +36,24 @@ def test_metrics_file_is_the_recorded_path_or_its_longest_tail_under_the_output_
     assert rows["dcp/X"][1] == {"metrics_csv": None} and row["metrics_csv"] == str(recorded)  # not modified
 
 
+@pytest.mark.parametrize("field", ["metrics_csv", "weights"])
+def test_a_tail_shorter_than_the_runs_own_folders_is_not_taken_for_its_file(tmp_path: Path, field: str) -> None:
+    name = "metrics.csv" if field == "metrics_csv" else "selected_weights.pt"
+    recorded = Path("/machine_a/out/runs/converge/lc/dcp_X/seed1/run/lcreg/version_0", name)
+    copy = tmp_path / "copy"
+    others = [copy / "lcreg" / "version_0" / name, copy / "seed1" / "run" / "lcreg" / "version_0" / name]
+    for other in others:  # another run's file (a fit logged into the folder; a run of another variant's layout)
+        other.parent.mkdir(parents=True)
+        other.write_text("step\n")
+    row = {field: str(recorded)}
+    assert stops.recorded_file(row, field, copy) is None
+    own = copy / "dcp_X" / "seed1" / "run" / "lcreg" / "version_0" / name  # the shortest tail that is the run's
+    own.parent.mkdir(parents=True)
+    own.write_text("step\n")
+    assert stops.recorded_file(row, field, copy) == own
+    assert stops.recorded_file({field: "/machine_a/out/lcreg/version_0/" + name}, field, copy) is None  # no seed
+
+
 def test_stops_table_says_where_and_why_each_run_stopped_in_variant_and_seed_order() -> None:
     base = {"selected_on": "val/rre_clip5_deg", "train_s": 12.4}
     rows = {

@@ -13,6 +13,7 @@ with a min-max shade), one set of PNGs per group of variants (the key before ``/
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,9 @@ __all__ = [
     "stops_table",
     "with_metrics_files",
 ]
+
+_SEED_FOLDER = re.compile(r"seed\d+")
+"""A run's folder under its variant's (:meth:`~lcreg.experiments.reproduce.sweep.Sweep.run_dir`)."""
 
 STOPS_HEADER = [
     "variant",
@@ -59,6 +63,11 @@ def metrics_file(row: Mapping[str, Any], out: str | Path | None = None) -> Path 
 def recorded_file(row: Mapping[str, Any], field: str, out: str | Path | None = None) -> Path | None:
     """The file a row's ``field`` names (e.g. ``weights``): the recorded path, else its longest tail under ``out``.
 
+    A tail must keep the run's own folders, ``<variant>/seed<k>`` (the last ``seed<k>`` part and the one before
+    it): a shorter one (``seed0/metrics.csv``, ``lcreg/version_0/metrics.csv``) may be another run's file, whose
+    curves or weights would then be reported as this run's. A recorded path without a ``seed<k>`` part is only
+    found where it was written.
+
     Returns:
         The file, or ``None`` when neither is found (or the row names none).
     """
@@ -71,7 +80,9 @@ def recorded_file(row: Mapping[str, Any], field: str, out: str | Path | None = N
     if out is None:
         return None
     parts = path.parts
-    tails = (Path(out, *parts[k:]) for k in range(1, len(parts)))  # longest tail first
+    seeds = [k for k, part in enumerate(parts) if _SEED_FOLDER.fullmatch(part)]
+    last_start = seeds[-1] - 1 if seeds else 0  # the tail starts at the variant's folder at the latest
+    tails = (Path(out, *parts[k:]) for k in range(1, last_start + 1))  # longest tail first
     return next((tail for tail in tails if tail.is_file()), None)
 
 
