@@ -1,0 +1,216 @@
+"""Two sets of finished runs, judged by the queue's rules: the difference of the seed means against the spread.
+
+    python benchmarks/compare_rows.py \
+        --side "cap 9,000" docs/results/converge/dcp_bf16_lr_256/runs/lc.jsonl:dcp/X:0 \
+            docs/results/converge/dcp_bf16_lr_cap_seed1_256/runs/lc.jsonl:dcp/X:1 \
+            docs/results/converge/dcp_bf16_lr_cap_256/runs/lc.jsonl:dcp/X:2 \
+        --side "cap 3,000" docs/results/converge/dcp_bf16_lr_256/runs/lc.jsonl:dcp/X:0 \
+            docs/results/converge/dcp_bf16_lr_256/runs/lc.jsonl:dcp/X:1 \
+            docs/results/converge/dcp_bf16_lr_seed2_256/runs/lc.jsonl:dcp/X:2 \
+        --out docs/results/converge/dcp_bf16_lr_cap_seed1_256/cap_rule_table.md
+    python benchmarks/compare_rows.py --smoke     # seconds: two made-up JSONL files
+
+A rule of ``benchmarks/train_queue.toml`` compares runs that one report does not hold together: rows of several
+jobs, under different budget keys (a raised cap, another rate). Each run is named ``FILE:VARIANT:SEED``: the newest
+row of that variant and seed in the sweep's JSONL (as ``lcreg reproduce`` counts a rerun). Per figure the first
+side is judged against the second by :func:`lcreg.experiments.reproduce.claims.compare` (the difference of the means
+against the larger of the two sample standard deviations), the rule every report and queue job uses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, output_path
+from lcreg.experiments.benchmarking.writers import format_mean_std, significant, write_text
+from lcreg.experiments.reproduce.claims import compare
+from lcreg.experiments.reproduce.stops import stopped_early
+
+FIGURES = ("rmse_r_deg", "mae_r_deg", "rmse_t", "mae_t")
+"""The test figures of the rules (DCP's Tab. 3 columns): rotation in degrees, translation in the clouds' units."""
+VERDICT_TEXT = {
+    "holds": "better beyond the spread",
+    "does not hold": "worse beyond the spread",
+    "within spread": "within the spread",
+    "one seed": "one seed: no spread",
+}
+
+
+class RowNotFoundError(ValueError):
+    """A run named on the command line has no usable row: a missing or damaged file, no such variant and seed, a
+    failed run, a missing or non-finite figure."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """One finished run: where its row was found and the row itself."""
+
+    side: str
+    source: str
+    row: Mapping[str, Any]
+
+
+def parse_run(spec: str) -> tuple[Path, str, int]:
+    """``FILE:VARIANT:SEED`` (e.g. ``runs/lc.jsonl:dcp/X:1``) as its three parts.
+
+    Raises:
+        RowNotFoundError: Not of that form, or the seed is not an integer.
+    """
+    parts = spec.rsplit(":", 2)
+    if len(parts) != 3 or not all(parts):
+        raise RowNotFoundError(f"{spec!r}: expected FILE:VARIANT:SEED, e.g. runs/lc.jsonl:dcp/X:1")
+    try:
+        return Path(parts[0]), parts[1], int(parts[2])
+    except ValueError:
+        raise RowNotFoundError(f"{spec!r}: the seed {parts[2]!r} is not an integer") from None
+
+
+def find_row(path: Path, variant: str, seed: int) -> dict[str, Any]:
+    """The newest row of ``variant`` and ``seed`` in the JSONL ``path``.
+
+    Raises:
+        RowNotFoundError: No such file, a line that is not JSON, no such row, or the run failed (names which).
+    """
+    if not path.is_file():
+        raise RowNotFoundError(f"{path}: no such file")
+    rows = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            raise RowNotFoundError(f"{path}, line {number}: not a JSON row ({err})") from None
+    matches = [row for row in rows if row.get("variant") == variant and row.get("seed") == seed]
+    if not matches:
+        found = sorted({f"{row.get('variant')}:{row.get('seed')}" for row in rows})
+        raise RowNotFoundError(f"{path}: no row of {variant} seed {seed} (rows: {', '.join(found) or 'none'})")
+    if matches[-1].get("failed"):
+        raise RowNotFoundError(f"{path}: {variant} seed {seed} failed: {matches[-1]['failed']}")
+    return dict(matches[-1])
+
+
+def figure(run: Run, name: str) -> float:
+    """``run``'s test figure ``name``.
+
+    Raises:
+        RowNotFoundError: The row has no such figure (names the run and the figures it has).
+    """
+    value = run.row.get(name)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        known = sorted(key for key, v in run.row.items() if isinstance(v, float))
+        raise RowNotFoundError(f"{run.source}: no figure {name!r} (it has {', '.join(known)})")
+    if not math.isfinite(value):
+        raise RowNotFoundError(f"{run.source}: its {name} is {value}, not a finite number")
+    return float(value)
+
+
+def _or_dash(value: object) -> object:
+    """A table cell: ``–`` for an unknown value, yes/no for a flag."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return "–" if value is None else value
+
+
+def runs_table(runs: Sequence[Run], figures: Sequence[str]) -> str:
+    """One line per run: its side, where it was found, its steps, whether it stopped before its cap
+    (:func:`~lcreg.experiments.reproduce.stops.stopped_early`), its selected checkpoint and its figures."""
+    header = ["side", "run", "steps", "stopped early", "selected", *figures]
+    lines = [
+        [run.side, f"`{run.source}`", _or_dash(run.row.get("steps")), _or_dash(stopped_early(run.row))]
+        + [_or_dash(run.row.get("selected"))]
+        + [f"{figure(run, name):.4g}" for name in figures]
+        for run in runs
+    ]
+    return markdown_table(header, lines)
+
+
+def judgement_table(first: Sequence[Run], second: Sequence[Run], figures: Sequence[str]) -> str:
+    """Per figure: each side's mean ± std (seeds), the difference first − second, the spread and the verdict."""
+    names = (first[0].side, second[0].side)
+    header = ["figure", f"{names[0]} (n={len(first)})", f"{names[1]} (n={len(second)})", "difference", "spread"]
+    lines = []
+    for name in figures:
+        a, b = [figure(run, name) for run in first], [figure(run, name) for run in second]
+        difference, spread, verdict = compare(a, b)
+        sign = "+" if difference > 0 else ""
+        cells = [format_mean_std(a), format_mean_std(b), sign + significant(difference, 3), significant(spread)]
+        lines.append([name, *cells, f"{names[0]}: {VERDICT_TEXT[verdict]}"])
+    return markdown_table([*header, "verdict"], lines)
+
+
+def report(sides: Sequence[tuple[str, Sequence[str]]], figures: Sequence[str]) -> str:
+    """The Markdown report of two sides, each a name and its ``FILE:VARIANT:SEED`` runs."""
+    if len(sides) != 2:
+        raise RowNotFoundError(f"give exactly two --side options, got {len(sides)}")
+    runs = [[Run(name, spec, find_row(*parse_run(spec))) for spec in specs] for name, specs in sides]
+    lines = [
+        f"# {sides[0][0]} against {sides[1][0]}",
+        "",
+        "Each side's mean ± sample std over its runs; the verdict is the first side's: its mean against the second's,",
+        "beyond or within the larger std (`lcreg.experiments.reproduce.claims.compare`).",
+        "",
+        judgement_table(runs[0], runs[1], figures),
+        "",
+        runs_table([*runs[0], *runs[1]], figures),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def smoke_sides(folder: Path) -> list[tuple[str, list[str]]]:
+    """Two made-up JSONL files, three seeds on each side (``--smoke``)."""
+    sides = []
+    for name, level in (("lower", 4.0), ("higher", 6.0)):
+        path = folder / f"{name}.jsonl"
+        rows = [
+            {"variant": "m/X", "seed": s, "steps": 100, **dict.fromkeys(FIGURES, level + 0.1 * s)} for s in range(3)
+        ]
+        path.write_text("".join(json.dumps(row) + "\n" for row in rows), encoding="utf-8")
+        sides.append((name, [f"{path}:m/X:{s}" for s in range(3)]))
+    return sides
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--side",
+        nargs="+",
+        action="append",
+        metavar=("NAME", "FILE:VARIANT:SEED"),
+        default=[],
+        help="a side's name, then its runs (twice: the first side is judged against the second)",
+    )
+    parser.add_argument("--figures", nargs="+", default=list(FIGURES), help="row fields to compare (test figures)")
+    parser.add_argument("--out", help="write the report here (default: print it)")
+    add_smoke_argument(parser)
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    with tempfile.TemporaryDirectory(prefix="lcreg-compare-") as scratch:
+        sides = smoke_sides(Path(scratch)) if args.smoke else [(side[0], side[1:]) for side in args.side]
+        if any(not specs for _, specs in sides):
+            sys.exit("compare_rows: each --side needs a name and at least one FILE:VARIANT:SEED")
+        try:
+            text = report(sides, args.figures)
+        except RowNotFoundError as err:
+            sys.exit(f"compare_rows: {err}")
+    out = output_path(args.out, "compare_rows.md", args.smoke)
+    if out is None:
+        print(text, end="")
+        return
+    write_text(out, text)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
