@@ -14,7 +14,8 @@ A rule of ``benchmarks/train_queue.toml`` compares runs that one report does not
 jobs, under different budget keys (a raised cap, another rate). Each run is named ``FILE:VARIANT:SEED``: the newest
 row of that variant and seed in the sweep's JSONL (as ``lcreg reproduce`` counts a rerun). Per figure the first
 side is judged against the second by :func:`lcreg.experiments.reproduce.claims.compare` (the difference of the means
-against the larger of the two sample standard deviations), the rule every report and queue job uses.
+against the larger of the two sample standard deviations), the rule every report and queue job uses; one run against
+several seeds (a probe's seed 0) is judged against their std, as the queue's rules do.
 """
 
 from __future__ import annotations
@@ -133,6 +134,21 @@ def runs_table(runs: Sequence[Run], figures: Sequence[str]) -> str:
     return markdown_table(header, lines)
 
 
+def judge(first: Sequence[float], second: Sequence[float]) -> tuple[float, float, str]:
+    """:func:`~lcreg.experiments.reproduce.claims.compare`, and one run against several seeds as the queue's rules
+    judge it (e.g. a probe's seed 0 against the 3 seeds it is compared with): against the other side's std.
+
+    Returns:
+        The difference of the means (first − second), the spread, and the verdict's words.
+    """
+    difference, spread, verdict = compare(first, second)
+    if verdict != "one seed" or max(len(first), len(second)) < 2:
+        return difference, spread, VERDICT_TEXT[verdict]
+    beyond = "better" if difference < 0 else "worse"
+    words = "within the spread" if abs(difference) <= spread else f"{beyond} beyond the spread"
+    return difference, spread, f"{words} (one run against the other side's std)"
+
+
 def judgement_table(first: Sequence[Run], second: Sequence[Run], figures: Sequence[str]) -> str:
     """Per figure: each side's mean ± std (seeds), the difference first − second, the spread and the verdict."""
     names = (first[0].side, second[0].side)
@@ -140,10 +156,10 @@ def judgement_table(first: Sequence[Run], second: Sequence[Run], figures: Sequen
     lines = []
     for name in figures:
         a, b = [figure(run, name) for run in first], [figure(run, name) for run in second]
-        difference, spread, verdict = compare(a, b)
+        difference, spread, verdict = judge(a, b)
         sign = "+" if difference > 0 else ""
         cells = [format_mean_std(a), format_mean_std(b), sign + significant(difference, 3), significant(spread)]
-        lines.append([name, *cells, f"{names[0]}: {VERDICT_TEXT[verdict]}"])
+        lines.append([name, *cells, f"{names[0]}: {verdict}"])
     return markdown_table([*header, "verdict"], lines)
 
 

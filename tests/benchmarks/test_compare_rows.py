@@ -42,6 +42,13 @@ def test_each_figure_is_judged_by_the_difference_of_the_means_against_the_larger
     assert _verdicts(text) == {"rmse_r_deg": "low: better beyond the spread", "mae_r_deg": "low: within the spread"}
     reverse = compare_rows.report([sides[1], sides[0]], ["rmse_r_deg"])
     assert _verdicts(reverse) == {"rmse_r_deg": "high: worse beyond the spread"}
+    one = compare_rows.report([("probe", [f"{high}:dcp/X:0"]), sides[0]], ["rmse_r_deg", "mae_r_deg"])
+    assert _verdicts(one) == {  # 5.0 against 4.2 ± 0.2; 2.5 against 2.1 ± 0.1: both beyond the three seeds' std
+        "rmse_r_deg": "probe: worse beyond the spread (one run against the other side's std)",
+        "mae_r_deg": "probe: worse beyond the spread (one run against the other side's std)",
+    }
+    alone = compare_rows.report([("probe", [f"{high}:dcp/X:0"]), ("other", [f"{low}:dcp/X:1"])], ["rmse_r_deg"])
+    assert _verdicts(alone) == {"rmse_r_deg": "probe: one seed: no spread"}
 
 
 @pytest.mark.parametrize(
