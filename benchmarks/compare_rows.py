@@ -12,7 +12,8 @@
 
 A rule of ``benchmarks/train_queue.toml`` compares runs that one report does not hold together: rows of several
 jobs, under different budget keys (a raised cap, another rate). Each run is named ``FILE:VARIANT:SEED``: the newest
-row of that variant and seed in the sweep's JSONL (as ``lcreg reproduce`` counts a rerun). Per figure the first
+row of that variant and seed in the sweep's JSONL (as ``lcreg reproduce`` counts a rerun); where the file holds the
+seed under several budgets, ``FILE:VARIANT:SEED:BUDGET`` names one by a piece of its budget text. Per figure the first
 side is judged against the second by :func:`lcreg.experiments.reproduce.claims.compare` (the difference of the means
 against the larger of the two sample standard deviations), the rule every report and queue job uses; one run against
 several seeds (a probe's seed 0) is judged against their std, as the queue's rules do.
@@ -59,26 +60,32 @@ class Run:
     row: Mapping[str, Any]
 
 
-def parse_run(spec: str) -> tuple[Path, str, int]:
-    """``FILE:VARIANT:SEED`` (e.g. ``runs/lc.jsonl:dcp/X:1``) as its three parts.
+def parse_run(spec: str) -> tuple[Path, str, int, str]:
+    """``FILE:VARIANT:SEED`` or ``FILE:VARIANT:SEED:BUDGET`` (e.g. ``runs/lc.jsonl:dcp/X:1``) as its parts; ``BUDGET``,
+    a piece of the rows' ``budget`` text (``""``: any), picks one run where the file holds the seed under several.
 
     Raises:
         RowNotFoundError: Not of that form, or the seed is not an integer.
     """
-    parts = spec.rsplit(":", 2)
-    if len(parts) != 3 or not all(parts):
-        raise RowNotFoundError(f"{spec!r}: expected FILE:VARIANT:SEED, e.g. runs/lc.jsonl:dcp/X:1")
+    parts = spec.rsplit(":", 3)
+    if len(parts) == 4 and parts[3].strip().isdigit():  # a FILE with a colon in it, no BUDGET
+        parts = [f"{parts[0]}:{parts[1]}", *parts[2:]]
+    if len(parts) == 3:
+        parts.append("")
+    if len(parts) != 4 or not all(parts[:3]):
+        raise RowNotFoundError(f"{spec!r}: expected FILE:VARIANT:SEED[:BUDGET], e.g. runs/lc.jsonl:dcp/X:1")
     try:
-        return Path(parts[0]), parts[1], int(parts[2])
+        return Path(parts[0]), parts[1], int(parts[2]), parts[3]
     except ValueError:
         raise RowNotFoundError(f"{spec!r}: the seed {parts[2]!r} is not an integer") from None
 
 
-def find_row(path: Path, variant: str, seed: int) -> dict[str, Any]:
-    """The newest row of ``variant`` and ``seed`` in the JSONL ``path``.
+def find_row(path: Path, variant: str, seed: int, budget: str = "") -> dict[str, Any]:
+    """The newest row of ``variant`` and ``seed`` (whose ``budget`` contains ``budget``) in the JSONL ``path``.
 
     Raises:
-        RowNotFoundError: No such file, a line that is not JSON, no such row, or the run failed (names which).
+        RowNotFoundError: No such file, a line that is not JSON, no such row, rows of the run under several budgets
+            or data (a sweep's older key kept beside its newer one: which is meant must be said), or the run failed.
     """
     if not path.is_file():
         raise RowNotFoundError(f"{path}: no such file")
@@ -90,10 +97,19 @@ def find_row(path: Path, variant: str, seed: int) -> dict[str, Any]:
             rows.append(json.loads(line))
         except json.JSONDecodeError as err:
             raise RowNotFoundError(f"{path}, line {number}: not a JSON row ({err})") from None
-    matches = [row for row in rows if row.get("variant") == variant and row.get("seed") == seed]
+    ours = [row for row in rows if row.get("variant") == variant and row.get("seed") == seed]
+    matches = [row for row in ours if budget in str(row.get("budget", ""))]
     if not matches:
         found = sorted({f"{row.get('variant')}:{row.get('seed')}" for row in rows})
-        raise RowNotFoundError(f"{path}: no row of {variant} seed {seed} (rows: {', '.join(found) or 'none'})")
+        within = f" with {budget!r} in its budget" if budget else ""
+        raise RowNotFoundError(f"{path}: no row of {variant} seed {seed}{within} (rows: {', '.join(found) or 'none'})")
+    keys = {(row.get("budget"), row.get("data")) for row in matches}
+    if len(keys) > 1:
+        budgets = "; ".join(sorted(f"{b!r} ({d})" for b, d in keys))
+        raise RowNotFoundError(
+            f"{path}: {variant} seed {seed} has rows of {len(keys)} runs (budget, data): {budgets}. "
+            "Name one with FILE:VARIANT:SEED:BUDGET, BUDGET a piece of its budget text"
+        )
     if matches[-1].get("failed"):
         raise RowNotFoundError(f"{path}: {variant} seed {seed} failed: {matches[-1]['failed']}")
     return dict(matches[-1])

@@ -80,3 +80,17 @@ def test_a_damaged_file_is_refused_naming_its_line(tmp_path: Path) -> None:
         compare_rows.main(["--side", "a", f"{damaged}:dcp/X:0", "--side", "b", f"{damaged}:dcp/X:0"])
     with pytest.raises(SystemExit, match="exactly two --side options, got 1"):
         compare_rows.main(["--side", "a", f"{_jsonl(tmp_path / 'ok.jsonl', _row(0, 4.0))}:dcp/X:0"])
+
+
+def test_a_seed_under_several_budgets_must_be_named_by_a_piece_of_its_budget(tmp_path: Path) -> None:
+    # a sweep's rows of an older budget key stay beside the newer ones (e.g. DCP-v2 at lr 1e-3, then at 2.5e-4)
+    both = _jsonl(
+        tmp_path / "lc.jsonl", _row(0, 6.0, budget="3000 steps"), _row(0, 4.0, budget="3000 steps, lr 0.00025")
+    )
+    other = f"{_jsonl(tmp_path / 'other.jsonl', _row(0, 5.0))}:dcp/X:0"
+    with pytest.raises(SystemExit, match=r"dcp/X seed 0 has rows of 2 runs .*Name one with FILE:VARIANT:SEED:BUDGET"):
+        compare_rows.main(["--side", "a", f"{both}:dcp/X:0", "--side", "b", other, *FIGURES])
+    text = compare_rows.report([("a", [f"{both}:dcp/X:0:lr 0.00025"]), ("b", [other])], ["rmse_r_deg"])
+    assert "| rmse_r_deg | 4.00 ± 0 | 5.00 ± 0 | -1.00 |" in text
+    with pytest.raises(compare_rows.RowNotFoundError, match="with 'lr 1e-3' in its budget"):
+        compare_rows.report([("a", [f"{both}:dcp/X:0:lr 1e-3"]), ("b", [other])], ["rmse_r_deg"])
