@@ -10,6 +10,7 @@ import yaml
 
 from lcreg.cli import ConfigFileError, ConfigValueError, build_cli, expand_configs, main
 from lcreg.data.synthetic import PRIMITIVES
+from lcreg.models.evaluation import COMPONENT_COLUMNS
 
 from _cli_runs import TINY_DVDS  # type: ignore[import-not-found]
 
@@ -56,7 +57,7 @@ def test_fit_then_test_from_the_saved_config(tmp_path: Path) -> None:
 
     main(["test", "--config", str(saved), "--ckpt_path", str(last)])
     per_pair = list(csv.reader((tmp_path / "runs" / "lcreg" / "version_1" / "test_per_pair.csv").open()))
-    assert per_pair[0] == ["index", "rotation_error_deg", "translation_error", "class"]
+    assert per_pair[0] == ["index", "rotation_error_deg", "translation_error", "class", *COMPONENT_COLUMNS]
     assert [int(row[0]) for row in per_pair[1:]] == [0, 1]
     assert {row[3] for row in per_pair[1:]} <= set(PRIMITIVES)  # the synthetic shapes' kinds
 

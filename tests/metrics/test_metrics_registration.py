@@ -125,6 +125,14 @@ def test_failure_policy(hand_made: tuple[torch.Tensor, torch.Tensor]) -> None:
     rot_err, trans_err, _ = per_pair.compute()
     assert rot_err.shape == trans_err.shape == (4,)
     assert torch.isnan(rot_err[3]) and torch.isnan(trans_err[3]) and torch.isfinite(rot_err[:3]).all()
+    euler, components = per_pair.components()  # as the figures count them: the failure at 180 deg, |t_gt|
+    assert euler.shape == components.shape == (4, 3)
+    torch.testing.assert_close(euler[3], torch.full((3,), 180.0, dtype=euler.dtype))
+    torch.testing.assert_close(components[3], torch.tensor([0.3, 0.4, 0.0], dtype=components.dtype))
+    assert math.sqrt(float(euler.square().mean())) == pytest.approx(out["rmse_r_deg"])
+    assert float(euler.abs().mean()) == pytest.approx(out["mae_r_deg"])
+    assert math.sqrt(float(components.square().mean())) == pytest.approx(out["rmse_t"])
+    assert float(components.abs().mean()) == pytest.approx(out["mae_t"])
 
 
 def test_recall_counts_a_failure_even_with_tiny_ground_truth_translation() -> None:

@@ -339,6 +339,18 @@ class PerPairErrors(_PairErrorMetric):
         rot, trans, index = self.compute()
         return rot.reshape(-1), trans.reshape(-1), index.reshape(-1)
 
+    def components(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The per-pair parts of DCP's four figures, in the order of :meth:`per_pair`.
+
+        Returns:
+            ``(euler_err_deg (P, 3), trans_errs (P, 3))``: the signed ``[z, y, x]`` Euler-angle errors in degrees and
+            the signed translation component errors, as :class:`EulerRotationRMSE`, :class:`EulerRotationMAE`,
+            :class:`TranslationRMSE` and :class:`TranslationMAE` count them (a failed pair at 180 degrees per angle
+            and ``|t_gt|`` per component). So RMSE(R) over any subset of pairs is the root mean square of its rows,
+            MAE(R) their mean absolute value, and likewise RMSE(t), MAE(t): figures per class, say, of one test.
+        """
+        return self._euler().reshape(-1, 3), self._translation_components().reshape(-1, 3)
+
 
 def recall_key(rot_thr_deg: float, trans_thr: float) -> str:
     """The metric name of the recall at ``(rot_thr_deg, trans_thr)``: ``recall_r{rot}_t{trans}``, ``.`` as ``p``.

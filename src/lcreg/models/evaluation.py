@@ -29,7 +29,19 @@ from lcreg.metrics.registration import (
 from lcreg.models.training import NonFiniteTrainingError, Stage, TrainingLogic
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["EvaluationLogic"]
+__all__ = ["COMPONENT_COLUMNS", "EvaluationLogic"]
+
+COMPONENT_COLUMNS = (
+    "euler_error_z_deg",
+    "euler_error_y_deg",
+    "euler_error_x_deg",
+    "translation_error_x",
+    "translation_error_y",
+    "translation_error_z",
+)
+"""The last columns of ``test_per_pair.csv``: each pair's signed ``[z, y, x]`` Euler-angle errors (degrees) and
+signed translation component errors, as DCP's RMSE(R), MAE(R), RMSE(t) and MAE(t) count them (a failed pair at 180
+degrees per angle and ``|t_gt|`` per component)."""
 
 
 class EvaluationLogic(TrainingLogic):
@@ -102,16 +114,21 @@ class EvaluationLogic(TrainingLogic):
         self.test_pairs.reset()
 
     def on_test_epoch_end(self) -> None:
-        """Summary line and ``test_per_pair.csv`` (index, rotation error deg, translation error[, class]).
+        """Summary line and ``test_per_pair.csv``: one row per pair, sorted by dataset index.
 
-        The ``class`` column is the pair's object class, where the DataModule knows it (``pair_classes``: the
-        :class:`~lcreg.data.datamodule.PairDataModule` family).
+        Columns: ``index``, ``rotation_error_deg`` (geodesic) and ``translation_error`` (norm), raw (NaN for a
+        failed pair); ``class``, the pair's object class, where the DataModule knows it (``pair_classes``: the
+        :class:`~lcreg.data.datamodule.PairDataModule` family); then :data:`COMPONENT_COLUMNS`, the per-pair parts
+        of RMSE(R), MAE(R), RMSE(t) and MAE(t) as the test figures count them
+        (:meth:`~lcreg.metrics.registration.PerPairErrors.components`), from which those figures follow for any
+        subset of the rows (``benchmarks/class_breakdown.py``).
         """
         self._summary("test")
         if self.test_pairs.update_count == 0:
             return
         # Every process's pairs (gathered), each once; torchmetrics squeezes a single pair to 0-d.
         rot, trans, index = self.test_pairs.per_pair()
+        euler, components = self.test_pairs.components()
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
             numbered = (index < 0).any()  # batches without indices: number the pairs in order
@@ -119,14 +136,16 @@ class EvaluationLogic(TrainingLogic):
                 index = torch.arange(len(rot))
             order = torch.argsort(index)
             index, rot, trans = index[order], rot[order], trans[order]
-            columns = [index.tolist(), rot.tolist(), trans.tolist()]
+            parts = torch.cat([euler, components], dim=1)[order].tolist()  # (P, 6)
             classes = None if numbered else self._pair_classes(index)
+            header = ["index", "rotation_error_deg", "translation_error", *(["class"] if classes else [])]
+            rows = zip(index.tolist(), rot.tolist(), trans.tolist(), *([classes] if classes else []), strict=True)
             path = Path(log_dir) / "test_per_pair.csv"
             path.parent.mkdir(parents=True, exist_ok=True)
             with path.open("w", newline="") as fh:
                 writer = csv.writer(fh)
-                writer.writerow(["index", "rotation_error_deg", "translation_error", *(["class"] if classes else [])])
-                writer.writerows(zip(*columns, *([classes] if classes else [])))
+                writer.writerow([*header, *COMPONENT_COLUMNS])
+                writer.writerows([*row, *part] for row, part in zip(rows, parts, strict=True))
             rank_zero_info(f"per-pair test errors written to {path}")
 
     def _pair_classes(self, index: torch.Tensor) -> list[str] | None:
