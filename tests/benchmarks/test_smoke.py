@@ -31,6 +31,7 @@ RUNS = {
     "bench_export": [],
     "bench_precision": [],
     "compare_methods": [],
+    "class_breakdown": [],
     "compare_rows": [],
     "eval_modelnet40_dvds": [],
     "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],

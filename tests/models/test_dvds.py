@@ -15,9 +15,9 @@ from lcreg.data.pairs import PairProtocol
 from lcreg.data.synthetic import synthetic_shapes
 from lcreg.geometry import se3
 from lcreg.geometry.random_transforms import random_euler_transform
-from lcreg.models.evaluation import COMPONENT_COLUMNS
 from lcreg.models.base import RegistrationModule
 from lcreg.models.dvds import DVDs
+from lcreg.models.evaluation import COMPONENT_COLUMNS
 from lcreg.models.loss_terms import LocalConsistencyLoss
 from lcreg.nn.local_consistency import LocalConsistency
 from lcreg.nn.pointnet import PointNetEncoder
@@ -311,7 +311,8 @@ def test_trainer_fast_dev_run_fit_and_test(tmp_path: Path) -> None:
     assert "test/rre_mean_deg" in trainer.callback_metrics
     assert "test/loss" not in trainer.callback_metrics  # the training losses are not computed at test time
     rows = list(csv.reader((tmp_path / "test_per_pair.csv").open()))
-    assert rows[0] == ["index", "rotation_error_deg", "translation_error", "class", *COMPONENT_COLUMNS] and len(rows) == 3
+    assert rows[0] == ["index", "rotation_error_deg", "translation_error", "class", *COMPONENT_COLUMNS]
+    assert len(rows) == 3
 
 
 class MinimalHost(RegistrationModule):
