@@ -40,7 +40,11 @@ def _figures(rows: list[dict[str, str]]) -> dict[str, float]:
 def test_the_component_columns_give_the_test_figures_for_all_pairs_and_for_a_subset(tmp_path: Path) -> None:
     data = SyntheticDataModule(num_points=32, batch_size=2, num_train=2, num_val=2, num_test=5, points_per_shape=64)
     trainer = Trainer(
-        accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
     )
     trainer.test(_Identity(), datamodule=data, verbose=False)
     with (tmp_path / "test_per_pair.csv").open() as fh:
