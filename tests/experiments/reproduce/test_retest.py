@@ -89,6 +89,7 @@ def test_a_copy_of_the_output_folder_finds_its_weights_and_missing_weights_are_o
     assert Path(retested["weights"]).is_relative_to(copy)
     main([*SWEEP, "--seeds", "1", "--out", str(copy)])
     seed1 = read_jsonl(copy / "lc.jsonl")[-1]
+    kept = Path(seed1["weights"]).read_bytes()  # as the queue keeps it in <job>/best/
     Path(seed1["weights"]).unlink()
     capsys.readouterr()
     with pytest.raises(SystemExit) as stop:
@@ -98,6 +99,10 @@ def test_a_copy_of_the_output_folder_finds_its_weights_and_missing_weights_are_o
     assert error.startswith("lcreg reproduce: error: idam/X seed 1: its kept weights ") and "\n" not in error
     assert seed1["weights"] in error
     assert len(read_jsonl(copy / "lc.retest-32-true.jsonl")) == 1
+    place = Path(error.split("; copy them to ")[1].split(" (")[0])  # the place the message names finds them
+    place.write_bytes(kept)
+    (_, again) = _retest(copy, "32-true", seeds=("0", "1"))
+    _assert_same_test(seed1, again)
 
 
 @pytest.mark.parametrize(

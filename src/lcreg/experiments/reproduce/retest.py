@@ -122,9 +122,11 @@ def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] =
                 continue
             weights = recorded_file(row, "weights", sweep.out)
             if weights is None:
+                place = sweep.run_dir(variant, int(row["seed"])) / "selected_weights.pt"
                 raise MissingWeightsError(
                     f"{key} seed {row['seed']}: its kept weights {row.get('weights')!r} are not there, nor under "
-                    f"{sweep.out}; copy the file to either place (the training queue keeps them in <job>/best/)"
+                    f"{sweep.out}; copy them to {place} (the training queue keeps them as "
+                    "<job>/best/<variant>-seed<k>.pt)"
                 )
             budget = sweep.experiment.budget(sweep.preset, variant)
             seed, overrides = int(row["seed"]), sweep.overrides(variant)
