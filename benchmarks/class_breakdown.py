@@ -31,8 +31,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, output_path
-from lcreg.experiments.benchmarking.writers import format_mean_std, significant, write_text
+from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
+from lcreg.experiments.benchmarking.writers import format_mean_std, significant
 from lcreg.experiments.reproduce.claims import compare
 from lcreg.models.evaluation import COMPONENT_COLUMNS
 
@@ -263,12 +263,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             text = report(paths, args.min_pairs if not args.smoke else 2, without, args.paper, args.paper_label)
         except PerPairFileError as err:
             sys.exit(f"class_breakdown: {err}")
-    out = output_path(args.out, "class_breakdown.md", args.smoke)
-    if out is None:
-        print(text, end="")
-        return
-    write_text(out, text)
-    print(f"wrote {out}")
+    write_or_print(text, args.out, "class_breakdown.md", args.smoke)
 
 
 if __name__ == "__main__":

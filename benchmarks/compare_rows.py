@@ -31,8 +31,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, output_path
-from lcreg.experiments.benchmarking.writers import format_mean_std, significant, write_text
+from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
+from lcreg.experiments.benchmarking.writers import format_mean_std, significant
 from lcreg.experiments.reproduce.claims import compare
 from lcreg.experiments.reproduce.stops import stopped_early
 
@@ -236,12 +236,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             text = report(sides, args.figures)
         except RowNotFoundError as err:
             sys.exit(f"compare_rows: {err}")
-    out = output_path(args.out, "compare_rows.md", args.smoke)
-    if out is None:
-        print(text, end="")
-        return
-    write_text(out, text)
-    print(f"wrote {out}")
+    write_or_print(text, args.out, "compare_rows.md", args.smoke)
 
 
 if __name__ == "__main__":

@@ -96,6 +96,7 @@ from lcreg.experiments.benchmarking.writers import (
     report_table,
     significant,
     training_device,
+    write_or_print,
     write_text,
 )
 
@@ -173,6 +174,7 @@ __all__ = [
     "training_device",
     "training_loss",
     "voxelize_overrides",
+    "write_or_print",
     "write_synthetic_metrics",
     "write_text",
 ]

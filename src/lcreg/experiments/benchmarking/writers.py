@@ -27,6 +27,7 @@ __all__ = [
     "output_path",
     "report_table",
     "significant",
+    "write_or_print",
     "write_text",
 ]
 
@@ -195,3 +196,14 @@ def output_path(out: str | None, filename: str, smoke: bool) -> Path | None:
     if out:
         return Path(out)
     return Path(tempfile.mkdtemp(prefix="lcreg-smoke-")) / filename if smoke else None
+
+
+def write_or_print(text: str, out: str | None, filename: str, smoke: bool) -> Path | None:
+    """Write a script's report to :func:`output_path` and say where, or print it when there is no path."""
+    path = output_path(out, filename, smoke)
+    if path is None:
+        print(text, end="")
+        return None
+    write_text(path, text)
+    print(f"wrote {path}")
+    return path
