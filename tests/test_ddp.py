@@ -62,8 +62,8 @@ def test_ddp_fit_then_test_equals_one_process(tmp_path: Path) -> None:
     single, single_pairs = _test_rows(tmp_path, "single")
     ddp, ddp_pairs = _test_rows(tmp_path, "ddp")
     assert [row[0] for row in ddp_pairs] == ["0", "1", "2", "3", "4"]  # every pair once, none dropped
-    flat = [[float(v) for row in rows for v in row[:3]] for rows in (ddp_pairs, single_pairs)]
-    assert flat[0] == pytest.approx(flat[1], rel=1e-5)
+    flat = [[float(v) for row in rows for v in row[:3] + row[4:]] for rows in (ddp_pairs, single_pairs)]
+    assert len(ddp_pairs[0]) == 10 and flat[0] == pytest.approx(flat[1], rel=1e-5, abs=1e-6)  # + the components
     assert [row[3] for row in ddp_pairs] == [row[3] for row in single_pairs]  # each pair's class, gathered
     assert set(ddp) == set(single) and "test/rre_mean_deg" in ddp
     assert ddp == pytest.approx(single, rel=1e-5)

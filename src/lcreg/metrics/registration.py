@@ -348,8 +348,10 @@ class PerPairErrors(_PairErrorMetric):
             :class:`TranslationRMSE` and :class:`TranslationMAE` count them (a failed pair at 180 degrees per angle
             and ``|t_gt|`` per component). So RMSE(R) over any subset of pairs is the root mean square of its rows,
             MAE(R) their mean absolute value, and likewise RMSE(t), MAE(t): figures per class, say, of one test.
+            Under DDP every process's pairs, each once, as :meth:`per_pair` returns them.
         """
-        return self._euler().reshape(-1, 3), self._translation_components().reshape(-1, 3)
+        with self.sync_context():  # compute() gathers the processes' states; a method of its own must ask for it
+            return self._euler().reshape(-1, 3), self._translation_components().reshape(-1, 3)
 
 
 def recall_key(rot_thr_deg: float, trans_thr: float) -> str:
