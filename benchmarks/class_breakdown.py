@@ -34,6 +34,7 @@ from pathlib import Path
 from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
 from lcreg.experiments.benchmarking.writers import format_mean_std, significant
 from lcreg.experiments.reproduce.claims import compare
+from lcreg.metrics.registration import WORST_ROTATION_DEG
 from lcreg.models.evaluation import COMPONENT_COLUMNS
 
 PAPER_FIGURES = ("RMSE(R) °", "MAE(R) °", "RMSE(t)", "MAE(t)")
@@ -87,7 +88,8 @@ def _pair(path: Path, line: int, row: dict[str, str]) -> Pair:
         raise PerPairFileError(f"{path}, line {line}: not a number ({err})") from err
     if not all(math.isfinite(v) for v in values[1:]):  # a failed pair's components are finite by construction
         raise PerPairFileError(f"{path}, line {line}: a component error is not finite")
-    return Pair(index, row["class"], values[0], (values[1], values[2], values[3]), (values[4], values[5], values[6]))
+    rre = values[0] if math.isfinite(values[0]) else WORST_ROTATION_DEG  # a failed pair, as the test figures count it
+    return Pair(index, row["class"], rre, (values[1], values[2], values[3]), (values[4], values[5], values[6]))
 
 
 def read_seeds(paths: Sequence[Path]) -> list[list[Pair]]:

@@ -46,6 +46,12 @@ def test_figures_per_group_follow_from_the_rows(tmp_path: Path) -> None:
     assert "| all but b | RMSE(R) ° |" in text and "one file: no spread" in text
 
 
+def test_a_failed_pair_counts_at_180_degrees_in_the_geodesic_figures(tmp_path: Path) -> None:
+    rows = [[0, 2.0, 0.1, "a", 2, 0, 0, 0.1, 0, 0], [1, "nan", "nan", "a", 180, 180, 180, 0.3, 0.4, 0]]
+    text = class_breakdown.report([_csv(tmp_path / "s0.csv", rows)], 1, [], None, "")
+    assert _cells(text, "a")[6] == "91.0 ± 0"  # mean RRE (2 + 180) / 2, as the test's rre_mean_deg counts it
+
+
 def test_seeds_give_mean_and_std_and_the_without_group_is_judged_against_all_pairs(tmp_path: Path) -> None:
     paths = []
     for seed, big in enumerate((10.0, 11.0, 12.0)):
