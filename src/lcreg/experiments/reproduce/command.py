@@ -34,7 +34,17 @@ from lcreg.experiments.reproduce.parallel import WorkersFailedError, run_workers
 from lcreg.experiments.reproduce.plots import plot_sweep
 from lcreg.experiments.reproduce.recall_curves import RECALL_CURVES, plot_recall_curves, render_recall_curves
 from lcreg.experiments.reproduce.report import render
-from lcreg.experiments.reproduce.retest import PRECISIONS, MissingWeightsError, render_retest, retest_path, retest_sweep
+from lcreg.experiments.reproduce.retest import (
+    PRECISIONS,
+    RETEST_DATA,
+    MissingWeightsError,
+    NoFinishedRunsError,
+    Retest,
+    check_retest_data,
+    render_retest,
+    retest_path,
+    retest_sweep,
+)
 from lcreg.experiments.reproduce.robustness import ROBUSTNESS, plot_robustness, render_robustness
 from lcreg.experiments.reproduce.runtime import (
     RUNTIME,
@@ -206,6 +216,18 @@ def build_parser() -> argparse.ArgumentParser:
         "and .jsonl (with --report-only: the table from that JSONL only)",
     )
     parser.add_argument(
+        "--retest-data",
+        dest="retest_data",
+        action="append",
+        default=[],
+        type=_retest_setting,
+        metavar="KEY=VALUE",
+        help=f"with --retest: a data value of the test only ({', '.join(RETEST_DATA)}), so that the kept weights are "
+        "tested on other pairs, e.g. protocol=unseen_categories (labels 20-39; training and validation objects are "
+        "the same under both protocols) or noise_sigma=0; repeatable; in the outputs' names "
+        "(<stem>.retest-<PRECISION>-<key>-<value>.md)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -243,6 +265,23 @@ def _setting(text: str) -> tuple[str, Any]:
         raise argparse.ArgumentTypeError(
             f"{key.strip()}: the value {value!r} is not YAML ({one_line(str(err))})"
         ) from None
+
+
+def _retest_setting(text: str) -> tuple[str, Any]:
+    """``--retest-data KEY=VALUE``: a data key of :data:`RETEST_DATA` and its checked YAML value.
+
+    Raises:
+        argparse.ArgumentTypeError: No ``=``, a key outside :data:`RETEST_DATA`, or a value the key cannot take.
+    """
+    import yaml
+
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE (e.g. protocol=unseen_categories), got {text!r}")
+    try:
+        return key.strip(), check_retest_data(key.strip(), yaml.safe_load(value))
+    except (ValueError, yaml.YAMLError) as err:
+        raise argparse.ArgumentTypeError(one_line(str(err))) from None
 
 
 def _experiment(name: str, only: Sequence[str]) -> Experiment | RuntimeExperiment | EvalExperiment:
@@ -313,6 +352,7 @@ def reproduce(
         ("--train-objects", args.train_objects is not None),
         ("--set", bool(args.settings)),
         ("--retest", args.retest is not None),
+        ("--retest-data", bool(args.retest_data)),
         ("--continue-from", args.continue_from is not None),
     )
     for option, value in chosen:
@@ -327,6 +367,8 @@ def reproduce(
         data = _data(args.budget, args.root, "unseen_categories")
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
+    if args.retest_data and args.retest is None:
+        raise ReproduceUsageError("--retest-data changes the test of --retest PRECISION: give --retest too")
     data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep, args.train_objects)
     seeds = _seeds(args.seeds)
     settings = tuple(dict(args.settings).items())  # a key set twice: the last value
@@ -436,17 +478,22 @@ def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Call
     """Test the sweep's kept weights again under ``--retest`` (or, with ``--report-only``, only report them)."""
     if args.jobs > 1:
         raise ReproduceUsageError("--retest tests one run after another; leave out --jobs")
+    retest = Retest(args.retest, tuple(dict(args.retest_data).items()))  # a key given twice: the last value
+    if sweep.data.root is None and "protocol" in dict(retest.data):
+        raise ReproduceUsageError(
+            "--retest-data protocol: the smoke budget's embedded synthetic shapes have no ModelNet40 protocol"
+        )
     if args.report_only:
-        log = ResultLog(retest_path(sweep, args.retest, ".jsonl"), KEY_FIELDS)
+        log = ResultLog(retest_path(sweep, retest, ".jsonl"), KEY_FIELDS)
     else:
         try:
-            log = retest_sweep(sweep, args.retest, progress)
-        except MissingWeightsError as err:
+            log = retest_sweep(sweep, retest, progress)
+        except (MissingWeightsError, NoFinishedRunsError) as err:
             raise ReproduceUsageError(str(err)) from None
-    md = retest_path(sweep, args.retest, ".md")
+    md = retest_path(sweep, retest, ".md")
 
     def write() -> list[Path]:
-        return [write_text(md, render_retest(sweep, log, args.retest, command))]
+        return [write_text(md, render_retest(sweep, log, retest, command))]
 
     written = _guarded(write, log.path, args.report_only)
     return written + ([log.path] if log.path.is_file() else [])

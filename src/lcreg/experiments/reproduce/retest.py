@@ -1,4 +1,4 @@
-"""Test a sweep's kept weights again under another precision, on the same test pairs, without training.
+"""Test a sweep's kept weights again under another precision, or on other test pairs, without training.
 
 ``lcreg reproduce <experiment> ... --retest 32-true``: every finished run of the sweep (its JSONL row) is tested again
 from the weights it kept (``row["weights"]``, or the longest tail of that path under ``--out``: a copy of the output
@@ -9,11 +9,20 @@ moves per-pair errors (``docs/results/bench_precision.md``). The rows go to ``<s
 rerun skips the runs found there), the table of both tests side by side to ``<stem>.retest-<precision>.md``, each
 test's logs and per-pair errors to ``<run folder>/retest-<precision>/``; the sweep's own JSONL, report and run logs
 are not changed.
+
+``--retest-data KEY=VALUE`` (:data:`RETEST_DATA`) changes a data value of the test only, so that the same weights are
+tested on other pairs: ``protocol=unseen_categories`` tests a model trained on labels 0-19 on labels 20-39 (both
+ModelNet40 protocols train and validate on the same objects, :func:`lcreg.data.modelnet40.modelnet40_objects`, so the
+selection stays valid), ``noise_sigma=0`` on clean clouds. Its outputs carry the values in their tag
+(:attr:`Retest.tag`: ``<stem>.retest-32-true-protocol-unseen_categories.jsonl``, ``<run folder>/retest-32-true-...``).
 """
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -22,6 +31,7 @@ from lcreg.experiments.benchmarking import (
     REPORT_COLUMNS,
     ResultLog,
     build_cli_for,
+    cli_args,
     format_mean_std,
     machine_line,
     markdown_table,
@@ -35,7 +45,11 @@ from lcreg.weights import load_into
 
 __all__ = [
     "PRECISIONS",
+    "RETEST_DATA",
     "MissingWeightsError",
+    "NoFinishedRunsError",
+    "Retest",
+    "check_retest_data",
     "is_retest_output",
     "render_retest",
     "retest_path",
@@ -50,12 +64,64 @@ DEFAULT_PRECISION = "32-true"
 """The precision of a run whose config values set none (Lightning's default; the shipped configs set none)."""
 RETEST_TAG = "retest-"
 """Marks a retest's outputs: ``<stem>.retest-<precision>.{jsonl,md}`` and ``<run folder>/retest-<precision>/``."""
+RETEST_DATA = ("protocol", "noise_sigma", "noise_clip")
+"""Data values ``--retest-data`` may change: each chooses the test pairs only, never what a run trained or selected on."""
+PROTOCOLS = ("unseen_objects", "unseen_categories")
 TABLE_METRICS = ("rmse_r_deg", "mae_r_deg", "rmse_t", "mae_t")
 """The figures the table sets side by side (the LC table's; every other metric is in the JSONL)."""
 
 
 class MissingWeightsError(FileNotFoundError):
     """A finished run's kept weights are neither where its row says nor under the output folder."""
+
+
+class NoFinishedRunsError(LookupError):
+    """The sweep the options describe has no finished run in its JSONL: nothing to test again."""
+
+
+@dataclass(frozen=True)
+class Retest:
+    """What a retest changes: the precision, and data values of its test (:data:`RETEST_DATA`, in the given order).
+
+    Attributes:
+        precision: Lightning's ``trainer.precision`` of the test (one of :data:`PRECISIONS`).
+        data: ``(key, value)`` pairs of the data module's arguments that replace the run's for its test only.
+    """
+
+    precision: str
+    data: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def tag(self) -> str:
+        """``retest-<precision>[-<key>-<value>...]``: each run's retest folder and the suffix of the retest's files."""
+        return "-".join([f"{RETEST_TAG}{self.precision}", *(f"{key}-{_slug(value)}" for key, value in self.data)])
+
+    @property
+    def label(self) -> str:
+        """The precision and data values, as the report names them: ``32-true, protocol=unseen_categories``."""
+        return ", ".join([self.precision, *(f"{key}={value}" for key, value in self.data)])
+
+
+def check_retest_data(key: str, value: Any) -> Any:
+    """A ``--retest-data`` value checked for its key: a protocol name, or a finite noise figure >= 0.
+
+    Raises:
+        ValueError: A key outside :data:`RETEST_DATA`, or a value it cannot take (the message names both).
+    """
+    if key not in RETEST_DATA:
+        raise ValueError(f"{key!r} is not one of {', '.join(RETEST_DATA)} (values that choose only the test pairs)")
+    if key == "protocol":
+        if value not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got {value!r}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"{key} must be a finite number >= 0, got {value!r}")
+    return value
+
+
+def _slug(value: Any) -> str:
+    """``value`` as a file-name part: letters, digits, ``.`` and ``_``."""
+    return re.sub(r"[^A-Za-z0-9._]", "_", str(value))
 
 
 def trained_precision(row: Mapping[str, Any]) -> str:
@@ -72,6 +138,7 @@ def retest_weights(
     weights: str | Path,
     precision: str,
     log_dir: str | Path,
+    test_data: Mapping[str, Any] | None = None,
 ) -> dict[str, float]:
     """Test ``weights`` of method ``name`` on the run's test pairs under ``precision``, without training.
 
@@ -84,36 +151,42 @@ def retest_weights(
         weights: The kept weights (:func:`lcreg.weights.export.save`'s format).
         precision: Lightning's ``trainer.precision`` of the test.
         log_dir: Where the test writes its logs (its per-pair errors, ``test_per_pair.csv``, among them).
+        test_data: Data module arguments that replace the run's for this test (:data:`RETEST_DATA`).
 
     Returns:
         The test metrics of :data:`~lcreg.experiments.reproduce.sweep.METRICS` (degrees; translations in the data's
         units).
     """
     values = {**run_values(budget, data, Path(log_dir), seed, overrides), "trainer.precision": precision}
+    values.update(cli_args("data", dict(test_data or {})))
     cli = build_cli_for(name, (), values)
     load_into(cli.model, weights)
     (tested,) = cli.trainer.test(cli.model, datamodule=cli.datamodule, verbose=False)
     return {key: float(tested[f"test/{key}"]) for key in METRICS}
 
 
-def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] = lambda _: None) -> ResultLog:
-    """Test every finished run of ``sweep`` again from its kept weights under ``precision``, one row per run.
+def retest_sweep(sweep: Sweep, retest: Retest, progress: Callable[[str], None] = lambda _: None) -> ResultLog:
+    """Test every finished run of ``sweep`` again from its kept weights as ``retest`` says, one row per run.
 
     Args:
         sweep: The sweep whose JSONL lists the finished runs.
-        precision: Lightning's ``trainer.precision`` of the new tests (one of :data:`PRECISIONS`).
+        retest: The precision of the new tests and the data values they change.
         progress: Called with one line per run.
 
     Returns:
-        The log ``<stem>.retest-<precision>.jsonl`` (runs found there are skipped).
+        The log ``<stem>.<retest.tag>.jsonl`` (runs found there are skipped).
 
     Raises:
         MissingWeightsError: A run's weights are not found; names the file its row records. Runs retested before it
             are kept in the log.
+        NoFinishedRunsError: No finished run matches the sweep (its options must repeat the training command's).
     """
-    log = ResultLog(retest_path(sweep, precision, ".jsonl"), KEY_FIELDS)
+    log = ResultLog(retest_path(sweep, retest, ".jsonl"), KEY_FIELDS)
     variants = {variant.key: variant for variant in sweep.experiment.variants}
-    for key, rows in finished_rows(sweep, sweep.open_log()).items():
+    finished = finished_rows(sweep, sweep.open_log())
+    if not any(finished.values()):
+        raise NoFinishedRunsError(_none_finished(sweep))
+    for key, rows in finished.items():
         variant = variants[key]
         for row in rows:
             fields = {field: row[field] for field in KEY_FIELDS}
@@ -130,15 +203,17 @@ def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] =
                 )
             budget = sweep.experiment.budget(sweep.preset, variant)
             seed, overrides = int(row["seed"]), sweep.overrides(variant)
-            log_dir = sweep.run_dir(variant, seed) / f"{RETEST_TAG}{precision}"
+            log_dir = sweep.run_dir(variant, seed) / retest.tag
+            test_data = dict(retest.data)
             test = partial(
-                retest_weights, variant.method, budget, sweep.data, seed, overrides, weights, precision, log_dir
+                retest_weights, variant.method, budget, sweep.data, seed, overrides, weights, retest.precision, log_dir
             )
-            metrics, seconds = timed(test)
+            metrics, seconds = timed(partial(test, test_data))
             log.append(
                 {
                     **fields,
-                    "precision": precision,
+                    "precision": retest.precision,
+                    **({"test_data": test_data} if test_data else {}),
                     "trained_precision": trained_precision(row),
                     "weights": str(weights),
                     "test_s": round(seconds, 1),
@@ -150,9 +225,21 @@ def retest_sweep(sweep: Sweep, precision: str, progress: Callable[[str], None] =
     return log
 
 
-def retest_path(sweep: Sweep, precision: str, suffix: str) -> Path:
-    """``<out>/<stem>.retest-<precision><suffix>``."""
-    return sweep.file_stem.with_name(f"{sweep.file_stem.name}.{RETEST_TAG}{precision}{suffix}")
+def _none_finished(sweep: Sweep) -> str:
+    """Why a retest has nothing to test: no JSONL, or rows of other runs only (a flag that differs from training's)."""
+    if not sweep.log_path.is_file():
+        return f"--retest: no finished runs to test: {sweep.log_path} does not exist"
+    rows = len([line for line in sweep.log_path.read_text().splitlines() if line.strip()])
+    return (
+        f"--retest: none of the {rows} rows of {sweep.log_path} is a finished run of these variants and seeds with "
+        "these options: repeat the training command's options (--budget, --only, --seeds, --partial, --points, "
+        "--set, ...) and add --retest"
+    )
+
+
+def retest_path(sweep: Sweep, retest: Retest, suffix: str) -> Path:
+    """``<out>/<stem>.<retest.tag><suffix>``."""
+    return sweep.file_stem.with_name(f"{sweep.file_stem.name}.{retest.tag}{suffix}")
 
 
 def is_retest_output(path: str | Path) -> bool:
@@ -165,11 +252,11 @@ def is_retest_output(path: str | Path) -> bool:
     return f".{RETEST_TAG}" in path.name or any(part.startswith(RETEST_TAG) for part in path.parts[:-1])
 
 
-def render_retest(sweep: Sweep, log: ResultLog, precision: str, command: str) -> str:
-    """Markdown: each retested run's test as it ran beside its test under ``precision``, then the means per variant."""
+def render_retest(sweep: Sweep, log: ResultLog, retest: Retest, command: str) -> str:
+    """Markdown: each retested run's test as it ran beside its new test, then the means per variant."""
     labels = dict(REPORT_COLUMNS)
     header = ["variant", "seed", "trained and tested under"]
-    header += [f"{labels[m]} {side}" for m in TABLE_METRICS for side in ("(its test)", f"({precision})")]
+    header += [f"{labels[m]} {side}" for m in TABLE_METRICS for side in ("(its test)", f"({retest.label})")]
     lines: list[list[object]] = []
     means: list[list[object]] = []
     for key, rows in finished_rows(sweep, sweep.open_log()).items():
@@ -179,17 +266,27 @@ def render_retest(sweep: Sweep, log: ResultLog, precision: str, command: str) ->
             means.append([key, f"{len(pairs)} seeds", _precisions(pairs), *_mean_cells(pairs)])
     return "\n".join(
         [
-            f"# {sweep.experiment.name}: kept weights tested again under `{precision}`",
+            f"# {sweep.experiment.name}: kept weights tested again under `{retest.label}`",
             "",
-            f"Command: `{command}`. Each finished run's selected weights on its own test pairs (the same data, sizes",
-            f"and config values), tested under `trainer.precision={precision}` without training; `(its test)` is the",
-            "row of the sweep's JSONL, tested under the precision the run trained in. Mean ± sample std over seeds.",
+            f"Command: `{command}`. {_what_was_tested(retest)} tested under `trainer.precision={retest.precision}`",
+            "without training; `(its test)` is the row of the sweep's JSONL, the run's own test pairs under the",
+            "precision it trained in. Mean ± sample std over seeds.",
             "",
             markdown_table(header, lines),
             "",
             markdown_table(header, means),
             "",
         ]
+    )
+
+
+def _what_was_tested(retest: Retest) -> str:
+    if not retest.data:
+        return "Each finished run's selected weights on its own test pairs (the same data, sizes and config values),"
+    changed = ", ".join(f"`{key}={value}`" for key, value in retest.data)
+    return (
+        f"Each finished run's selected weights on other test pairs: the run's data, sizes and config values but {changed}"
+        " (the training and validation objects are the same),"
     )
 
 
