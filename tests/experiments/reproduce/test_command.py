@@ -239,6 +239,8 @@ def test_bad_arguments_give_one_clear_line(tmp_path: Path, capsys) -> None:
     assert "invalid _count_or_fraction value: 'most'" in _error(
         ["lc", "--budget", "smoke", "--partial", "prnet", "--partial-keep", "most", *out], capsys
     )
+    message = _error(["lc", "--budget", "smoke", "--only", "idam/X", "--set", "trainer.max_steps=1", *out], capsys)
+    assert "--set trainer.max_steps=1: idam/X's runs would end before their first validation, at step 2" in message
     missing = tmp_path / "nowhere"
     message = _error(["ablation", "--budget", "cpu", "--root", str(missing), *out], capsys)
     assert message.startswith("lcreg reproduce: error: ModelNet40 not found at") and "pass --root DIR" in message

@@ -378,6 +378,8 @@ def reproduce(
         raise ReproduceUsageError(f"--points: {err}") from None
     if args.continue_from is not None:
         sweep = _continuing(sweep, Path(args.continue_from), not args.resume or args.retest is not None)
+    if args.retest is None and not args.report_only:
+        _check_step_cap(sweep)
     if args.retest is not None:
         return _retest(sweep, args, command, progress)
     failure = None
@@ -437,6 +439,24 @@ def _continuing(sweep: Sweep, earlier: Path, refused: bool) -> Sweep:
     except ContinuationError as err:
         raise ReproduceUsageError(f"--continue-from: {err}") from None
     return continuing
+
+
+def _check_step_cap(sweep: Sweep) -> None:
+    """A ``--set trainer.max_steps`` that ends runs before their first validation (no checkpoint to choose) is refused.
+
+    Raises:
+        ReproduceUsageError: Names the variant, its first validation step and the value given.
+    """
+    cap = dict(sweep.settings).get("trainer.max_steps")
+    if not isinstance(cap, int) or cap < 0:  # -1 (Lightning's "no cap") and non-integers: Lightning's own checks
+        return
+    for variant in sweep.experiment.variants:
+        first = sweep.experiment.budget(sweep.preset, variant).val_every
+        if first is not None and cap < first:
+            raise ReproduceUsageError(
+                f"--set trainer.max_steps={cap}: {variant.key}'s runs would end before their first validation, at step "
+                f"{first} of the {sweep.preset} budget, and have no checkpoint to choose; give at least {first}"
+            )
 
 
 def _guarded(write: Callable[[], list[Path]], log_path: Path, report_only: bool) -> list[Path]:

@@ -65,7 +65,7 @@ DEFAULT_PRECISION = "32-true"
 RETEST_TAG = "retest-"
 """Marks a retest's outputs: ``<stem>.retest-<precision>.{jsonl,md}`` and ``<run folder>/retest-<precision>/``."""
 RETEST_DATA = ("protocol", "noise_sigma", "noise_clip")
-"""Data values ``--retest-data`` may change: each chooses the test pairs only, never what a run trained or selected on."""
+"""Data values ``--retest-data`` may change: each chooses the test pairs only, not what a run trained or selected on."""
 PROTOCOLS = ("unseen_objects", "unseen_categories")
 TABLE_METRICS = ("rmse_r_deg", "mae_r_deg", "rmse_t", "mae_t")
 """The figures the table sets side by side (the LC table's; every other metric is in the JSONL)."""
@@ -285,8 +285,8 @@ def _what_was_tested(retest: Retest) -> str:
         return "Each finished run's selected weights on its own test pairs (the same data, sizes and config values),"
     changed = ", ".join(f"`{key}={value}`" for key, value in retest.data)
     return (
-        f"Each finished run's selected weights on other test pairs: the run's data, sizes and config values but {changed}"
-        " (the training and validation objects are the same),"
+        "Each finished run's selected weights on other test pairs: the run's data, sizes and config values but "
+        f"{changed} (the training and validation objects are the same),"
     )
 
 
