@@ -136,6 +136,13 @@ def test_retest_data_tests_the_same_weights_on_other_pairs(tmp_path: Path) -> No
     report = (tmp_path / f"lc.{tag}.md").read_text()
     assert "`32-true, noise_sigma=0.2`" in report and "other test pairs" in report
     assert not (tmp_path / "lc.retest-32-true.jsonl").exists()  # a plain retest keeps its own files
+    _retest(
+        tmp_path,
+        "32-true",
+        "--retest-data=noise_clip=0.1",
+        "--retest-data=noise_sigma=0.2",
+        tag=f"{tag}-noise_clip-0.1",
+    )
 
 
 def test_a_model_trained_on_labels_0_to_19_is_retested_on_unseen_categories(tmp_path: Path) -> None:

@@ -498,7 +498,8 @@ def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Call
     """Test the sweep's kept weights again under ``--retest`` (or, with ``--report-only``, only report them)."""
     if args.jobs > 1:
         raise ReproduceUsageError("--retest tests one run after another; leave out --jobs")
-    retest = Retest(args.retest, tuple(dict(args.retest_data).items()))  # a key given twice: the last value
+    given = dict(args.retest_data)  # a key given twice: the last value; the tag lists keys in RETEST_DATA's order
+    retest = Retest(args.retest, tuple((key, given[key]) for key in RETEST_DATA if key in given))
     if sweep.data.root is None and "protocol" in dict(retest.data):
         raise ReproduceUsageError(
             "--retest-data protocol: the smoke budget's embedded synthetic shapes have no ModelNet40 protocol"
