@@ -145,6 +145,18 @@ def test_retest_data_tests_the_same_weights_on_other_pairs(tmp_path: Path) -> No
     )
 
 
+def test_retest_precise_bn_recomputes_the_batchnorm_statistics_before_the_test(tmp_path: Path) -> None:
+    """``--retest-precise-bn N``: a test of the same weights with other BatchNorm running statistics, in its own
+    files; without it the retest gives the run's own test again (so the difference is the statistics')."""
+    (row,) = _sweep(tmp_path)
+    tag = "retest-32-true-precise_bn-2"
+    (again,) = _retest(tmp_path, "32-true", "--retest-precise-bn", "2", tag=tag)
+    assert again["precise_bn_batches"] == 2
+    assert any(again[key] != pytest.approx(row[key], rel=1e-6) for key in METRICS)
+    assert "running statistics recomputed over 2 training batches" in (tmp_path / f"lc.{tag}.md").read_text()
+    assert len(_per_pair(row, tag)) == 1 + row["num_test_pairs"]
+
+
 def test_a_model_trained_on_labels_0_to_19_is_retested_on_unseen_categories(tmp_path: Path) -> None:
     """On real ModelNet40: the kept weights of an unseen-objects run tested on labels 20-39 (both splits), nothing
     trained; the run's own test pairs were labels 0-19 of the test split."""
@@ -211,6 +223,8 @@ def test_a_retest_that_matches_no_finished_run_is_an_error_not_an_empty_table(tm
         (["runtime", "--budget", "smoke", "--retest", "32-true"], "--retest applies to"),
         (["lc", "--budget", "smoke", "--only", "idam/X", "--jobs", "2", "--retest", "32-true"], "leave out --jobs"),
         (["lc", "--budget", "smoke", "--retest-data", "noise_sigma=0"], "give --retest too"),
+        (["lc", "--budget", "smoke", "--retest-precise-bn", "5"], "give --retest too"),
+        (["lc", "--budget", "smoke", "--retest", "32-true", "--retest-precise-bn", "-1"], "number of batches >= 1"),
         (["lc", "--budget", "smoke", "--retest", "32-true", "--retest-data", "colour=1"], "'colour' is not one of"),
         (["lc", "--budget", "smoke", "--retest", "32-true", "--retest-data", "protocol=all"], "protocol must be one"),
         (["lc", "--budget", "smoke", "--retest", "32-true", "--retest-data", "noise_sigma=-1"], "finite number >= 0"),

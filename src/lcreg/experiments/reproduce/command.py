@@ -228,6 +228,16 @@ def build_parser() -> argparse.ArgumentParser:
         "(<stem>.retest-<PRECISION>-<key>-<value>.md)",
     )
     parser.add_argument(
+        "--retest-precise-bn",
+        dest="retest_precise_bn",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --retest: before each test, recompute every BatchNorm layer's running statistics as their mean over "
+        "N training batches of the run's data (the kept weights otherwise unchanged; 'precise BatchNorm'); in the "
+        "outputs' names (-precise_bn-N)",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -353,6 +363,7 @@ def reproduce(
         ("--set", bool(args.settings)),
         ("--retest", args.retest is not None),
         ("--retest-data", bool(args.retest_data)),
+        ("--retest-precise-bn", bool(args.retest_precise_bn)),
         ("--continue-from", args.continue_from is not None),
     )
     for option, value in chosen:
@@ -367,8 +378,11 @@ def reproduce(
         data = _data(args.budget, args.root, "unseen_categories")
         run = EvalRun(experiment, args.budget, _seeds(args.seeds), data, out, stem)
         return _evaluate(run, args, command, progress)
-    if args.retest_data and args.retest is None:
-        raise ReproduceUsageError("--retest-data changes the test of --retest PRECISION: give --retest too")
+    for option, given in (("--retest-data", bool(args.retest_data)), ("--retest-precise-bn", args.retest_precise_bn)):
+        if given and args.retest is None:
+            raise ReproduceUsageError(f"{option} changes the test of --retest PRECISION: give --retest too")
+    if args.retest_precise_bn < 0:
+        raise ReproduceUsageError(f"--retest-precise-bn must be a number of batches >= 1, got {args.retest_precise_bn}")
     data = _data(args.budget, args.root, args.protocol, args.partial, args.partial_keep, args.train_objects)
     seeds = _seeds(args.seeds)
     settings = tuple(dict(args.settings).items())  # a key set twice: the last value
@@ -499,7 +513,9 @@ def _retest(sweep: Sweep, args: argparse.Namespace, command: str, progress: Call
     if args.jobs > 1:
         raise ReproduceUsageError("--retest tests one run after another; leave out --jobs")
     given = dict(args.retest_data)  # a key given twice: the last value; the tag lists keys in RETEST_DATA's order
-    retest = Retest(args.retest, tuple((key, given[key]) for key in RETEST_DATA if key in given))
+    retest = Retest(
+        args.retest, tuple((key, given[key]) for key in RETEST_DATA if key in given), args.retest_precise_bn
+    )
     if sweep.data.root is None and "protocol" in dict(retest.data):
         raise ReproduceUsageError(
             "--retest-data protocol: the smoke budget's embedded synthetic shapes have no ModelNet40 protocol"

@@ -41,6 +41,7 @@ from lcreg.experiments.benchmarking import (
 from lcreg.experiments.reproduce.budgets import DataChoice, RunBudget
 from lcreg.experiments.reproduce.stops import recorded_file
 from lcreg.experiments.reproduce.sweep import KEY_FIELDS, METRICS, Sweep, finished_rows, run_values
+from lcreg.models.batchnorm import recompute_batchnorm_statistics
 from lcreg.weights import load_into
 
 __all__ = [
@@ -86,20 +87,25 @@ class Retest:
     Attributes:
         precision: Lightning's ``trainer.precision`` of the test (one of :data:`PRECISIONS`).
         data: ``(key, value)`` pairs of the data module's arguments that replace the run's for its test only.
+        precise_bn: Before the test, recompute the BatchNorm running statistics over this many training batches
+            (:func:`lcreg.models.batchnorm.recompute_batchnorm_statistics`); 0: the kept statistics.
     """
 
     precision: str
     data: tuple[tuple[str, Any], ...] = ()
+    precise_bn: int = 0
 
     @property
     def tag(self) -> str:
-        """``retest-<precision>[-<key>-<value>...]``: each run's retest folder and the suffix of the retest's files."""
-        return "-".join([f"{RETEST_TAG}{self.precision}", *(f"{key}-{_slug(value)}" for key, value in self.data)])
+        """``retest-<precision>[-<key>-<value>...][-precise_bn-<n>]``: each run's retest folder, the files' suffix."""
+        parts = [f"{RETEST_TAG}{self.precision}", *(f"{key}-{_slug(value)}" for key, value in self.data)]
+        return "-".join(parts + ([f"precise_bn-{self.precise_bn}"] if self.precise_bn else []))
 
     @property
     def label(self) -> str:
         """The precision and data values, as the report names them: ``32-true, protocol=unseen_categories``."""
-        return ", ".join([self.precision, *(f"{key}={value}" for key, value in self.data)])
+        parts = [self.precision, *(f"{key}={value}" for key, value in self.data)]
+        return ", ".join(parts + ([f"precise BatchNorm over {self.precise_bn} batches"] if self.precise_bn else []))
 
 
 def check_retest_data(key: str, value: Any) -> Any:
@@ -139,6 +145,7 @@ def retest_weights(
     precision: str,
     log_dir: str | Path,
     test_data: Mapping[str, Any] | None = None,
+    precise_bn: int = 0,
 ) -> dict[str, float]:
     """Test ``weights`` of method ``name`` on the run's test pairs under ``precision``, without training.
 
@@ -152,6 +159,8 @@ def retest_weights(
         precision: Lightning's ``trainer.precision`` of the test.
         log_dir: Where the test writes its logs (its per-pair errors, ``test_per_pair.csv``, among them).
         test_data: Data module arguments that replace the run's for this test (:data:`RETEST_DATA`).
+        precise_bn: Recompute the BatchNorm running statistics over this many batches of the run's training data
+            before the test (0: keep the kept ones).
 
     Returns:
         The test metrics of :data:`~lcreg.experiments.reproduce.sweep.METRICS` (degrees; translations in the data's
@@ -161,6 +170,9 @@ def retest_weights(
     values.update(cli_args("data", dict(test_data or {})))
     cli = build_cli_for(name, (), values)
     load_into(cli.model, weights)
+    if precise_bn:
+        cli.datamodule.setup("fit")
+        recompute_batchnorm_statistics(cli.model, cli.datamodule.train_dataloader(), precise_bn)
     (tested,) = cli.trainer.test(cli.model, datamodule=cli.datamodule, verbose=False)
     return {key: float(tested[f"test/{key}"]) for key in METRICS}
 
@@ -208,12 +220,13 @@ def retest_sweep(sweep: Sweep, retest: Retest, progress: Callable[[str], None] =
             test = partial(
                 retest_weights, variant.method, budget, sweep.data, seed, overrides, weights, retest.precision, log_dir
             )
-            metrics, seconds = timed(partial(test, test_data))
+            metrics, seconds = timed(partial(test, test_data, retest.precise_bn))
             log.append(
                 {
                     **fields,
                     "precision": retest.precision,
                     **({"test_data": test_data} if test_data else {}),
+                    **({"precise_bn_batches": retest.precise_bn} if retest.precise_bn else {}),
                     "trained_precision": trained_precision(row),
                     "weights": str(weights),
                     "test_s": round(seconds, 1),
@@ -281,12 +294,19 @@ def render_retest(sweep: Sweep, log: ResultLog, retest: Retest, command: str) ->
 
 
 def _what_was_tested(retest: Retest) -> str:
+    bn = (
+        f" with every BatchNorm layer's running statistics recomputed over {retest.precise_bn} training batches,"
+        if retest.precise_bn
+        else ""
+    )
     if not retest.data:
-        return "Each finished run's selected weights on its own test pairs (the same data, sizes and config values),"
+        return (
+            f"Each finished run's selected weights on its own test pairs (the same data, sizes and config values),{bn}"
+        )
     changed = ", ".join(f"`{key}={value}`" for key, value in retest.data)
     return (
         "Each finished run's selected weights on other test pairs: the run's data, sizes and config values but "
-        f"{changed} (the training and validation objects are the same),"
+        f"{changed} (the training and validation objects are the same),{bn}"
     )
 
 
