@@ -10,6 +10,7 @@ from jsonargparse import ArgumentParser
 
 from lcreg.checks import ShapeError
 from lcreg.data.datamodule import (
+    TRAIN_SUBSET_SEED_OFFSET,
     ModelNet40DataModule,
     PairDataModule,
     PairDataset,
@@ -281,6 +282,33 @@ def test_train_objects_refuses_what_is_not_a_count_or_a_fraction(value: object) 
 def test_train_objects_above_the_training_objects_is_an_error_naming_both() -> None:
     with pytest.raises(ValueError, match=r"`train_objects` \(13\) exceeds the 12 training objects"):
         _small_module(train_objects=13).setup("fit")
+
+
+def _labelled_pool(labels: list[int]) -> ObjectSet:
+    points = np.arange(len(labels), dtype=np.float32)[:, None, None] * np.ones((1, 4, 3), dtype=np.float32)
+    return ObjectSet(points, None, np.asarray(labels, dtype=np.int64))
+
+
+def test_train_class_cap_keeps_the_first_objects_of_each_label_in_the_seeded_order() -> None:
+    labels = [0] * 6 + [1] * 3 + [2]
+    pool = _labelled_pool(labels)
+    kept = ModelNet40DataModule(root=".", train_class_cap=2, seed=5).keep_training_objects(pool)
+    order = torch.randperm(10, generator=torch.Generator().manual_seed(5 + TRAIN_SUBSET_SEED_OFFSET)).tolist()
+    expected = sorted([i for i in order if labels[i] == 0][:2] + [i for i in order if labels[i] == 1][:2] + [9])
+    assert kept.points[:, 0, 0].astype(int).tolist() == expected  # original order, at most 2 per label
+    assert sorted(kept.labels.tolist()) == [0, 0, 1, 1, 2]
+    alone = ModelNet40DataModule(root=".", train_objects=4, seed=5).keep_training_objects(pool)
+    assert alone.points[:, 0, 0].astype(int).tolist() == sorted(order[:4])  # without a cap: train_objects as before
+    both = ModelNet40DataModule(root=".", train_class_cap=2, train_objects=3, seed=5).keep_training_objects(pool)
+    assert set(both.points[:, 0, 0].astype(int).tolist()) < set(expected)  # drawn from what the cap kept
+    with pytest.raises(ValueError, match=r"`train_objects` \(6\) exceeds the 5 training objects kept by"):
+        ModelNet40DataModule(root=".", train_class_cap=2, train_objects=6).keep_training_objects(pool)
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, True, "3"])
+def test_train_class_cap_refuses_what_is_not_a_count(value: object) -> None:
+    with pytest.raises(ValueError, match="`train_class_cap` must be an integer >= 1"):
+        ModelNet40DataModule(root=".", train_class_cap=value)  # type: ignore[arg-type]
 
 
 class _TranslationModel(L.LightningModule):

@@ -172,6 +172,16 @@ def _check_train_objects(value: Any) -> int | float | None:
     return None if value is None else check_count_or_fraction(value, "train_objects", wrong_type=ValueError)
 
 
+def _rank_within_label(labels: np.ndarray) -> np.ndarray:
+    """For each position, how many earlier positions hold the same label (0 for a label's first occurrence)."""
+    ranks = np.zeros(len(labels), dtype=np.int64)
+    seen: dict[int, int] = {}
+    for i, label in enumerate(labels.tolist()):
+        ranks[i] = seen.get(label, 0)
+        seen[label] = ranks[i] + 1
+    return ranks
+
+
 class PairDataModule(ResumableTrainingOrder, LightningDataModule):
     """Base DataModule: pair protocol options, validation carving and loaders.
 
@@ -199,6 +209,11 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
             out): an int count or a float fraction of them (rounded, at least one). ``None`` (default) keeps all.
             Validation and test objects do not change, and for one ``seed`` a smaller subset lies inside a larger
             one, so runs at several sizes measure how the error scales with the training data.
+        train_class_cap: Keep at most this many training objects of each class label (the first ones of the same
+            seeded order as ``train_objects``, which then takes a prefix of what is kept: the cap evens out the
+            whole kept set, not each prefix of it). ``None`` (default): no cap. A
+            cap at the size of the smaller classes gives a training set whose classes are more even than the
+            dataset's (``modelnet40_mini``: 80 % airplanes) at a size that a ``train_objects`` count can match.
         seed: Seed of the validation carve-out and base seed of the deterministic val/test pairs.
 
     Raises:
@@ -223,12 +238,16 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         val_fraction: float = 0.1,
         val_pairs_per_object: int = 1,
         train_objects: int | float | None = None,
+        train_class_cap: int | None = None,
         seed: int = 1234,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.val_pairs_per_object = _check_pairs_per_object(val_pairs_per_object, "val_pairs_per_object")
         self.train_objects = _check_train_objects(train_objects)
+        self.train_class_cap = (
+            None if train_class_cap is None else _check_pairs_per_object(train_class_cap, "train_class_cap")
+        )
         _check_pairs_per_object(batch_size, "batch_size")  # '2' and 2.5 too: one line naming the argument
         _check_pairs_per_object(num_workers, "num_workers", minimum=0)
         if not 0.0 <= val_fraction < 1.0:
@@ -273,22 +292,28 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
         return objects.subset(train_idx), objects.subset(val_idx)
 
     def keep_training_objects(self, objects: ObjectSet) -> ObjectSet:
-        """The ``train_objects`` subset of the training objects (all of them when it is ``None``).
+        """The training objects kept by ``train_class_cap`` and then ``train_objects`` (all of them without either).
 
-        The subset is the first ``n`` of one permutation seeded by ``seed``, in their original order, so the subsets
-        of one seed are nested.
+        Both walk one permutation seeded by ``seed``: the cap keeps the first ``train_class_cap`` objects of each
+        label in it, ``train_objects`` the first ``n`` of what is left; the subset keeps the original order, so the
+        subsets of one seed are nested.
 
         Raises:
-            ValueError: If a ``train_objects`` count exceeds the training objects.
+            ValueError: If a ``train_objects`` count exceeds the training objects (after the cap).
         """
-        if self.train_objects is None:
+        if self.train_objects is None and self.train_class_cap is None:
             return objects
-        total = len(objects)
-        if isinstance(self.train_objects, int) and self.train_objects > total:
-            raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects")
-        count = resolve_count(self.train_objects, total)
         generator = torch.Generator().manual_seed(self.seed + TRAIN_SUBSET_SEED_OFFSET)
-        return objects.subset(np.sort(torch.randperm(total, generator=generator).numpy()[:count]))
+        order = torch.randperm(len(objects), generator=generator).numpy()
+        if self.train_class_cap is not None:
+            order = order[_rank_within_label(objects.labels[order]) < self.train_class_cap]
+        total = len(order)
+        if self.train_objects is None:
+            return objects.subset(np.sort(order))
+        if isinstance(self.train_objects, int) and self.train_objects > total:
+            capped = "" if self.train_class_cap is None else f" kept by `train_class_cap` ({self.train_class_cap})"
+            raise ValueError(f"`train_objects` ({self.train_objects}) exceeds the {total} training objects{capped}")
+        return objects.subset(np.sort(order[: resolve_count(self.train_objects, total)]))
 
     def setup(self, stage: str | None = None) -> None:
         """Build the datasets needed by ``stage`` (``fit``/``validate`` need train+val, ``test``/``predict`` test)."""
