@@ -25,8 +25,9 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
+from lcreg.data.modelnet40 import Protocol
 from lcreg.experiments.benchmarking import (
     REPORT_COLUMNS,
     ResultLog,
@@ -67,7 +68,7 @@ RETEST_TAG = "retest-"
 """Marks a retest's outputs: ``<stem>.retest-<precision>.{jsonl,md}`` and ``<run folder>/retest-<precision>/``."""
 RETEST_DATA = ("protocol", "noise_sigma", "noise_clip")
 """Data values ``--retest-data`` may change: each chooses the test pairs only, not what a run trained or selected on."""
-PROTOCOLS = ("unseen_objects", "unseen_categories")
+PROTOCOLS: tuple[str, ...] = get_args(Protocol)
 TABLE_METRICS = ("rmse_r_deg", "mae_r_deg", "rmse_t", "mae_t")
 """The figures the table sets side by side (the LC table's; every other metric is in the JSONL)."""
 
@@ -217,10 +218,8 @@ def retest_sweep(sweep: Sweep, retest: Retest, progress: Callable[[str], None] =
             seed, overrides = int(row["seed"]), sweep.overrides(variant)
             log_dir = sweep.run_dir(variant, seed) / retest.tag
             test_data = dict(retest.data)
-            test = partial(
-                retest_weights, variant.method, budget, sweep.data, seed, overrides, weights, retest.precision, log_dir
-            )
-            metrics, seconds = timed(partial(test, test_data, retest.precise_bn))
+            args = (variant.method, budget, sweep.data, seed, overrides, weights, retest.precision, log_dir)
+            metrics, seconds = timed(partial(retest_weights, *args, test_data, retest.precise_bn))
             log.append(
                 {
                     **fields,
