@@ -30,7 +30,7 @@ from lcreg.checks import (
 )
 from lcreg.data.collate import collate_pairs
 from lcreg.data.modelnet40 import EXPECTED_LAYOUT, load_shape_names, modelnet40_objects
-from lcreg.data.pairs import ObjectSet, PairProtocol, PartialMode, make_pair
+from lcreg.data.pairs import ObjectSet, PairProtocol, PartialMode, make_pair, normalize_object
 from lcreg.data.sampling import ResumableLoader, ResumableTrainingOrder
 from lcreg.data.synthetic import PRIMITIVES, synthetic_shapes
 
@@ -114,6 +114,18 @@ class PairDataset(Dataset[dict[str, torch.Tensor]]):
     def object_labels(self, index: torch.Tensor) -> torch.Tensor | None:
         """Class label of the object of each pair ``index (K,)``: ``labels[index % S]`` ``(K,)``, or ``None``."""
         return None if self.labels is None else self.labels[index.cpu().long() % self.num_objects]
+
+    def object_points(self, index: int) -> torch.Tensor:
+        """The whole object of pair ``index`` ``(P, 3)``, in the frame of the pair's clean source points.
+
+        Every point of a clean source is a row of it (before noise and crop, :func:`~lcreg.data.pairs.make_pair`); it
+        is the surface a source's points lie on, e.g. to ask how far an estimate moves them off it
+        (:func:`lcreg.geometry.surface.surface_residual`).
+        """
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} is out of range for a dataset of {len(self)} pairs")
+        points = self.points[index % len(self) % self.num_objects].to(torch.float64)
+        return normalize_object(points) if self.protocol.normalize else points
 
     @property
     def num_objects(self) -> int:

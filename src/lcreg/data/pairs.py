@@ -47,7 +47,15 @@ from lcreg.checks import (
 from lcreg.geometry.random_transforms import random_euler_transform
 from lcreg.geometry.se3 import transform_normals, transform_points
 
-__all__ = ["ANCHOR_DISTANCE", "ObjectSet", "PairProtocol", "PartialMode", "make_pair", "true_correspondences"]
+__all__ = [
+    "ANCHOR_DISTANCE",
+    "ObjectSet",
+    "PairProtocol",
+    "PartialMode",
+    "make_pair",
+    "normalize_object",
+    "true_correspondences",
+]
 
 PartialMode = Literal["none", "prnet", "viewpoint"]
 _PARTIAL_MODES: tuple[str, ...] = get_args(PartialMode)
@@ -176,8 +184,8 @@ def _validate_object(points: object, normals: object, num_points: int) -> tuple[
     return pts.double(), nrm.double()
 
 
-def _normalize_object(points: torch.Tensor) -> torch.Tensor:
-    """Centre ``(P, 3)`` points on their centroid and scale them so that the largest norm is 1."""
+def normalize_object(points: torch.Tensor) -> torch.Tensor:
+    """Centre ``(P, 3)`` points on their centroid and scale them so that the largest norm is 1 (the pairs' frame)."""
     centred = points - points.mean(dim=0, keepdim=True)
     scale = centred.norm(dim=-1).max()
     if not bool(scale > 0):
@@ -257,7 +265,7 @@ def make_pair(
         raise ValueError(f"`generator` must be a CPU generator (pairs are built on the CPU), got {generator.device}")
     pts, nrm = _validate_object(points, normals, protocol.num_points)
     if protocol.normalize:
-        pts = _normalize_object(pts)
+        pts = normalize_object(pts)
     if nrm is not None:
         nrm = _unit(nrm)
 

@@ -58,6 +58,8 @@ WORST_ROTATION_DEG = 180.0
 STANDARD_RECALL_THRESHOLDS: tuple[tuple[float, float], ...] = ((2.0, 0.01), (5.0, 0.05))
 """The recalls every collection logs, ``(degrees, point units)``: the object protocol's (unit-sphere shapes)."""
 _STATES = ("rot_err_deg", "trans_err", "euler_err_deg", "trans_errs", "trans_gt", "index")
+_TRANSFORM_STATES = ("transform_pred", "transform_gt")
+""":class:`PerPairErrors`' extra states: each pair's estimated and true ``transform_ref_src``."""
 
 
 class NoPairsError(ValueError):
@@ -319,10 +321,31 @@ class PerPairErrors(_PairErrorMetric):
     """Raw per-pair errors for curves and tables (failed pairs keep their NaN).
 
     ``compute`` returns ``(rot_err_deg (P,), trans_err (P,), index (P,))`` concatenated over all updates (and
-    processes), empty before any update.
+    processes), empty before any update; :meth:`transforms` the pairs' estimated and true transforms.
     """
 
     allow_empty = True
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        for name in _TRANSFORM_STATES:
+            self.add_state(name, default=[], dist_reduce_fx="cat")
+
+    def update(
+        self, transform_pred: torch.Tensor, transform_gt: torch.Tensor, index: torch.Tensor | None = None
+    ) -> None:
+        """Add a batch of pairs, keeping their transforms too (arguments as the summary metrics' ``update``)."""
+        super().update(transform_pred, transform_gt, index)
+        self.transform_pred.append(transform_pred.detach())
+        self.transform_gt.append(transform_gt.detach())
+
+    def transforms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(transform_pred (P, 4, 4), transform_gt (P, 4, 4))`` as given, in the order of :meth:`per_pair`.
+
+        A failed pair keeps its NaN/Inf prediction. Under DDP every process's pairs, each once.
+        """
+        with self.sync_context():
+            return tuple(self._state(name).reshape(-1, 4, 4) for name in _TRANSFORM_STATES)  # type: ignore[return-value]
 
     def compute(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Return ``(rotation errors in degrees, translation errors, dataset indices)``, each ``(P,)``.

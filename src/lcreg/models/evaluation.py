@@ -5,7 +5,8 @@ test batches run :meth:`~lcreg.models.interface.RegistrationInterface.estimate` 
 carry a ground truth update the registration metrics (:func:`lcreg.metrics.registration.registration_metrics`, plus
 the recalls of ``recall_thresholds``, else of the DataModule's ``recall_thresholds``: the scene benchmarks' in
 metres); validation also logs the training losses (for checkpoint selection). Each validation/test epoch prints a
-one-line summary; test epochs write per-pair errors to ``test_per_pair.csv`` in the logger's directory.
+one-line summary; test epochs write per-pair errors to ``test_per_pair.csv`` in the logger's directory, and the
+pairs' transforms to ``test_transforms.npz`` beside it.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import csv
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import torch
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info
@@ -29,7 +31,11 @@ from lcreg.metrics.registration import (
 from lcreg.models.training import NonFiniteTrainingError, Stage, TrainingLogic
 from lcreg.types import RegistrationBatch, RegistrationResult
 
-__all__ = ["COMPONENT_COLUMNS", "EvaluationLogic"]
+__all__ = ["COMPONENT_COLUMNS", "TRANSFORMS_FILE", "EvaluationLogic"]
+
+TRANSFORMS_FILE = "test_transforms.npz"
+"""Written beside ``test_per_pair.csv``, its rows in the same order: ``index (P,)``, ``transform_pred (P, 4, 4)`` (the
+estimate, NaN/Inf for a failed pair) and ``transform_gt (P, 4, 4)`` (the truth), both ``transform_ref_src``."""
 
 COMPONENT_COLUMNS = (
     "euler_error_z_deg",
@@ -121,7 +127,8 @@ class EvaluationLogic(TrainingLogic):
         :class:`~lcreg.data.datamodule.PairDataModule` family); then :data:`COMPONENT_COLUMNS`, the per-pair parts
         of RMSE(R), MAE(R), RMSE(t) and MAE(t) as the test figures count them
         (:meth:`~lcreg.metrics.registration.PerPairErrors.components`), from which those figures follow for any
-        subset of the rows (``benchmarks/class_breakdown.py``).
+        subset of the rows (``benchmarks/class_breakdown.py``). Beside it, :data:`TRANSFORMS_FILE` keeps each pair's
+        estimated and true transforms (``benchmarks/error_geometry.py`` reads them).
         """
         self._summary("test")
         if self.test_pairs.update_count == 0:
@@ -129,6 +136,7 @@ class EvaluationLogic(TrainingLogic):
         # Every process's pairs (gathered), each once; torchmetrics squeezes a single pair to 0-d.
         rot, trans, index = self.test_pairs.per_pair()
         euler, components = self.test_pairs.components()
+        transforms = self.test_pairs.transforms()  # every process takes part in the gather
         log_dir = self.trainer.log_dir if self.trainer.log_dir else self.trainer.default_root_dir
         if self.trainer.is_global_zero and log_dir:
             numbered = (index < 0).any()  # batches without indices: number the pairs in order
@@ -146,7 +154,9 @@ class EvaluationLogic(TrainingLogic):
                 writer = csv.writer(fh)
                 writer.writerow([*header, *COMPONENT_COLUMNS])
                 writer.writerows([*row, *part] for row, part in zip(rows, parts, strict=True))
-            rank_zero_info(f"per-pair test errors written to {path}")
+            pred, gt = (t[order].double().cpu().numpy() for t in transforms)
+            np.savez(path.with_name(TRANSFORMS_FILE), index=index.cpu().numpy(), transform_pred=pred, transform_gt=gt)
+            rank_zero_info(f"per-pair test errors written to {path}, the transforms to {TRANSFORMS_FILE} beside it")
 
     def _pair_classes(self, index: torch.Tensor) -> list[str] | None:
         """The object class of each test pair ``index (K,)``, from the DataModule's ``pair_classes`` if it has one."""

@@ -1,0 +1,287 @@
+"""Do a model's test errors lie along motions the object's shape barely pins down? (issue 23, goal (d))
+
+    python benchmarks/error_geometry.py \
+        --runs runs/.../seed0/retest-32-true-noise_sigma-0/run runs/.../seed1/... runs/.../seed2/... \
+        --out docs/results/converge/error_geometry/idam_partial.md
+    python benchmarks/error_geometry.py --smoke      # seconds: embedded shapes, made-up estimates
+
+Each run folder is one ``lcreg test`` (or ``lcreg reproduce ... --retest``) of one seed: its ``config.yaml`` rebuilds
+the test pairs, its ``test_transforms.npz`` holds each pair's estimate and truth (:mod:`lcreg.models.evaluation`).
+The pairs must be clean (no noise), so that every source point lies on its object.
+
+Per pair, the error motion ``E = T_gt^-1 T_pred`` (the source moved in its own frame) is scored by its surface
+residual (:func:`lcreg.geometry.surface.surface_residual`): the mean point-to-plane distance of the moved source
+points to the whole object (all its points, PCA normals of ``--normal-k`` neighbours). The same is computed for
+``--draws`` random motions of the same rotation angle and translation length
+(:func:`lcreg.geometry.surface.random_motions_like`). Their ratio, the **residual ratio**, is about 1 for a
+misalignment like any other of its size and well below 1 for an error along a near-symmetry of the shape (a flat
+box slid along its faces, a round tub turned about its axis): an error the surface hardly shows. The **shape
+freedom** is the 10th percentile of the random motions' residuals over their median: how much less the object's
+easiest directions show than a typical one, at this pair's error size (1: no easy direction).
+
+Groups as ``benchmarks/class_breakdown.py``'s: all pairs, each class with ``--min-pairs`` pairs, the rest pooled.
+Per group and seed the medians over its pairs (of the pairs with a rotation error above ``--large-deg`` too); each
+cell is the mean ± sample std over the seeds. A failed pair (non-finite estimate) is counted, not scored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib
+import statistics
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from lcreg.data.datamodule import PairDataModule
+from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
+from lcreg.experiments.benchmarking.writers import format_mean_std
+from lcreg.geometry import se3
+from lcreg.geometry.neighbors import knn
+from lcreg.geometry.normals import estimate_normals
+from lcreg.geometry.surface import random_motions_like, surface_residual
+from lcreg.metrics.functional import rotation_error_deg
+from lcreg.models.evaluation import TRANSFORMS_FILE
+
+ON_SURFACE = 1e-4
+"""Largest distance (object units) of a clean source point to its object's nearest point: above it, refused."""
+SAME_TRUTH = 1e-4
+"""Largest difference of a ``transform_gt`` entry to the rebuilt pair's: above it, the files hold other pairs."""
+
+
+class ErrorGeometryError(ValueError):
+    """A run folder lacks a file, or its transforms are not the pairs its config builds, or its pairs are noisy."""
+
+
+@dataclass(frozen=True)
+class PairGeometry:
+    """One scored test pair of one run.
+
+    Attributes:
+        index: Dataset index.
+        cls: Object class (``"all"`` without labels).
+        rre_deg: Geodesic rotation error, degrees.
+        residual: Surface residual of the error motion (object units).
+        random_median: Median surface residual of the random motions of the same size.
+        random_p10: Their 10th percentile.
+    """
+
+    index: int
+    cls: str
+    rre_deg: float
+    residual: float
+    random_median: float
+    random_p10: float
+
+    @property
+    def ratio(self) -> float:
+        """Residual ratio: the error's residual over the median of random motions of its size."""
+        return self.residual / self.random_median if self.random_median > 0 else float("nan")
+
+    @property
+    def freedom(self) -> float:
+        """Shape freedom at this size: 10th percentile over median of the random motions' residuals."""
+        return self.random_p10 / self.random_median if self.random_median > 0 else float("nan")
+
+
+def test_datamodule(config: Path) -> PairDataModule:
+    """The DataModule of a run's ``config.yaml`` (its ``data`` block), set up for ``test``."""
+    try:
+        data = yaml.safe_load(config.read_text(encoding="utf-8"))["data"]
+        module, _, name = data["class_path"].rpartition(".")
+        dm = getattr(importlib.import_module(module), name)(**data.get("init_args", {}))
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError, ImportError) as err:
+        raise ErrorGeometryError(f"{config}: no usable `data` block ({type(err).__name__}: {err})") from err
+    if not isinstance(dm, PairDataModule):
+        raise ErrorGeometryError(f"{config}: {type(dm).__name__} is not a PairDataModule (object pairs)")
+    dm.setup("test")
+    return dm
+
+
+def read_transforms(run: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(index (P,), transform_pred (P, 4, 4), transform_gt (P, 4, 4))`` of a run's test."""
+    path = run / TRANSFORMS_FILE
+    try:
+        with np.load(path) as data:
+            index, pred, gt = (np.asarray(data[k]) for k in ("index", "transform_pred", "transform_gt"))
+    except (OSError, KeyError, ValueError) as err:
+        raise ErrorGeometryError(f"{path}: cannot be read ({err}); test the weights again to write it") from err
+    if pred.shape != gt.shape or pred.shape != (len(index), 4, 4):
+        raise ErrorGeometryError(f"{path}: shapes {index.shape}, {pred.shape}, {gt.shape} do not agree")
+    return index, pred, gt
+
+
+def score_pair(dm: PairDataModule, index: int, pred: np.ndarray, gt: np.ndarray, args: argparse.Namespace) -> Any:
+    """The :class:`PairGeometry` of test pair ``index`` (``None`` for a failed pair)."""
+    item = dm.test_set[index]
+    truth = item["transform_ref_src"].double()
+    if not torch.allclose(truth, torch.from_numpy(gt), atol=SAME_TRUTH, rtol=0):
+        raise ErrorGeometryError(f"pair {index}: its transform_gt is not the config's pair (other data options?)")
+    if not np.isfinite(pred).all():
+        return None
+    source = item["points_src"].double()[None]  # (1, K, 3)
+    surface = dm.test_set.object_points(index)[None]  # (1, P, 3)
+    off = float(knn(source, surface, 1)[0].max())
+    if off > ON_SURFACE:
+        raise ErrorGeometryError(f"pair {index}: a source point lies {off:.2g} off its object (noisy pairs?)")
+    normals = estimate_normals(surface, k=args.normal_k)
+    error = se3.compose(se3.inverse(truth[None]), torch.from_numpy(pred)[None])  # (1, 4, 4)
+    draws = random_motions_like(error, args.draws, torch.Generator().manual_seed(index))[0]  # (D, 4, 4)
+    random = surface_residual(
+        source.expand(args.draws, -1, -1), draws, surface.expand(args.draws, -1, -1), normals.expand(args.draws, -1, -1)
+    )
+    classes = dm.pair_classes("test", torch.tensor([index]))
+    return PairGeometry(
+        index=index,
+        cls=classes[0] if classes else "all",
+        rre_deg=float(rotation_error_deg(torch.from_numpy(pred)[None], truth[None])[0]),
+        residual=float(surface_residual(source, error, surface, normals)[0]),
+        random_median=float(random.median()),
+        random_p10=float(torch.quantile(random, 0.1)),
+    )
+
+
+def score_run(run: Path, args: argparse.Namespace) -> tuple[list[PairGeometry], int]:
+    """Every pair of one run folder, and the number of failed pairs."""
+    dm = test_datamodule(run / "config.yaml")
+    index, pred, gt = read_transforms(run)
+    scored = [score_pair(dm, int(i), p, g, args) for i, p, g in zip(index, pred, gt, strict=True)]
+    return [s for s in scored if s is not None], sum(s is None for s in scored)
+
+
+def group_names(pairs: Sequence[PairGeometry], min_pairs: int) -> list[tuple[str, frozenset[str]]]:
+    """All pairs; each class with ``min_pairs`` or more, largest first; the other classes pooled."""
+    counts: dict[str, int] = {}
+    for pair in pairs:
+        counts[pair.cls] = counts.get(pair.cls, 0) + 1
+    large = sorted((c for c, n in counts.items() if n >= min_pairs), key=lambda c: (-counts[c], c))
+    rest = frozenset(counts) - frozenset(large)
+    groups = [("all pairs", frozenset(counts)), *((c, frozenset([c])) for c in large)]
+    return groups + ([(f"other ({len(rest)} classes)", rest)] if rest and len(large) > 0 else [])
+
+
+def _median(values: Sequence[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def summary(pairs: Sequence[PairGeometry], large_deg: float) -> dict[str, float]:
+    """One seed's medians over ``pairs``."""
+    large = [p for p in pairs if p.rre_deg > large_deg]
+    return {
+        "pairs": len(pairs),
+        "rre_median": _median([p.rre_deg for p in pairs]),
+        "ratio": _median([p.ratio for p in pairs]),
+        "large": len(large),
+        "ratio_large": _median([p.ratio for p in large]),
+        "freedom": _median([p.freedom for p in pairs]),
+    }
+
+
+COLUMNS = {
+    "pairs": "pairs",
+    "rre_median": "median RRE °",
+    "ratio": "residual ratio, median",
+    "large": "pairs above --large-deg",
+    "ratio_large": "their residual ratio, median",
+    "freedom": "shape freedom, median",
+}
+
+
+def report(runs: Sequence[Path], args: argparse.Namespace) -> tuple[str, list[list[PairGeometry]]]:
+    """The Markdown report over ``runs`` (one per seed) and every run's scored pairs."""
+    seeds, failed = zip(*(score_run(run, args) for run in runs), strict=True)
+    first = sorted((p.index, p.cls) for p in seeds[0])
+    for run, pairs in zip(runs[1:], seeds[1:], strict=True):
+        if sorted((p.index, p.cls) for p in pairs) != first:
+            raise ErrorGeometryError(f"{run}: other scored pairs than {runs[0]} (other pairs, or other failures)")
+    lines = []
+    for name, classes in group_names(seeds[0], args.min_pairs):
+        values = [summary([p for p in pairs if p.cls in classes], args.large_deg) for pairs in seeds]
+        lines.append([name, *(format_mean_std([v[k] for v in values]) for k in COLUMNS)])
+    text = [
+        "# Test errors against the shape: residual ratios",
+        "",
+        f"{len(runs)} run(s), one per seed, the same {len(first)} scored test pairs ({sum(failed)} failed pair(s)"
+        f" left out); {args.draws} random motions per pair, normals from {args.normal_k} neighbours, 'above"
+        f" --large-deg' = rotation error above {args.large_deg:g}°. Each cell: mean ± sample std over the runs of the"
+        " group's median. Residual ratio about 1: a misalignment like a random one of its size; well below 1: an"
+        " error along motions the object's surface hardly shows (`benchmarks/error_geometry.py`). Runs:",
+        "",
+        *(f"- `{run}`" for run in runs),
+        "",
+        markdown_table(["group", *COLUMNS.values()], lines),
+    ]
+    return "\n".join(text) + "\n", list(seeds)
+
+
+def write_pairs(path: Path, runs: Sequence[Path], seeds: Sequence[Sequence[PairGeometry]]) -> None:
+    """Every scored pair of every run, one CSV row each."""
+    header = ["run", "index", "class", "rre_deg", "residual", "random_median", "random_p10", "ratio", "freedom"]
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        for run, pairs in zip(runs, seeds, strict=True):
+            for p in pairs:
+                values = (p.rre_deg, p.residual, p.random_median, p.random_p10, p.ratio, p.freedom)
+                writer.writerow([str(run), p.index, p.cls, *(f"{v:.6g}" for v in values)])
+
+
+def smoke_run(folder: Path) -> Path:
+    """A made-up test of embedded shapes: every estimate the truth turned by 10° about a fixed axis."""
+    from lcreg.data.datamodule import SyntheticDataModule
+    from lcreg.geometry import so3
+
+    init = {"num_train": 2, "num_val": 2, "num_test": 6, "num_points": 256, "batch_size": 2, "seed": 7}
+    (folder / "config.yaml").write_text(
+        yaml.safe_dump({"data": {"class_path": "lcreg.data.datamodule.SyntheticDataModule", "init_args": init}})
+    )
+    dm = SyntheticDataModule(**init)  # type: ignore[arg-type]
+    dm.setup("test")
+    gt = torch.stack([dm.test_set[i]["transform_ref_src"].double() for i in range(len(dm.test_set))])
+    turn = se3.make_transform(so3.exp(torch.tensor([[0.0, 0.0, 0.17]], dtype=torch.float64)), torch.zeros(1, 3))
+    pred = se3.compose(gt, turn.expand(len(gt), 4, 4))
+    np.savez(folder / TRANSFORMS_FILE, index=np.arange(len(gt)), transform_pred=pred.numpy(), transform_gt=gt.numpy())
+    return folder
+
+
+def parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", nargs="+", type=Path, default=[], help="test run folders, one per seed")
+    parser.add_argument("--draws", type=int, default=32, help="random motions per pair (default 32)")
+    parser.add_argument("--normal-k", type=int, default=16, help="neighbours per PCA normal (default 16)")
+    parser.add_argument("--large-deg", type=float, default=5.0, help="a 'large' rotation error, degrees (default 5)")
+    parser.add_argument("--min-pairs", type=int, default=10, help="a class with fewer pairs is pooled (default 10)")
+    parser.add_argument("--pairs-out", type=Path, help="also write every scored pair to this CSV")
+    parser.add_argument("--out", help="write the report here (default: print it)")
+    add_smoke_argument(parser)
+    args = parser.parse_args(argv)
+    if args.draws < 2 or args.normal_k < 3 or args.min_pairs < 1:
+        parser.error("--draws must be >= 2, --normal-k >= 3 and --min-pairs >= 1")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parse(argv)
+    with tempfile.TemporaryDirectory(prefix="lcreg-error-geometry-") as scratch:
+        runs = [smoke_run(Path(scratch))] if args.smoke else args.runs
+        if not runs:
+            sys.exit("error_geometry: give --runs FOLDER [FOLDER ...] (or --smoke)")
+        try:
+            text, seeds = report(runs, args)
+        except ErrorGeometryError as err:
+            sys.exit(f"error_geometry: {err}")
+        if args.pairs_out:
+            write_pairs(args.pairs_out, runs, seeds)
+    write_or_print(text, args.out, "error_geometry.md", args.smoke)
+
+
+if __name__ == "__main__":
+    main()
