@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import csv
 import importlib
+import math
 import statistics
 import sys
 import tempfile
@@ -119,16 +120,20 @@ def read_transforms(run: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return index, pred, gt
 
 
-def score_pair(dm: PairDataModule, index: int, pred: np.ndarray, gt: np.ndarray, args: argparse.Namespace) -> Any:
+def score_pair(
+    dm: PairDataModule, index: int, pred: np.ndarray, gt: np.ndarray, args: argparse.Namespace
+) -> PairGeometry | None:
     """The :class:`PairGeometry` of test pair ``index`` (``None`` for a failed pair)."""
-    item = dm.test_set[index]
+    test_set = dm.test_set
+    assert test_set is not None  # set up by test_datamodule
+    item = test_set[index]
     truth = item["transform_ref_src"].double()
     if not torch.allclose(truth, torch.from_numpy(gt), atol=SAME_TRUTH, rtol=0):
         raise ErrorGeometryError(f"pair {index}: its transform_gt is not the config's pair (other data options?)")
     if not np.isfinite(pred).all():
         return None
     source = item["points_src"].double()[None]  # (1, K, 3)
-    surface = dm.test_set.object_points(index)[None]  # (1, P, 3)
+    surface = test_set.object_points(index)[None]  # (1, P, 3)
     off = float(knn(source, surface, 1)[0].max())
     if off > ON_SURFACE:
         raise ErrorGeometryError(f"pair {index}: a source point lies {off:.2g} off its object (noisy pairs?)")
@@ -169,7 +174,9 @@ def group_names(pairs: Sequence[PairGeometry], min_pairs: int) -> list[tuple[str
 
 
 def _median(values: Sequence[float]) -> float:
-    return statistics.median(values) if values else float("nan")
+    """Median of the finite values (a perfect estimate has no ratio), NaN if none."""
+    finite = [v for v in values if math.isfinite(v)]
+    return statistics.median(finite) if finite else float("nan")
 
 
 def summary(pairs: Sequence[PairGeometry], large_deg: float) -> dict[str, float]:
@@ -195,6 +202,13 @@ COLUMNS = {
 }
 
 
+def _cell(values: Sequence[float]) -> str:
+    """Mean ± std of one cell; a count that every run shares as a plain number."""
+    if all(v == values[0] and float(v).is_integer() for v in values):
+        return str(int(values[0]))
+    return format_mean_std(values)
+
+
 def report(runs: Sequence[Path], args: argparse.Namespace) -> tuple[str, list[list[PairGeometry]]]:
     """The Markdown report over ``runs`` (one per seed) and every run's scored pairs."""
     seeds, failed = zip(*(score_run(run, args) for run in runs), strict=True)
@@ -205,15 +219,16 @@ def report(runs: Sequence[Path], args: argparse.Namespace) -> tuple[str, list[li
     lines = []
     for name, classes in group_names(seeds[0], args.min_pairs):
         values = [summary([p for p in pairs if p.cls in classes], args.large_deg) for pairs in seeds]
-        lines.append([name, *(format_mean_std([v[k] for v in values]) for k in COLUMNS)])
+        lines.append([name, *(_cell([v[k] for v in values]) for k in COLUMNS)])
     text = [
         "# Test errors against the shape: residual ratios",
         "",
-        f"{len(runs)} run(s), one per seed, the same {len(first)} scored test pairs ({sum(failed)} failed pair(s)"
-        f" left out); {args.draws} random motions per pair, normals from {args.normal_k} neighbours, 'above"
-        f" --large-deg' = rotation error above {args.large_deg:g}°. Each cell: mean ± sample std over the runs of the"
-        " group's median. Residual ratio about 1: a misalignment like a random one of its size; well below 1: an"
-        " error along motions the object's surface hardly shows (`benchmarks/error_geometry.py`). Runs:",
+        f"{len(runs)} run(s), one per seed, the same {len(first)} scored test pairs (failed pairs left out, per run:"
+        f" {', '.join(map(str, failed))}); {args.draws} random motions per pair, normals from {args.normal_k}"
+        f" neighbours, 'above --large-deg' = rotation error above {args.large_deg:g}°. Each cell: mean ± sample std"
+        " over the runs of the group's median. Residual ratio about 1: a misalignment like a random one of its size;"
+        " well below 1: an error along motions the object's surface hardly shows (`benchmarks/error_geometry.py`)."
+        " Runs:",
         "",
         *(f"- `{run}`" for run in runs),
         "",
@@ -234,22 +249,37 @@ def write_pairs(path: Path, runs: Sequence[Path], seeds: Sequence[Sequence[PairG
                 writer.writerow([str(run), p.index, p.cls, *(f"{v:.6g}" for v in values)])
 
 
-def smoke_run(folder: Path) -> Path:
-    """A made-up test of embedded shapes: every estimate the truth turned by 10° about a fixed axis."""
+SMOKE_DATA = {"num_train": 2, "num_val": 2, "num_test": 6, "num_points": 256, "batch_size": 2, "seed": 7}
+"""The embedded pairs of ``--smoke`` (``SyntheticDataModule`` arguments)."""
+
+
+def synthetic_truths(init: dict[str, Any]) -> torch.Tensor:
+    """The true transforms ``(P, 4, 4)`` float64 of the test pairs of ``SyntheticDataModule(**init)``."""
     from lcreg.data.datamodule import SyntheticDataModule
+
+    dm = SyntheticDataModule(**init)
+    dm.setup("test")
+    assert dm.test_set is not None
+    return torch.stack([dm.test_set[i]["transform_ref_src"].double() for i in range(len(dm.test_set))])
+
+
+def write_run(folder: Path, init: dict[str, Any], pred: torch.Tensor, gt: torch.Tensor) -> Path:
+    """A run folder as a test of the embedded pairs writes it: ``config.yaml`` and the transforms file."""
+    folder.mkdir(parents=True, exist_ok=True)
+    data = {"class_path": "lcreg.data.datamodule.SyntheticDataModule", "init_args": init}
+    (folder / "config.yaml").write_text(yaml.safe_dump({"data": data}), encoding="utf-8")
+    index = np.arange(len(gt))
+    np.savez(folder / TRANSFORMS_FILE, index=index, transform_pred=pred.numpy(), transform_gt=gt.numpy())
+    return folder
+
+
+def smoke_run(folder: Path) -> Path:
+    """A made-up test of the embedded pairs: every estimate the truth turned by 10° about a fixed axis."""
     from lcreg.geometry import so3
 
-    init = {"num_train": 2, "num_val": 2, "num_test": 6, "num_points": 256, "batch_size": 2, "seed": 7}
-    (folder / "config.yaml").write_text(
-        yaml.safe_dump({"data": {"class_path": "lcreg.data.datamodule.SyntheticDataModule", "init_args": init}})
-    )
-    dm = SyntheticDataModule(**init)  # type: ignore[arg-type]
-    dm.setup("test")
-    gt = torch.stack([dm.test_set[i]["transform_ref_src"].double() for i in range(len(dm.test_set))])
+    gt = synthetic_truths(SMOKE_DATA)
     turn = se3.make_transform(so3.exp(torch.tensor([[0.0, 0.0, 0.17]], dtype=torch.float64)), torch.zeros(1, 3))
-    pred = se3.compose(gt, turn.expand(len(gt), 4, 4))
-    np.savez(folder / TRANSFORMS_FILE, index=np.arange(len(gt)), transform_pred=pred.numpy(), transform_gt=gt.numpy())
-    return folder
+    return write_run(folder, SMOKE_DATA, se3.compose(gt, turn.expand(len(gt), 4, 4)), gt)
 
 
 def parse(argv: Sequence[str] | None) -> argparse.Namespace:

@@ -32,6 +32,7 @@ RUNS = {
     "bench_precision": [],
     "compare_methods": [],
     "class_breakdown": [],
+    "error_geometry": [],
     "compare_rows": [],
     "eval_modelnet40_dvds": [],
     "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],

@@ -78,6 +78,21 @@ def test_item_with_indices_is_the_same_pair_with_its_object_rows(shapes: tuple) 
         ds.item_with_indices(len(ds))
 
 
+def test_object_points_are_the_whole_object_in_the_clean_source_s_frame(shapes: tuple) -> None:
+    points, normals, _ = shapes
+    partial = PairProtocol(num_points=64, partial="prnet", partial_keep=0.5)
+    ds = PairDataset(points, normals, partial, deterministic=True, seed=7, pairs_per_object=2)
+    for key in (2, 9):
+        pair, whole = ds.item_with_indices(key), ds.object_points(key)
+        assert whole.shape == (points.shape[1], 3) and whole.dtype == torch.float64
+        assert whole.norm(dim=-1).max().item() == pytest.approx(1.0)
+        assert torch.allclose(pair["points_src"].double(), whole[pair["point_index_src"]], atol=1e-6)
+    raw = PairDataset(points, normals, PairProtocol(num_points=64, normalize=False), deterministic=True)
+    assert torch.allclose(raw.object_points(1), torch.as_tensor(points[1]).double())
+    with pytest.raises(IndexError):
+        ds.object_points(len(ds))
+
+
 def test_several_pairs_per_object_keep_the_first_pairs_and_add_new_ones(shapes: tuple) -> None:
     points, normals, _ = shapes
     one = PairDataset(points, normals, PROTOCOL, deterministic=True, seed=7)

@@ -336,8 +336,8 @@ class PerPairErrors(_PairErrorMetric):
     ) -> None:
         """Add a batch of pairs, keeping their transforms too (arguments as the summary metrics' ``update``)."""
         super().update(transform_pred, transform_gt, index)
-        self.transform_pred.append(transform_pred.detach())
-        self.transform_gt.append(transform_gt.detach())
+        for name, value in zip(_TRANSFORM_STATES, (transform_pred, transform_gt), strict=True):
+            getattr(self, name).append(value.detach())
 
     def transforms(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(transform_pred (P, 4, 4), transform_gt (P, 4, 4))`` as given, in the order of :meth:`per_pair`.
