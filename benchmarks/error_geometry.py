@@ -249,6 +249,23 @@ def write_pairs(path: Path, runs: Sequence[Path], seeds: Sequence[Sequence[PairG
                 writer.writerow([str(run), p.index, p.cls, *(f"{v:.6g}" for v in values)])
 
 
+def plot(path: Path, seeds: Sequence[Sequence[PairGeometry]], groups: Sequence[tuple[str, frozenset[str]]]) -> Path:
+    """Residual ratio against rotation error, every scored pair of every run, one colour per group."""
+    from lcreg.figures import agg_figure, save_png
+
+    fig = agg_figure(6.4, 4.2, 120, "error geometry")
+    ax = fig.add_subplot()
+    for name, classes in groups:
+        chosen = [p for pairs in seeds for p in pairs if p.cls in classes and p.rre_deg > 0]
+        label = f"{name} ({len(chosen)})"
+        ax.scatter([p.rre_deg for p in chosen], [p.ratio for p in chosen], s=10, alpha=0.6, label=label)
+    ax.axhline(1.0, color="grey", lw=0.8, ls="--")
+    ax.set(xscale="log", xlabel="rotation error (degrees, log scale)", ylabel="residual ratio")
+    ax.set_title("Error's surface residual / random motions' of its size (1: a typical motion)", fontsize=9)
+    ax.legend(fontsize=8)
+    return save_png(fig, path)
+
+
 SMOKE_DATA = {"num_train": 2, "num_val": 2, "num_test": 6, "num_points": 256, "batch_size": 2, "seed": 7}
 """The embedded pairs of ``--smoke`` (``SyntheticDataModule`` arguments)."""
 
@@ -290,6 +307,7 @@ def parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--large-deg", type=float, default=5.0, help="a 'large' rotation error, degrees (default 5)")
     parser.add_argument("--min-pairs", type=int, default=10, help="a class with fewer pairs is pooled (default 10)")
     parser.add_argument("--pairs-out", type=Path, help="also write every scored pair to this CSV")
+    parser.add_argument("--plot", type=Path, help="also draw residual ratio against rotation error to this PNG")
     parser.add_argument("--out", help="write the report here (default: print it)")
     add_smoke_argument(parser)
     args = parser.parse_args(argv)
@@ -310,6 +328,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             sys.exit(f"error_geometry: {err}")
         if args.pairs_out:
             write_pairs(args.pairs_out, runs, seeds)
+        if args.plot:
+            groups = group_names(seeds[0], args.min_pairs)
+            print(f"wrote {plot(args.plot, seeds, groups[1:] or groups)}")
     write_or_print(text, args.out, "error_geometry.md", args.smoke)
 
 

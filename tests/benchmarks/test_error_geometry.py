@@ -95,3 +95,9 @@ def test_runs_of_other_pairs_noisy_pairs_and_missing_files_are_refused(tmp_path:
         error_geometry.score_run(tmp_path / "empty", _args())
     with pytest.raises(error_geometry.ErrorGeometryError, match=r"config\.yaml"):
         error_geometry.score_run(tmp_path / "nothing", _args())
+
+
+def test_the_plot_is_a_png_of_every_scored_pair(tmp_path: Path) -> None:
+    png = tmp_path / "geometry.png"
+    error_geometry.main(["--smoke", "--out", str(tmp_path / "report.md"), "--plot", str(png)])
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
