@@ -17,7 +17,9 @@ points to the whole object (all its points, PCA normals of ``--normal-k`` neighb
 misalignment like any other of its size and well below 1 for an error along a near-symmetry of the shape (a flat
 box slid along its faces, a round tub turned about its axis): an error the surface hardly shows. The **shape
 freedom** is the 10th percentile of the random motions' residuals over their median: how much less the object's
-easiest directions show than a typical one, at this pair's error size (1: no easy direction).
+easiest directions show than a typical one, at this pair's error size (1: no easy direction). The last column does
+the same for the error's rotation alone, about the object's centroid, against random rotations of its angle: a turn
+about an axis of symmetry through the centroid (a vase's) scores near 0 there even when the error also shifts.
 
 Groups as ``benchmarks/class_breakdown.py``'s: all pairs, each class with ``--min-pairs`` pairs, the rest pooled.
 Per group and seed the medians over its pairs (of the pairs with a rotation error above ``--large-deg`` too); each
@@ -73,6 +75,9 @@ class PairGeometry:
         residual: Surface residual of the error motion (object units).
         random_median: Median surface residual of the random motions of the same size.
         random_p10: Their 10th percentile.
+        turn_residual: Surface residual of the error's rotation alone, about the object's centroid (the origin of
+            the pairs' normalized frame).
+        turn_random_median: Median surface residual of random rotations of the same angle about the centroid.
     """
 
     index: int
@@ -81,11 +86,18 @@ class PairGeometry:
     residual: float
     random_median: float
     random_p10: float
+    turn_residual: float
+    turn_random_median: float
 
     @property
     def ratio(self) -> float:
         """Residual ratio: the error's residual over the median of random motions of its size."""
         return self.residual / self.random_median if self.random_median > 0 else float("nan")
+
+    @property
+    def turn_ratio(self) -> float:
+        """Residual ratio of the error's rotation alone, against random rotations of its angle about the centroid."""
+        return self.turn_residual / self.turn_random_median if self.turn_random_median > 0 else float("nan")
 
     @property
     def freedom(self) -> float:
@@ -139,19 +151,36 @@ def score_pair(
         raise ErrorGeometryError(f"pair {index}: a source point lies {off:.2g} off its object (noisy pairs?)")
     normals = estimate_normals(surface, k=args.normal_k)
     error = se3.compose(se3.inverse(truth[None]), torch.from_numpy(pred)[None])  # (1, 4, 4)
-    draws = random_motions_like(error, args.draws, torch.Generator().manual_seed(index))[0]  # (D, 4, 4)
-    random = surface_residual(
-        source.expand(args.draws, -1, -1), draws, surface.expand(args.draws, -1, -1), normals.expand(args.draws, -1, -1)
-    )
+    turn = se3.make_transform(error[:, :3, :3], torch.zeros(1, 3, dtype=error.dtype))  # about the object's centroid
+    seed = torch.Generator().manual_seed  # the same draws for both parts: equal when the error does not shift
+    whole, rotation = (_residuals(source, surface, normals, m, args.draws, seed(index)) for m in (error, turn))
     classes = dm.pair_classes("test", torch.tensor([index]))
     return PairGeometry(
         index=index,
         cls=classes[0] if classes else "all",
         rre_deg=float(rotation_error_deg(torch.from_numpy(pred)[None], truth[None])[0]),
-        residual=float(surface_residual(source, error, surface, normals)[0]),
-        random_median=float(random.median()),
-        random_p10=float(torch.quantile(random, 0.1)),
+        residual=whole[0],
+        random_median=whole[1],
+        random_p10=whole[2],
+        turn_residual=rotation[0],
+        turn_random_median=rotation[1],
     )
+
+
+def _residuals(
+    source: torch.Tensor,
+    surface: torch.Tensor,
+    normals: torch.Tensor,
+    motion: torch.Tensor,
+    draws: int,
+    generator: torch.Generator,
+) -> tuple[float, float, float]:
+    """Surface residual of ``motion (1, 4, 4)``, and the median and 10th percentile of ``draws`` of its size."""
+    moved = random_motions_like(motion, draws, generator)[0]  # (D, 4, 4)
+    expand = (draws, -1, -1)
+    random = surface_residual(source.expand(expand), moved, surface.expand(expand), normals.expand(expand))
+    own = float(surface_residual(source, motion, surface, normals)[0])
+    return own, float(random.median()), float(torch.quantile(random, 0.1))
 
 
 def score_run(run: Path, args: argparse.Namespace) -> tuple[list[PairGeometry], int]:
@@ -189,6 +218,7 @@ def summary(pairs: Sequence[PairGeometry], large_deg: float) -> dict[str, float]
         "large": len(large),
         "ratio_large": _median([p.ratio for p in large]),
         "freedom": _median([p.freedom for p in pairs]),
+        "turn_ratio": _median([p.turn_ratio for p in pairs]),
     }
 
 
@@ -199,6 +229,7 @@ COLUMNS = {
     "large": "pairs above --large-deg",
     "ratio_large": "their residual ratio, median",
     "freedom": "shape freedom, median",
+    "turn_ratio": "rotation part alone: residual ratio, median",
 }
 
 
@@ -240,12 +271,14 @@ def report(runs: Sequence[Path], args: argparse.Namespace) -> tuple[str, list[li
 def write_pairs(path: Path, runs: Sequence[Path], seeds: Sequence[Sequence[PairGeometry]]) -> None:
     """Every scored pair of every run, one CSV row each."""
     header = ["run", "index", "class", "rre_deg", "residual", "random_median", "random_p10", "ratio", "freedom"]
+    header += ["turn_residual", "turn_random_median", "turn_ratio"]
     with path.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)
         for run, pairs in zip(runs, seeds, strict=True):
             for p in pairs:
-                values = (p.rre_deg, p.residual, p.random_median, p.random_p10, p.ratio, p.freedom)
+                values = [p.rre_deg, p.residual, p.random_median, p.random_p10, p.ratio, p.freedom, p.turn_residual]
+                values += [p.turn_random_median, p.turn_ratio]
                 writer.writerow([str(run), p.index, p.cls, *(f"{v:.6g}" for v in values)])
 
 

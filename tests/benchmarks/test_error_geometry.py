@@ -10,7 +10,7 @@ import torch
 from test_smoke import load  # type: ignore[import-not-found]
 
 from lcreg.data.datamodule import SyntheticDataModule
-from lcreg.geometry import se3
+from lcreg.geometry import se3, so3
 from lcreg.geometry.normals import estimate_normals
 from lcreg.geometry.surface import random_motions_like, surface_residual
 
@@ -101,3 +101,16 @@ def test_the_plot_is_a_png_of_every_scored_pair(tmp_path: Path) -> None:
     png = tmp_path / "geometry.png"
     error_geometry.main(["--smoke", "--out", str(tmp_path / "report.md"), "--plot", str(png)])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_the_rotation_part_scores_as_the_whole_error_when_the_error_does_not_shift(tmp_path: Path) -> None:
+    gt = error_geometry.synthetic_truths(INIT)
+    turn = se3.make_transform(so3.exp(torch.tensor([[0.0, 0.0, 0.2]], dtype=torch.float64)), torch.zeros(1, 3))
+    turns = random_motions_like(turn, len(gt), torch.Generator().manual_seed(2))[0]  # 0.2 rad, random axes
+    run = error_geometry.write_run(tmp_path / "turns", INIT, se3.compose(gt, turns), gt)
+    pairs, _ = error_geometry.score_run(run, _args())
+    assert all(p.turn_ratio == p.ratio and p.turn_residual == p.residual for p in pairs)
+    shifted, _ = error_geometry.score_run(
+        error_geometry.write_run(tmp_path / "shifts", INIT, _random_errors(gt, 4), gt), _args()
+    )
+    assert all(p.turn_ratio != p.ratio for p in shifted)
