@@ -56,6 +56,8 @@ from lcreg.models.evaluation import TRANSFORMS_FILE
 
 ON_SURFACE = 1e-4
 """Largest distance (object units) of a clean source point to its object's nearest point: above it, refused."""
+PLOT_MIN_DEG = 0.01
+"""Pairs with a smaller rotation error are not drawn (rounding-level errors would stretch the log axis)."""
 SAME_TRUTH = 1e-4
 """Largest difference of a ``transform_gt`` entry to the rebuilt pair's: above it, the files hold other pairs."""
 
@@ -289,11 +291,11 @@ def plot(path: Path, seeds: Sequence[Sequence[PairGeometry]], groups: Sequence[t
     fig = agg_figure(6.4, 4.2, 120, "error geometry")
     ax = fig.add_subplot()
     for name, classes in groups:
-        chosen = [p for pairs in seeds for p in pairs if p.cls in classes and p.rre_deg > 0]
+        chosen = [p for pairs in seeds for p in pairs if p.cls in classes and p.rre_deg >= PLOT_MIN_DEG]
         label = f"{name} ({len(chosen)})"
         ax.scatter([p.rre_deg for p in chosen], [p.ratio for p in chosen], s=10, alpha=0.6, label=label)
     ax.axhline(1.0, color="grey", lw=0.8, ls="--")
-    ax.set(xscale="log", xlabel="rotation error (degrees, log scale)", ylabel="residual ratio")
+    ax.set(xscale="log", xlabel=f"rotation error (degrees, log scale; from {PLOT_MIN_DEG:g})", ylabel="residual ratio")
     ax.set_title("Error's surface residual / random motions' of its size (1: a typical motion)", fontsize=9)
     ax.legend(fontsize=8)
     return save_png(fig, path)
