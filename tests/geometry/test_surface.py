@@ -110,3 +110,8 @@ def test_random_motions_keep_each_item_s_angle_and_length_and_vary_the_direction
     assert torch.equal(draws, again)
     with pytest.raises(ValueError, match="draws"):
         random_motions_like(motion, 0)
+
+
+def test_random_motions_refuse_a_non_finite_motion() -> None:
+    with pytest.raises(NonFiniteError, match="motion"):
+        random_motions_like(torch.full((1, 4, 4), float("nan")), 4)

@@ -6,8 +6,8 @@ and ``cdist``) check dtype and shape only (free) and propagate NaN/Inf item by i
 non-finite result for that item and leaves the others exactly as they would be. They run inside loops (IC-LK
 iterations, losses) where a finiteness check would cost a host synchronisation per call, so their callers validate at
 the boundary: models' ``forward``, ``lcreg.register``, DataModules and file readers, metrics. Functions that take whole
-clouds (``knn``, ``chamfer_distance``, ``weighted_kabsch``, ``estimate_normals``) validate them once, with a typed
-error naming the argument (:mod:`lcreg.checks`).
+clouds (``knn``, ``chamfer_distance``, ``weighted_kabsch``, ``estimate_normals``, ``surface.surface_residual``)
+validate them once, with a typed error naming the argument (:mod:`lcreg.checks`).
 
 Precision. Under autocast (mixed-precision training) every numerical function here computes in float32, whatever
 autocast asks for (:mod:`lcreg.geometry.precision`).

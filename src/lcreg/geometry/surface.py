@@ -74,7 +74,9 @@ def random_motions_like(motion: torch.Tensor, draws: int, generator: torch.Gener
 
     Raises:
         ValueError: If ``draws < 1``.
+        ShapeError, TypeError, NonFiniteError: On invalid motions.
     """
+    check_transform(motion, "motion")
     if draws < 1:
         raise ValueError(f"`draws` must be >= 1, got {draws}")
     rot, trans = se3.split(motion)  # (B, 3, 3), (B, 3)
