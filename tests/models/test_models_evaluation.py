@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from lightning.pytorch import Trainer
 
+from _training import quiet_trainer  # type: ignore[import-not-found]
 from lcreg.data.datamodule import SyntheticDataModule
 from lcreg.geometry import se3
 from lcreg.metrics.functional import rotation_error_deg
@@ -29,17 +29,6 @@ class _Identity(RegistrationModule):
         return RegistrationResult(transform, torch.ones(b, dtype=torch.bool), torch.ones(b, dtype=torch.int64))
 
 
-def _trainer(root: Path) -> Trainer:
-    """A quiet CPU trainer writing its test files to ``root``."""
-    return Trainer(
-        accelerator="cpu",
-        logger=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=root,
-    )
-
-
 def _figures(rows: list[dict[str, str]]) -> dict[str, float]:
     euler = [float(r[c]) for r in rows for c in COMPONENT_COLUMNS[:3]]
     trans = [float(r[c]) for r in rows for c in COMPONENT_COLUMNS[3:]]
@@ -53,7 +42,7 @@ def _figures(rows: list[dict[str, str]]) -> dict[str, float]:
 
 def test_the_component_columns_give_the_test_figures_for_all_pairs_and_for_a_subset(tmp_path: Path) -> None:
     data = SyntheticDataModule(num_points=32, batch_size=2, num_train=2, num_val=2, num_test=5, points_per_shape=64)
-    trainer = _trainer(tmp_path)
+    trainer = quiet_trainer(tmp_path)
     trainer.test(_Identity(), datamodule=data, verbose=False)
     with (tmp_path / "test_per_pair.csv").open() as fh:
         reader = csv.DictReader(fh)
@@ -90,7 +79,7 @@ def test_the_transforms_file_holds_each_pair_s_estimate_and_truth_in_the_csv_s_o
             pred[batch.index == 2] = float("nan")
             self.test_pairs.update(transform_pred=pred, transform_gt=batch.transform_ref_src, index=batch.index)
 
-    trainer = _trainer(tmp_path)
+    trainer = quiet_trainer(tmp_path)
     trainer.test(_TruthTurned(), datamodule=data, verbose=False)
     with (tmp_path / "test_per_pair.csv").open() as fh:
         rows = list(csv.DictReader(fh))

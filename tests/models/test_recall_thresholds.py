@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch import Trainer
 from lightning.pytorch.callbacks import Callback
 
+from _training import quiet_trainer  # type: ignore[import-not-found]
 from lcreg.data.datamodule import SyntheticDataModule
 from lcreg.data.kitti import KITTIOdometryDataModule
 from lcreg.data.scenes import ScenePair, ScenePairDataModule, Split
@@ -50,17 +51,6 @@ class _ToyScenes(SevenScenesDataModule):
         return [self.pair] * 16
 
 
-def _trainer(tmp_path: Path) -> Trainer:
-    return Trainer(
-        accelerator="cpu",
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-    )
-
-
 def _recall_keys(results: dict[str, float], stage: str = "test") -> set[str]:
     return {k.removeprefix(f"{stage}/") for k in results if k.startswith(f"{stage}/recall_")}
 
@@ -76,8 +66,8 @@ def _expected(data: ScenePairDataModule, split: str, rot_thr: float, trans_thr: 
 def test_user_thresholds_add_val_and_test_keys_equal_to_the_functional_recall(tmp_path: Path) -> None:
     data = _ToyScenes(tmp_path)
     model = _Identity(recall_thresholds=[[15, 0.3], [22, 0.35]])
-    val = _trainer(tmp_path).validate(model, datamodule=data, verbose=False)[0]
-    test = _trainer(tmp_path).test(model, datamodule=data, verbose=False)[0]
+    val = quiet_trainer(tmp_path).validate(model, datamodule=data, verbose=False)[0]
+    test = quiet_trainer(tmp_path).test(model, datamodule=data, verbose=False)[0]
     for stage, results in (("val", val), ("test", test)):
         assert _recall_keys(results, stage) == STANDARD | {"recall_r15_t0p3", "recall_r22_t0p35"}
         for rot_thr, trans_thr, key in ((15.0, 0.3, "recall_r15_t0p3"), (22.0, 0.35, "recall_r22_t0p35")):
@@ -91,23 +81,23 @@ def test_the_datamodule_recall_applies_when_the_model_sets_none(tmp_path: Path) 
     assert KITTIOdometryDataModule.recall_thresholds == ((5.0, 2.0),)
     assert not hasattr(SyntheticDataModule, "recall_thresholds")  # object data: only the standard recalls
     data, model = _ToyScenes(tmp_path), _Identity()
-    test = _trainer(tmp_path).test(model, datamodule=data, verbose=False)[0]
+    test = quiet_trainer(tmp_path).test(model, datamodule=data, verbose=False)[0]
     assert _recall_keys(test) == STANDARD | {"recall_r15_t0p3"}
     assert test["test/recall_r15_t0p3"] == pytest.approx(_expected(data, "test", 15.0, 0.3), abs=1e-6)
     assert "recall_thresholds" not in model.hparams and model.recall_thresholds is None
     # The same model on object data afterwards: the scene recall is gone again.
     objects = SyntheticDataModule(num_train=2, num_val=2, num_test=2, points_per_shape=64, num_points=32)
-    assert _recall_keys(_trainer(tmp_path).test(model, datamodule=objects, verbose=False)[0]) == STANDARD
+    assert _recall_keys(quiet_trainer(tmp_path).test(model, datamodule=objects, verbose=False)[0]) == STANDARD
 
 
 def test_the_model_setting_overrides_the_datamodule(tmp_path: Path) -> None:
-    test = _trainer(tmp_path).test(_Identity(recall_thresholds=[[5, 2]]), datamodule=_ToyScenes(tmp_path))[0]
+    test = quiet_trainer(tmp_path).test(_Identity(recall_thresholds=[[5, 2]]), datamodule=_ToyScenes(tmp_path))[0]
     assert _recall_keys(test) == STANDARD | {"recall_r5_t2"}
 
 
 def test_the_summary_line_names_the_extra_recall(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.INFO):
-        _trainer(tmp_path).test(_Identity(), datamodule=_ToyScenes(tmp_path), verbose=False)
+        quiet_trainer(tmp_path).test(_Identity(), datamodule=_ToyScenes(tmp_path), verbose=False)
     (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("[test]")]
     assert "recall_r2_t0p01=" in line and "recall_r15_t0p3=" in line
 
@@ -125,7 +115,7 @@ def test_bad_datamodule_thresholds_fail_in_setup_naming_the_datamodule(tmp_path:
         recall_thresholds = ((15.0, 0.0),)
 
     with pytest.raises(ValueError, match=r"`_Bad\.recall_thresholds`"):
-        _trainer(tmp_path).test(_Identity(), datamodule=_Bad(tmp_path), verbose=False)
+        quiet_trainer(tmp_path).test(_Identity(), datamodule=_Bad(tmp_path), verbose=False)
 
 
 def test_thresholds_are_hyper_parameters_and_checkpoints_without_them_load(tmp_path: Path) -> None:
@@ -135,7 +125,7 @@ def test_thresholds_are_hyper_parameters_and_checkpoints_without_them_load(tmp_p
     model = PCRNet(**small, recall_thresholds=[[15, 0.3]])
     assert model.hparams["recall_thresholds"] == [[15, 0.3]] and model.recall_thresholds == ((15.0, 0.3),)
     assert set(model.state_dict()) == set(PCRNet(**small).state_dict())  # metrics hold no saved state
-    trainer = _trainer(tmp_path)
+    trainer = quiet_trainer(tmp_path)
     trainer.strategy.connect(model)
     trainer.save_checkpoint(tmp_path / "new.ckpt")
     assert PCRNet.load_from_checkpoint(tmp_path / "new.ckpt").recall_thresholds == ((15.0, 0.3),)
