@@ -6,6 +6,7 @@ Tests that call the CLI also request the ``isolated_cli`` fixture (``tests/conft
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sys
 from collections.abc import Iterator
@@ -100,3 +101,15 @@ class SigtermAt(Callback):
     def on_train_batch_end(self, trainer: Trainer, *args: Any) -> None:
         if trainer.global_step == self.step:
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+class CopyLastCheckpointAt(Callback):
+    """Copy ``last.ckpt`` to ``dest`` when optimiser step ``step`` starts: the file a ``kill -9`` then would leave
+    (``--trainer.callbacks+=_cli_runs.CopyLastCheckpointAt``)."""
+
+    def __init__(self, step: int, dest: str) -> None:
+        self.step, self.dest = step, Path(dest)
+
+    def on_train_batch_start(self, trainer: Trainer, *args: Any) -> None:
+        if trainer.global_step == self.step and not self.dest.exists():
+            shutil.copy(Path(trainer.log_dir or trainer.default_root_dir) / "checkpoints" / "last.ckpt", self.dest)

@@ -8,6 +8,7 @@ exactly where an uninterrupted run with the same seed ends. ``benchmarks/kill_re
 from __future__ import annotations
 
 import csv
+import json
 import random
 from pathlib import Path
 
@@ -80,6 +81,30 @@ def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_r
         torch.testing.assert_close(adam_resumed[index]["exp_avg_sq"], state["exp_avg_sq"], rtol=0, atol=0)
     # The untrained weights (configs/dvds.yaml validates first) and the two epochs; the resumed run adds none.
     assert _val_errors(stopped) == _val_errors(whole) and len(_val_errors(whole)) == 3
+
+
+@pytest.mark.parametrize("step", [3, 5], ids=["epoch-end save between validations", "save after a validation"])
+def test_a_run_resumed_from_the_last_checkpoint_a_kill_leaves_ends_like_the_uninterrupted_run(
+    tmp_path: Path, step: int
+) -> None:
+    """Validations every 2 steps, epochs of 3: the file at step 3 is the epoch-end save, between two validations.
+
+    Session 60 found a DCP-v2 queue run that left its uninterrupted trajectory after resuming from an epoch-end save;
+    this pins that the CLI itself resumes such a file exactly (the queue's case is still open).
+    """
+    every_2 = ["--trainer.val_check_interval=2", "--trainer.check_val_every_n_epoch=null"]
+    copy = tmp_path / "killed.ckpt"
+    spec = {"class_path": "_cli_runs.CopyLastCheckpointAt", "init_args": {"step": step, "dest": str(copy)}}
+    (tmp_path / "whole").mkdir()
+    with cli_isolation(tmp_path / "whole"):
+        whole = _fit(tmp_path / "whole", *every_2, f"--trainer.callbacks+={json.dumps(spec)}")
+    assert torch.load(copy, weights_only=True)["global_step"] == (3 if step == 3 else 4)
+    resumed = _fit(tmp_path / "resumed", *every_2, "--ckpt_path", str(copy))
+    expected = torch.load(whole / "checkpoints" / "last.ckpt", weights_only=True)
+    final = torch.load(resumed / "checkpoints" / "last.ckpt", weights_only=True)
+    assert final["global_step"] == expected["global_step"] == 6
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
 
 
 def test_ckpt_path_last_with_nothing_to_resume_is_an_error_naming_where_it_looked(tmp_path: Path) -> None:
