@@ -83,16 +83,21 @@ def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_r
     assert _val_errors(stopped) == _val_errors(whole) and len(_val_errors(whole)) == 3
 
 
+@pytest.mark.parametrize("train", [6, 7], ids=["full batches", "a leftover object"])
 @pytest.mark.parametrize("step", [3, 5], ids=["epoch-end save between validations", "save after a validation"])
 def test_a_run_resumed_from_the_last_checkpoint_a_kill_leaves_ends_like_the_uninterrupted_run(
-    tmp_path: Path, step: int
+    tmp_path: Path, step: int, train: int
 ) -> None:
     """Validations every 2 steps, epochs of 3: the file at step 3 is the epoch-end save, between two validations.
 
     Session 60 found a DCP-v2 queue run that left its uninterrupted trajectory after resuming from an epoch-end save;
     this pins that the CLI itself resumes such a file exactly (the queue's case is still open).
     """
-    every_2 = ["--trainer.val_check_interval=2", "--trainer.check_val_every_n_epoch=null"]
+    every_2 = [
+        "--trainer.val_check_interval=2",
+        "--trainer.check_val_every_n_epoch=null",
+        f"--data.init_args.num_train={train}",
+    ]
     copy = tmp_path / "killed.ckpt"
     spec = {"class_path": "_cli_runs.CopyLastCheckpointAt", "init_args": {"step": step, "dest": str(copy)}}
     (tmp_path / "whole").mkdir()
