@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
+from lcreg.experiments.benchmarking import ClassGroup, add_smoke_argument, class_groups, markdown_table, write_or_print
 from lcreg.experiments.benchmarking.writers import format_mean_std, significant
 from lcreg.experiments.reproduce.claims import compare
 from lcreg.metrics.registration import WORST_ROTATION_DEG
@@ -127,32 +127,17 @@ COLUMNS = {
     "rre_median_deg": "median RRE °",
     "euler_sq_share": "share of the squared Euler error",
 }
-Group = tuple[str, frozenset[str]]
-"""A group's name and the classes of its pairs."""
 
 
-def groups(pairs: Sequence[Pair], min_pairs: int, without: Sequence[Sequence[str]]) -> list[Group]:
-    """All pairs; each class with ``min_pairs`` or more, largest first; the rest pooled; each ``without`` list."""
-    counts: dict[str, int] = {}
-    for pair in pairs:
-        counts[pair.cls] = counts.get(pair.cls, 0) + 1
-    every = frozenset(counts)
-    large = sorted((c for c, n in counts.items() if n >= min_pairs), key=lambda c: (-counts[c], c))
-    found: list[Group] = [("all pairs", every), *((cls, frozenset([cls])) for cls in large)]
-    small = every - set(large)
-    if small:
-        found.append((f"the other {len(small)} classes", small))
-    for classes in without:
-        unknown = sorted(set(classes) - every)
-        if unknown:
-            raise PerPairFileError(f"--without {' '.join(classes)}: no test pair of class {', '.join(unknown)}")
-        if set(classes) >= every:
-            raise PerPairFileError(f"--without {' '.join(classes)}: leaves no test pair")
-        found.append((f"all but {', '.join(classes)}", every - set(classes)))
-    return found
+def groups(pairs: Sequence[Pair], min_pairs: int, without: Sequence[Sequence[str]]) -> list[ClassGroup]:
+    """The report's groups (:func:`~lcreg.experiments.benchmarking.class_groups`) of the first file's pairs."""
+    try:
+        return class_groups([pair.cls for pair in pairs], min_pairs, without)
+    except ValueError as err:
+        raise PerPairFileError(str(err)) from err
 
 
-def per_seed(seeds: Sequence[Sequence[Pair]], group: Group) -> tuple[int, list[dict[str, float]]]:
+def per_seed(seeds: Sequence[Sequence[Pair]], group: ClassGroup) -> tuple[int, list[dict[str, float]]]:
     """The group's pair count and its figures in each file."""
     values = []
     for pairs in seeds:

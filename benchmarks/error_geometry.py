@@ -45,7 +45,7 @@ import torch
 import yaml
 
 from lcreg.data.datamodule import PairDataModule
-from lcreg.experiments.benchmarking import add_smoke_argument, markdown_table, write_or_print
+from lcreg.experiments.benchmarking import ClassGroup, add_smoke_argument, class_groups, markdown_table, write_or_print
 from lcreg.experiments.benchmarking.writers import format_mean_std
 from lcreg.geometry import se3
 from lcreg.geometry.neighbors import knn
@@ -107,7 +107,7 @@ class PairGeometry:
         return self.random_p10 / self.random_median if self.random_median > 0 else float("nan")
 
 
-def test_datamodule(config: Path) -> PairDataModule:
+def run_datamodule(config: Path) -> PairDataModule:
     """The DataModule of a run's ``config.yaml`` (its ``data`` block), set up for ``test``."""
     try:
         data = yaml.safe_load(config.read_text(encoding="utf-8"))["data"]
@@ -139,7 +139,7 @@ def score_pair(
 ) -> PairGeometry | None:
     """The :class:`PairGeometry` of test pair ``index`` (``None`` for a failed pair)."""
     test_set = dm.test_set
-    assert test_set is not None  # set up by test_datamodule
+    assert test_set is not None  # set up by run_datamodule
     item = test_set[index]
     truth = item["transform_ref_src"].double()
     if not torch.allclose(truth, torch.from_numpy(gt), atol=SAME_TRUTH, rtol=0):
@@ -187,21 +187,10 @@ def _residuals(
 
 def score_run(run: Path, args: argparse.Namespace) -> tuple[list[PairGeometry], int]:
     """Every pair of one run folder, and the number of failed pairs."""
-    dm = test_datamodule(run / "config.yaml")
+    dm = run_datamodule(run / "config.yaml")
     index, pred, gt = read_transforms(run)
     scored = [score_pair(dm, int(i), p, g, args) for i, p, g in zip(index, pred, gt, strict=True)]
     return [s for s in scored if s is not None], sum(s is None for s in scored)
-
-
-def group_names(pairs: Sequence[PairGeometry], min_pairs: int) -> list[tuple[str, frozenset[str]]]:
-    """All pairs; each class with ``min_pairs`` or more, largest first; the other classes pooled."""
-    counts: dict[str, int] = {}
-    for pair in pairs:
-        counts[pair.cls] = counts.get(pair.cls, 0) + 1
-    large = sorted((c for c, n in counts.items() if n >= min_pairs), key=lambda c: (-counts[c], c))
-    rest = frozenset(counts) - frozenset(large)
-    groups = [("all pairs", frozenset(counts)), *((c, frozenset([c])) for c in large)]
-    return groups + ([(f"other ({len(rest)} classes)", rest)] if rest and len(large) > 0 else [])
 
 
 def _median(values: Sequence[float]) -> float:
@@ -250,7 +239,7 @@ def report(runs: Sequence[Path], args: argparse.Namespace) -> tuple[str, list[li
         if sorted((p.index, p.cls) for p in pairs) != first:
             raise ErrorGeometryError(f"{run}: other scored pairs than {runs[0]} (other pairs, or other failures)")
     lines = []
-    for name, classes in group_names(seeds[0], args.min_pairs):
+    for name, classes in class_groups([p.cls for p in seeds[0]], args.min_pairs):
         values = [summary([p for p in pairs if p.cls in classes], args.large_deg) for pairs in seeds]
         lines.append([name, *(_cell([v[k] for v in values]) for k in COLUMNS)])
     text = [
@@ -284,7 +273,7 @@ def write_pairs(path: Path, runs: Sequence[Path], seeds: Sequence[Sequence[PairG
                 writer.writerow([str(run), p.index, p.cls, *(f"{v:.6g}" for v in values)])
 
 
-def plot(path: Path, seeds: Sequence[Sequence[PairGeometry]], groups: Sequence[tuple[str, frozenset[str]]]) -> Path:
+def plot(path: Path, seeds: Sequence[Sequence[PairGeometry]], groups: Sequence[ClassGroup]) -> Path:
     """Residual ratio against rotation error, every scored pair of every run, one colour per group."""
     from lcreg.figures import agg_figure, save_png
 
@@ -364,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.pairs_out:
             write_pairs(args.pairs_out, runs, seeds)
         if args.plot:
-            groups = group_names(seeds[0], args.min_pairs)
+            groups = class_groups([p.cls for p in seeds[0]], args.min_pairs)
             print(f"wrote {plot(args.plot, seeds, groups[1:] or groups)}")
     write_or_print(text, args.out, "error_geometry.md", args.smoke)
 

@@ -8,7 +8,8 @@
 * :mod:`~lcreg.experiments.benchmarking.measure`: :func:`timed` (the one timing primitive, synchronised on CUDA),
   medians of repeats, registration speed, peak memory, fresh-process measurements;
 * :mod:`~lcreg.experiments.benchmarking.training`: :func:`training_loss` and short :func:`fit` runs with a step budget;
-* :mod:`~lcreg.experiments.benchmarking.data`: deterministic benchmark pairs and the synthetic data of ``--smoke`` runs;
+* :mod:`~lcreg.experiments.benchmarking.data`: deterministic benchmark pairs, the synthetic data of ``--smoke`` runs and
+  the class groups of per-class reports (:func:`class_groups`);
 * :mod:`~lcreg.experiments.benchmarking.writers`: Markdown tables, ``mean ± std``, resumable JSONL results;
 * :mod:`~lcreg.experiments.benchmarking.curves`: learning curves of ``lcreg fit`` runs (``metrics.csv`` -> PNGs,
   summary table);
@@ -35,6 +36,8 @@ from lcreg.experiments.benchmarking.curves import (
     write_synthetic_metrics,
 )
 from lcreg.experiments.benchmarking.data import (
+    ClassGroup,
+    class_groups,
     pair_batches,
     pair_batches_and_classes,
     pair_datamodule,
@@ -114,6 +117,7 @@ __all__ = [
     "X_AXES",
     "Band",
     "Budget",
+    "ClassGroup",
     "FitResult",
     "MethodSpec",
     "RegistrationSpeed",
@@ -126,6 +130,7 @@ __all__ = [
     "apply_smoke",
     "build",
     "build_cli_for",
+    "class_groups",
     "cli_args",
     "config_dir",
     "config_path",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import fields, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -16,6 +16,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "SYNTHETIC_DATA",
+    "ClassGroup",
+    "class_groups",
     "pair_batches",
     "pair_batches_and_classes",
     "pair_datamodule",
@@ -157,3 +159,35 @@ def _first_pairs(batches: Iterable[RegistrationBatch], pairs: int | None) -> lis
 
 def _head(value: Any, count: int) -> Any:
     return None if value is None else value[:count]
+
+
+ClassGroup = tuple[str, frozenset[str]]
+"""A group of test pairs by object class: its name and the classes of its pairs."""
+
+
+def class_groups(classes: Sequence[str], min_pairs: int, without: Sequence[Sequence[str]] = ()) -> list[ClassGroup]:
+    """The groups per-class reports split test pairs into, from the class of every pair.
+
+    All pairs; each class with ``min_pairs`` or more pairs, largest first; the other classes pooled
+    (``"the other N classes"``); and for each list in ``without``, all pairs but those classes.
+
+    Raises:
+        ValueError: A ``without`` list names a class no pair has, or leaves no pair.
+    """
+    counts: dict[str, int] = {}
+    for cls in classes:
+        counts[cls] = counts.get(cls, 0) + 1
+    every = frozenset(counts)
+    large = sorted((c for c, n in counts.items() if n >= min_pairs), key=lambda c: (-counts[c], c))
+    found: list[ClassGroup] = [("all pairs", every), *((cls, frozenset([cls])) for cls in large)]
+    small = every - set(large)
+    if small:
+        found.append((f"the other {len(small)} classes", small))
+    for excluded in without:
+        unknown = sorted(set(excluded) - every)
+        if unknown:
+            raise ValueError(f"--without {' '.join(excluded)}: no test pair of class {', '.join(unknown)}")
+        if set(excluded) >= every:
+            raise ValueError(f"--without {' '.join(excluded)}: leaves no test pair")
+        found.append((f"all but {', '.join(excluded)}", every - set(excluded)))
+    return found
