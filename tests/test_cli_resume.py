@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import random
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -83,33 +84,83 @@ def test_a_stopped_run_resumed_with_ckpt_path_last_ends_like_the_uninterrupted_r
     assert _val_errors(stopped) == _val_errors(whole) and len(_val_errors(whole)) == 3
 
 
-@pytest.mark.parametrize("train", [6, 7], ids=["full batches", "a leftover object"])
-@pytest.mark.parametrize("step", [3, 5], ids=["epoch-end save between validations", "save after a validation"])
-def test_a_run_resumed_from_the_last_checkpoint_a_kill_leaves_ends_like_the_uninterrupted_run(
-    tmp_path: Path, step: int, train: int
-) -> None:
-    """Validations every 2 steps, epochs of 3: the file at step 3 is the epoch-end save, between two validations.
+# Validations every 2 steps, epochs of 3 (6 or 7 training shapes in batches of 2, the last batch dropped).
+EVERY_2 = ["--trainer.val_check_interval=2", "--trainer.check_val_every_n_epoch=null"]
+# The queue's runs: a step budget (Lightning always restarts such a run's fit loop), epochs unbounded.
+BY_STEPS = ["--trainer.max_epochs=-1", "--trainer.max_steps=6"]
+KILLS = {  # the step whose start copies last.ckpt: 3 is the end of the first epoch
+    "epoch-end save between validations": (3, EVERY_2),
+    "save after a validation": (5, EVERY_2),
+    "step budget, epoch-end save between validations": (3, [*EVERY_2, *BY_STEPS]),
+    "step budget, save after a validation": (5, [*EVERY_2, *BY_STEPS]),
+    "step budget, validation every 2nd epoch": (3, ["--trainer.check_val_every_n_epoch=2", *BY_STEPS]),
+    "step budget, validation at every epoch's end by steps": (
+        3,
+        ["--trainer.val_check_interval=3", *EVERY_2[1:], *BY_STEPS],
+    ),
+}
 
-    Session 60 found a DCP-v2 queue run that left its uninterrupted trajectory after resuming from an epoch-end save;
-    this pins that the CLI itself resumes such a file exactly (the queue's case is still open).
-    """
-    every_2 = [
-        "--trainer.val_check_interval=2",
-        "--trainer.check_val_every_n_epoch=null",
-        f"--data.init_args.num_train={train}",
-    ]
+
+def _kill_and_resume(tmp_path: Path, step: int, args: list[str]) -> tuple[dict, dict]:
+    """The final ``last.ckpt`` of an uninterrupted run and of one resumed from the file a kill at ``step`` leaves."""
     copy = tmp_path / "killed.ckpt"
     spec = {"class_path": "_cli_runs.CopyLastCheckpointAt", "init_args": {"step": step, "dest": str(copy)}}
     (tmp_path / "whole").mkdir()
     with cli_isolation(tmp_path / "whole"):
-        whole = _fit(tmp_path / "whole", *every_2, f"--trainer.callbacks+={json.dumps(spec)}")
+        whole = _fit(tmp_path / "whole", *args, f"--trainer.callbacks+={json.dumps(spec)}")
     assert torch.load(copy, weights_only=True)["global_step"] == (3 if step == 3 else 4)
-    resumed = _fit(tmp_path / "resumed", *every_2, "--ckpt_path", str(copy))
+    resumed = _fit(tmp_path / "resumed", *args, "--ckpt_path", str(copy))
     expected = torch.load(whole / "checkpoints" / "last.ckpt", weights_only=True)
-    final = torch.load(resumed / "checkpoints" / "last.ckpt", weights_only=True)
+    return expected, torch.load(resumed / "checkpoints" / "last.ckpt", weights_only=True)
+
+
+@pytest.mark.parametrize("train", [6, 7], ids=["full batches", "a leftover object"])
+@pytest.mark.parametrize("kill", list(KILLS))
+def test_a_run_resumed_from_the_last_checkpoint_a_kill_leaves_ends_like_the_uninterrupted_run(
+    tmp_path: Path, kill: str, train: int
+) -> None:
+    """Session 60 found a DCP-v2 queue run (``max_steps``, validation every 50 steps, epochs of 88) that left its
+    uninterrupted trajectory after resuming from the epoch-end save at step 352. Session 61: Lightning ends a
+    ``max_steps`` run's resumed epoch again after one more batch when the file was written in ``on_train_epoch_end``
+    (a loss_epoch row at step 352, the next epoch one step late); ``LatestCheckpoint`` now saves the end of such an
+    epoch at its last batch. The step-budget cases failed before (weights off by up to 7e-5 here, 0.04 on the
+    queue's DCP-v2 configuration shrunk to 32 points)."""
+    step, args = KILLS[kill]
+    expected, final = _kill_and_resume(tmp_path, step, [f"--data.init_args.num_train={train}", *args])
     assert final["global_step"] == expected["global_step"] == 6
     for key, value in expected["state_dict"].items():
         torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
+
+
+BY_EPOCH_VALIDATIONS = ["--trainer.check_val_every_n_epoch=1", *BY_STEPS]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="Lightning-AI/pytorch-lightning#19617: a max_steps run resumed from an "
+    "on_train_epoch_end save ends that epoch again; with one validation per epoch (val_check_interval "
+    "1.0) ModelCheckpoint takes it in at the epoch's end, so last.ckpt must be written there",
+)
+def test_a_step_budget_with_validation_by_epochs_resumes_an_epoch_end_save_exactly(tmp_path: Path) -> None:
+    """The one schedule left inexact (weights off by about 1e-4 here); the next test pins its warning."""
+    expected, final = _kill_and_resume(tmp_path, 3, BY_EPOCH_VALIDATIONS)
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
+
+
+@pytest.mark.parametrize(
+    ("args", "warns"),
+    [(BY_EPOCH_VALIDATIONS, True), (["--trainer.check_val_every_n_epoch=1"], False), ([*EVERY_2, *BY_STEPS], False)],
+    ids=["step budget, validation by epochs", "epoch budget", "step budget, validation by steps"],
+)
+def test_the_schedule_that_does_not_resume_exactly_is_named_at_the_start(
+    tmp_path: Path, args: list[str], warns: bool
+) -> None:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _fit(tmp_path, "--data.init_args.num_train=6", *args)
+    named = [w for w in caught if "resumes" in str(w.message) and "val_check_interval=3" in str(w.message)]
+    assert len(named) == (1 if warns else 0)
 
 
 def test_ckpt_path_last_with_nothing_to_resume_is_an_error_naming_where_it_looked(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ from lightning.pytorch.callbacks import (
 )
 from lightning.pytorch.callbacks.early_stopping import EarlyStoppingReason
 from lightning.pytorch.trainer.states import TrainerFn
-from lightning.pytorch.utilities import rank_zero_info
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from lcreg.types import RegistrationResult
@@ -105,11 +105,31 @@ class LatestCheckpoint(Checkpoint):
     def on_train_batch_end(
         self, trainer: Trainer, pl_module: LightningModule, outputs: Any, batch: Any, batch_idx: int
     ) -> None:
-        """Save every ``every_n_train_steps`` optimiser steps."""
+        """Save every ``every_n_train_steps`` optimiser steps, and after an epoch's last batch (see below).
+
+        The end of an epoch is saved here, at its last batch, unless a validation follows or the trainer's
+        ``ModelCheckpoint`` takes its update in at the epoch's end (then :meth:`on_train_epoch_end` saves). Lightning
+        2.6 resumes a file from this hook exactly; a file written in ``on_train_epoch_end`` of a ``max_steps`` run
+        makes the resumed run end that epoch again after one more batch (its fit loop always restarts an
+        iteration-based run: Lightning-AI/pytorch-lightning#19617).
+        """
         step, n = trainer.global_step, self.every_n_train_steps
         due = (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps
+        due = due or (_epoch_complete(trainer) and not _checkpoints_update_at_epoch_end(trainer))
         if due and not _validation_follows(trainer):
             self._save(trainer)
+
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        """Warn when this run's epoch-end saves will not resume exactly (see :meth:`on_train_batch_end`)."""
+        batches = trainer.num_training_batches
+        ends = trainer.max_steps != -1 and batches != float("inf") and batches <= trainer.max_steps
+        if ends and _checkpoints_update_at_epoch_end(trainer):
+            rank_zero_warn(
+                "lcreg: this run has a step budget and its checkpoints update at the end of each epoch, where "
+                "last.ckpt is then written; a run resumed from such a file trains one batch more than the "
+                "uninterrupted run (Lightning-AI/pytorch-lightning#19617). The same schedule that resumes exactly: "
+                f"`--trainer.val_check_interval={int(batches)} --trainer.check_val_every_n_epoch=null`"
+            )
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Save after every validation during ``fit`` (also the step-cadence save of the batch before it).
@@ -148,7 +168,8 @@ class LatestCheckpoint(Checkpoint):
             self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Save at the end of every complete training epoch (after the epoch's validation, if any).
+        """Save at the end of every complete training epoch (after the epoch's validation, if any), unless its last
+        batch was saved already (:meth:`on_train_batch_end`).
 
         An epoch cut short (``max_steps``) is not saved here: its last step was (a checkpoint here would resume at
         the next epoch).
