@@ -113,3 +113,15 @@ class CopyLastCheckpointAt(Callback):
     def on_train_batch_start(self, trainer: Trainer, *args: Any) -> None:
         if trainer.global_step == self.step and not self.dest.exists():
             shutil.copy(Path(trainer.log_dir or trainer.default_root_dir) / "checkpoints" / "last.ckpt", self.dest)
+
+
+class InterruptAt(Callback):
+    """Raise ``KeyboardInterrupt`` when optimiser step ``step`` starts, as Ctrl+C would
+    (``--trainer.callbacks+=_cli_runs.InterruptAt``): ``last.ckpt`` stays the latest save before that step."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_start(self, trainer: Trainer, *args: Any) -> None:
+        if trainer.global_step == self.step:
+            raise KeyboardInterrupt

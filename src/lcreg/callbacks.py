@@ -126,8 +126,9 @@ class LatestCheckpoint(Checkpoint):
         if ends and _checkpoints_update_at_epoch_end(trainer):
             rank_zero_warn(
                 "lcreg: this run has a step budget and its checkpoints update at the end of each epoch, where "
-                "last.ckpt is then written; a run resumed from such a file trains one batch more than the "
-                "uninterrupted run (Lightning-AI/pytorch-lightning#19617). The same schedule that resumes exactly: "
+                "last.ckpt is then written; a run resumed from such a file ends that epoch again and does not "
+                "repeat the uninterrupted run (Lightning-AI/pytorch-lightning#19617). The same schedule that resumes "
+                "exactly: "
                 f"`--trainer.val_check_interval={int(batches)} --trainer.check_val_every_n_epoch=null`"
             )
 
@@ -168,8 +169,9 @@ class LatestCheckpoint(Checkpoint):
             self._save(trainer)
 
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Save at the end of every complete training epoch (after the epoch's validation, if any), unless its last
-        batch was saved already (:meth:`on_train_batch_end`).
+        """Save at the end of every complete training epoch not saved at its last batch (:meth:`on_train_batch_end`).
+
+        That is, after the epoch's validation when ``ModelCheckpoint`` takes it in at the epoch's end.
 
         An epoch cut short (``max_steps``) is not saved here: its last step was (a checkpoint here would resume at
         the next epoch).

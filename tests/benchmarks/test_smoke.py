@@ -33,6 +33,7 @@ RUNS = {
     "compare_methods": [],
     "class_breakdown": [],
     "error_geometry": [],
+    "resume_audit": [],
     "compare_rows": [],
     "eval_modelnet40_dvds": [],
     "eval_modelnet40_dvds --split val": ["--split", "val", "--model-args", "eval_iterations=2"],
