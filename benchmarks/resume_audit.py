@@ -5,10 +5,11 @@
 
 Until session 61 :class:`lcreg.callbacks.LatestCheckpoint` wrote the end of an epoch in ``on_train_epoch_end``. A
 ``max_steps`` run resumed from such a file ends that epoch again after one more batch (Lightning 2.6 always restarts an
-iteration-based run's fit loop: Lightning-AI/pytorch-lightning#19617), so the resumed run is one step ahead of the
-uninterrupted one from there on, the next epoch's first batch trained twice. Its trace in the metrics: the first
-epoch-end row of the resumed segment ends the epoch the previous segment had ended already, one step later (e.g.
-``train/loss_epoch`` of epoch 3 at step 351, then again at 352; a validation due at the extra step comes before it).
+iteration-based run's fit loop; a related report: Lightning-AI/pytorch-lightning#19617), so the resumed run is one
+step ahead of the uninterrupted one from there on, the next epoch's first batch trained twice. Its trace in the
+metrics: the first epoch-end row of the resumed segment ends the epoch the previous segment had ended already, one
+step later (e.g. ``train/loss_epoch`` of epoch 3 at step 351, then again at 352; a validation due at the extra step
+comes before it).
 
 The script reads every ``metrics.csv`` under the folders given, with the ``metrics.segment<n>.csv`` of its earlier
 segments (:func:`lcreg.experiments.benchmarking.curves.segments`), and lists each resume boundary with that trace.

@@ -137,7 +137,7 @@ BY_EPOCH_VALIDATIONS = ["--trainer.check_val_every_n_epoch=1", *BY_STEPS]
 
 @pytest.mark.xfail(
     strict=True,
-    reason="Lightning-AI/pytorch-lightning#19617: a max_steps run resumed from an "
+    reason="related to Lightning-AI/pytorch-lightning#19617: a max_steps run resumed from an "
     "on_train_epoch_end save ends that epoch again; with one validation per epoch (val_check_interval "
     "1.0) ModelCheckpoint takes it in at the epoch's end, so last.ckpt must be written there",
 )

@@ -111,7 +111,7 @@ class LatestCheckpoint(Checkpoint):
         ``ModelCheckpoint`` takes its update in at the epoch's end (then :meth:`on_train_epoch_end` saves). Lightning
         2.6 resumes a file from this hook exactly; a file written in ``on_train_epoch_end`` of a ``max_steps`` run
         makes the resumed run end that epoch again after one more batch (its fit loop always restarts an
-        iteration-based run: Lightning-AI/pytorch-lightning#19617).
+        iteration-based run; a related report: Lightning-AI/pytorch-lightning#19617).
         """
         step, n = trainer.global_step, self.every_n_train_steps
         due = (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps
@@ -127,8 +127,8 @@ class LatestCheckpoint(Checkpoint):
             rank_zero_warn(
                 "lcreg: this run has a step budget and its checkpoints update at the end of each epoch, where "
                 "last.ckpt is then written; a run resumed from such a file ends that epoch again and does not "
-                "repeat the uninterrupted run (Lightning-AI/pytorch-lightning#19617). The same schedule that resumes "
-                "exactly: "
+                "repeat the uninterrupted run (a related report: Lightning-AI/pytorch-lightning#19617). The same "
+                "schedule that resumes exactly: "
                 f"`--trainer.val_check_interval={int(batches)} --trainer.check_val_every_n_epoch=null`"
             )
 
