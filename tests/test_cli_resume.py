@@ -132,24 +132,33 @@ def test_a_run_resumed_from_the_last_checkpoint_a_kill_leaves_ends_like_the_unin
         torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
 
 
-# Halves the rate at every plateau step (no value beats the best by a factor of 10): a missed step shows in the rate.
-ALWAYS_HALVE = (
+# A plateau scheduler whose state follows the metric: it halves the rate whenever val/loss does not improve.
+PLATEAU = (
     '--model.init_args.lr_scheduler={"class_path": "torch.optim.lr_scheduler.ReduceLROnPlateau", '
-    '"init_args": {"patience": 0, "factor": 0.5, "threshold": 10.0}}'
+    '"init_args": {"patience": 0, "factor": 0.5}}'
 )
+PLATEAU_KILLS = {
+    "DeepGMR's schedule: validation at each epoch's last batch by steps": (
+        3,
+        ["--trainer.val_check_interval=3", *EVERY_2[1:], *BY_STEPS],
+    ),
+    "validations every 2 steps, a plateau step between two of them": (5, [*EVERY_2, *BY_STEPS]),
+    "validations every 2 steps, the epoch-end save": (3, [*EVERY_2, *BY_STEPS]),
+    "validation at each epoch's end, epoch budget": (3, ["--trainer.check_val_every_n_epoch=1"]),
+}
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a plateau scheduler's step after the validation saved in last.ckpt is not "
-    "taken by the resumed run (Lightning skips plateau steps when restarting: no saved metrics)",
-)
-def test_a_plateau_scheduler_takes_the_same_steps_in_a_resumed_run(tmp_path: Path) -> None:
-    """Session 61: DeepGMR's schedule (ReduceLROnPlateau on val/loss, validation at each epoch's last batch by steps)
-    resumed from the save after a validation ends with its rate one halving behind (3e-5 against 1.5e-5 here)."""
-    args = ["--trainer.val_check_interval=3", "--trainer.check_val_every_n_epoch=null", *BY_STEPS, ALWAYS_HALVE]
-    expected, final = _kill_and_resume(tmp_path, 3, args)
-    assert final["lr_schedulers"][0]["_last_lr"] == expected["lr_schedulers"][0]["_last_lr"]
+@pytest.mark.parametrize("kill", list(PLATEAU_KILLS))
+def test_a_plateau_scheduler_takes_the_same_steps_in_a_resumed_run(tmp_path: Path, kill: str) -> None:
+    """Session 61: Lightning skips plateau steps when it restarts (the metrics are not in checkpoints), so a run
+    resumed from the save after a validation ended with its rate one halving behind (3e-5 against 1.5e-5 in the first
+    case; 6 of the 15 resumes of the committed DeepGMR runs were such). ``LatestCheckpoint`` now keeps the monitored
+    metric and the steps still due in ``last.ckpt``."""
+    step, args = PLATEAU_KILLS[kill]
+    expected, final = _kill_and_resume(tmp_path, step, [*args, PLATEAU])
+    assert final["lr_schedulers"][0] == expected["lr_schedulers"][0]
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
 
 
 BY_EPOCH_VALIDATIONS = ["--trainer.check_val_every_n_epoch=1", *BY_STEPS]
