@@ -73,11 +73,10 @@ class LatestCheckpoint(Checkpoint):
         self.every_n_train_steps = every_n_train_steps
         self.filename = filename
         self._saved_step = -1
-        self._pending: list[tuple[int, float]] = []  # plateau steps Lightning takes after the save being written
-        self._to_take: list[tuple[int, float]] = []  # those of the checkpoint being resumed
+        self._trainer: Trainer | None = None
+        self._to_take: list[tuple[int, float]] = []  # the resumed checkpoint's due plateau steps
+        self._restored_monitors: dict[str, float] = {}  # and its plateau metrics
         self._resumed_step = -1
-        self._monitors: dict[str, float] = {}  # the plateau schedulers' metrics as they stand at the save
-        self._restored_monitors: dict[str, float] = {}
 
     @property
     def state_key(self) -> str:
@@ -106,24 +105,27 @@ class LatestCheckpoint(Checkpoint):
         ):
             return
         self._saved_step = trainer.global_step
-        self._pending = _plateau_steps_due(trainer)
-        self._monitors = _plateau_monitors(trainer)
-        try:
-            trainer.save_checkpoint(self.path(trainer), weights_only=False)  # the full state, not weights only
-        finally:
-            self._pending, self._monitors = [], {}
+        trainer.save_checkpoint(self.path(trainer), weights_only=False)  # the full state, not weights only
+
+    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
+        """Keep the trainer: :meth:`state_dict` reads its schedulers and metrics."""
+        self._trainer = trainer
 
     def state_dict(self) -> dict[str, Any]:
         """What ``ReduceLROnPlateau`` schedulers need to go on alike in a run resumed from ``last.ckpt``.
 
         Lightning keeps no metrics in checkpoints and skips plateau steps when it restarts, so a resumed run took
         fewer (a save after a validation: one behind; DeepGMR's schedule) or skipped one between validations. Kept
-        in the file being written (other files get none): the monitored metrics as they stand and the plateau
-        steps due after the save that the resumed run would not take (:func:`_plateau_steps_due`);
-        :meth:`on_train_start` restores and takes them, and :meth:`on_train_epoch_end` takes the epoch's steps that
-        Lightning skips in the first epoch of a resumed run.
+        in every checkpoint of a ``fit``: the monitored metrics as they stand and the plateau steps due after this
+        moment that a run resumed from it would not take (:func:`_plateau_steps_due`); :meth:`on_train_start`
+        restores and takes them, and :meth:`on_train_epoch_end` takes the epoch's steps that Lightning skips in the
+        first epoch of a resumed run.
         """
-        return {"plateau_steps": [[index, value] for index, value in self._pending], "monitors": self._monitors}
+        trainer = self._trainer
+        if trainer is None:
+            return {}
+        steps = [[index, value] for index, value in _plateau_steps_due(trainer)]
+        return {"plateau_steps": steps, "monitors": _plateau_monitors(trainer)}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         """Keep the checkpoint's pending plateau steps and monitored metrics until training starts."""
@@ -156,11 +158,8 @@ class LatestCheckpoint(Checkpoint):
         metrics = trainer.callback_metrics  # the logger connector's own dict: a later plateau step reads it
         for key, value in self._restored_monitors.items():
             metrics.setdefault(key, torch.tensor(value))
-        self._restored_monitors = {}
-        configs = trainer.lr_scheduler_configs
-        for index, value in self._to_take:
-            pl_module.lr_scheduler_step(configs[index].scheduler, torch.tensor(value))
-        self._to_take = []
+        _take_plateau_steps(trainer, pl_module, self._to_take)
+        self._restored_monitors, self._to_take = {}, []
         self._resumed_step = trainer.global_step if trainer.ckpt_path else -1
         batches = trainer.num_training_batches
         ends = trainer.max_steps != -1 and batches != float("inf") and batches <= trainer.max_steps
@@ -222,8 +221,7 @@ class LatestCheckpoint(Checkpoint):
         if trainer.fit_loop.restarting and trainer.global_step != self._resumed_step:
             # Lightning skips the epoch's plateau steps in the first epoch of a resumed run; the resumed file's own
             # epoch end (no step trained since) had them taken in on_train_start.
-            for index, value in _plateau_steps_due(trainer, intervals=("epoch",)):
-                pl_module.lr_scheduler_step(trainer.lr_scheduler_configs[index].scheduler, torch.tensor(value))
+            _take_plateau_steps(trainer, pl_module, _plateau_steps_due(trainer, intervals=("epoch",)))
 
 
 def _plateau_steps_due(trainer: Trainer, intervals: Sequence[str] = ("step", "epoch")) -> list[tuple[int, float]]:
@@ -260,6 +258,12 @@ def _plateau_steps_due(trainer: Trainer, intervals: Sequence[str] = ("step", "ep
         if due and value is not None:
             steps.append((index, float(value)))
     return steps
+
+
+def _take_plateau_steps(trainer: Trainer, pl_module: LightningModule, steps: Sequence[tuple[int, float]]) -> None:
+    """Step the plateau schedulers ``steps`` names (index in ``trainer.lr_scheduler_configs``, metric) as Lightning."""
+    for index, value in steps:
+        pl_module.lr_scheduler_step(trainer.lr_scheduler_configs[index].scheduler, torch.tensor(value))
 
 
 def _plateau_monitors(trainer: Trainer) -> dict[str, float]:
