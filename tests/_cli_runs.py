@@ -5,6 +5,7 @@ Tests that call the CLI also request the ``isolated_cli`` fixture (``tests/conft
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -125,3 +126,25 @@ class InterruptAt(Callback):
     def on_train_batch_start(self, trainer: Trainer, *args: Any) -> None:
         if trainer.global_step == self.step:
             raise KeyboardInterrupt
+
+
+class RecordRates(Callback):
+    """Write to ``dest`` (JSON) the rate each training step used, the steps after which ``fit`` validated and the
+    steps its first scheduler took (``--trainer.callbacks+=_cli_runs.RecordRates``)."""
+
+    def __init__(self, dest: str) -> None:
+        self.dest = Path(dest)
+        self.rates: list[float] = []
+        self.validations: list[int] = []
+
+    def on_train_batch_start(self, trainer: Trainer, *args: Any) -> None:
+        self.rates.append(float(trainer.optimizers[0].param_groups[0]["lr"]))
+
+    def on_validation_end(self, trainer: Trainer, *args: Any) -> None:
+        if not trainer.sanity_checking:
+            self.validations.append(trainer.global_step)
+
+    def on_fit_end(self, trainer: Trainer, *args: Any) -> None:
+        scheduler = trainer.lr_scheduler_configs[0].scheduler
+        record = {"rates": self.rates, "validations": self.validations, "scheduler_steps": scheduler.last_epoch}
+        self.dest.write_text(json.dumps(record))

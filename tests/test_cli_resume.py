@@ -142,7 +142,7 @@ PLATEAU_KILLS = {
         3,
         ["--trainer.val_check_interval=3", *EVERY_2[1:], *BY_STEPS],
     ),
-    "validations every 2 steps, a plateau step between two of them": (5, [*EVERY_2, *BY_STEPS]),
+    "validations every 2 steps, the save after a validation": (5, [*EVERY_2, *BY_STEPS]),
     "validations every 2 steps, the epoch-end save": (3, [*EVERY_2, *BY_STEPS]),
     "validation at each epoch's end, epoch budget": (3, ["--trainer.check_val_every_n_epoch=1"]),
 }
@@ -152,8 +152,9 @@ PLATEAU_KILLS = {
 def test_a_plateau_scheduler_takes_the_same_steps_in_a_resumed_run(tmp_path: Path, kill: str) -> None:
     """Session 61: Lightning skips plateau steps when it restarts (the metrics are not in checkpoints), so a run
     resumed from the save after a validation ended with its rate one halving behind (3e-5 against 1.5e-5 in the first
-    case; 6 of the 15 resumes of the committed DeepGMR runs were such). ``LatestCheckpoint`` now keeps the monitored
-    metric and the steps still due in ``last.ckpt``."""
+    case; 6 of the 15 resumes of the committed DeepGMR runs were such). Since session 62 the model steps its plateau
+    scheduler after each validation itself and keeps the step still due in a checkpoint written in a validation;
+    without that entry the first two cases fail."""
     step, args = PLATEAU_KILLS[kill]
     expected, final = _kill_and_resume(tmp_path, step, [*args, PLATEAU])
     assert final["lr_schedulers"][0] == expected["lr_schedulers"][0]

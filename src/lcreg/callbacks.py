@@ -56,8 +56,7 @@ class LatestCheckpoint(Checkpoint):
     steps, at the last step (``max_steps``), after every validation, at the end of every complete training epoch and
     when SIGTERM stops ``fit`` (at most once per step; a step followed by a validation is saved after it), through
     ``Trainer.save_checkpoint`` (an atomic write: a killed run leaves the previous file whole). The file goes to
-    the directory of the trainer's first ``ModelCheckpoint`` (``<log_dir>/checkpoints`` by default). It also keeps
-    what ``ReduceLROnPlateau`` schedulers need to go on alike after a resume (:meth:`state_dict`).
+    the directory of the trainer's first ``ModelCheckpoint`` (``<log_dir>/checkpoints`` by default).
 
     Args:
         every_n_train_steps: Optimiser steps between two saves (0: only after validations and epochs).
@@ -73,10 +72,6 @@ class LatestCheckpoint(Checkpoint):
         self.every_n_train_steps = every_n_train_steps
         self.filename = filename
         self._saved_step = -1
-        self._trainer: Trainer | None = None
-        self._to_take: list[tuple[int, float]] = []  # the resumed checkpoint's due plateau steps
-        self._restored_monitors: dict[str, float] = {}  # and its plateau metrics
-        self._resumed_step = -1
 
     @property
     def state_key(self) -> str:
@@ -107,31 +102,6 @@ class LatestCheckpoint(Checkpoint):
         self._saved_step = trainer.global_step
         trainer.save_checkpoint(self.path(trainer), weights_only=False)  # the full state, not weights only
 
-    def setup(self, trainer: Trainer, pl_module: LightningModule, stage: str) -> None:
-        """Keep the trainer: :meth:`state_dict` reads its schedulers and metrics."""
-        self._trainer = trainer
-
-    def state_dict(self) -> dict[str, Any]:
-        """What ``ReduceLROnPlateau`` schedulers need to go on alike in a run resumed from ``last.ckpt``.
-
-        Lightning keeps no metrics in checkpoints and skips plateau steps when it restarts, so a resumed run took
-        fewer (a save after a validation: one behind; DeepGMR's schedule) or skipped one between validations. Kept
-        in every checkpoint of a ``fit``: the monitored metrics as they stand and the plateau steps due after this
-        moment that a run resumed from it would not take (:func:`_plateau_steps_due`); :meth:`on_train_start`
-        restores and takes them, and :meth:`on_train_epoch_end` takes the epoch's steps that Lightning skips in the
-        first epoch of a resumed run.
-        """
-        trainer = self._trainer
-        if trainer is None:
-            return {}
-        steps = [[index, value] for index, value in _plateau_steps_due(trainer)]
-        return {"plateau_steps": steps, "monitors": _plateau_monitors(trainer)}
-
-    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        """Keep the checkpoint's pending plateau steps and monitored metrics until training starts."""
-        self._to_take = [(int(index), float(value)) for index, value in state_dict.get("plateau_steps", [])]
-        self._restored_monitors = {str(k): float(v) for k, v in state_dict.get("monitors", {}).items()}
-
     def on_train_batch_end(
         self, trainer: Trainer, pl_module: LightningModule, outputs: Any, batch: Any, batch_idx: int
     ) -> None:
@@ -150,17 +120,7 @@ class LatestCheckpoint(Checkpoint):
             self._save(trainer)
 
     def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
-        """Restore the resumed checkpoint's plateau metrics and take its due plateau steps (:meth:`state_dict`).
-
-        Then warn when this run's epoch-end saves will not resume exactly (the schedule of
-        :meth:`on_train_batch_end`'s note).
-        """
-        metrics = trainer.callback_metrics  # the logger connector's own dict: a later plateau step reads it
-        for key, value in self._restored_monitors.items():
-            metrics.setdefault(key, torch.tensor(value))
-        _take_plateau_steps(trainer, pl_module, self._to_take)
-        self._restored_monitors, self._to_take = {}, []
-        self._resumed_step = trainer.global_step if trainer.ckpt_path else -1
+        """Warn when this run's epoch-end saves will not resume exactly (see :meth:`on_train_batch_end`)."""
         batches = trainer.num_training_batches
         ends = trainer.max_steps != -1 and batches != float("inf") and batches <= trainer.max_steps
         if ends and _checkpoints_update_at_epoch_end(trainer):
@@ -218,61 +178,6 @@ class LatestCheckpoint(Checkpoint):
         """
         if _epoch_complete(trainer):
             self._save(trainer)
-        if trainer.fit_loop.restarting and trainer.global_step != self._resumed_step:
-            # Lightning skips the epoch's plateau steps in the first epoch of a resumed run; the resumed file's own
-            # epoch end (no step trained since) had them taken in on_train_start.
-            _take_plateau_steps(trainer, pl_module, _plateau_steps_due(trainer, intervals=("epoch",)))
-
-
-def _plateau_steps_due(trainer: Trainer, intervals: Sequence[str] = ("step", "epoch")) -> list[tuple[int, float]]:
-    """``(index, metric)`` of the plateau steps Lightning takes after now that a run resumed from here would not.
-
-    Now is a hook of a ``fit`` batch or epoch. A step-interval scheduler steps at the end of the batch, after its
-    validation if any: due when now is ``on_train_batch_end`` (a run resumed from a save after the validation ends the
-    batch again and takes the step itself, its metric restored by :func:`_plateau_monitors`). An epoch-interval one
-    steps after ``on_train_epoch_end``, which a resumed run never repeats. Each when its frequency divides the batch's
-    index in its epoch or the epoch's number, with the monitored metric as it stands (missing: no step, as Lightning
-    skips it then).
-    """
-    if (
-        trainer.state.fn != TrainerFn.FITTING
-        or trainer.sanity_checking
-        or not trainer.lightning_module.automatic_optimization
-    ):
-        return []
-    loop = trainer.fit_loop
-    batches, epochs = loop.epoch_loop.batch_progress.current, loop.epoch_progress.current
-    steps = []
-    for index, config in enumerate(trainer.lr_scheduler_configs):
-        if not config.reduce_on_plateau or config.interval not in intervals:
-            continue
-        if config.interval == "step":
-            # After a validation Lightning's restart ends the batch again and takes the step itself (with the
-            # monitored metric restored); after on_train_batch_end it goes on to the next batch.
-            due = not trainer.validating and batches.completed < batches.ready
-            due = due and (loop.epoch_loop.batch_idx + 1) % config.frequency == 0
-        else:
-            due = _epoch_complete(trainer) and epochs.completed < epochs.ready
-            due = due and (trainer.current_epoch + 1) % config.frequency == 0
-        value = trainer.callback_metrics.get(config.monitor or "")
-        if due and value is not None:
-            steps.append((index, float(value)))
-    return steps
-
-
-def _take_plateau_steps(trainer: Trainer, pl_module: LightningModule, steps: Sequence[tuple[int, float]]) -> None:
-    """Step the plateau schedulers ``steps`` names (index in ``trainer.lr_scheduler_configs``, metric) as Lightning."""
-    for index, value in steps:
-        pl_module.lr_scheduler_step(trainer.lr_scheduler_configs[index].scheduler, torch.tensor(value))
-
-
-def _plateau_monitors(trainer: Trainer) -> dict[str, float]:
-    """The metrics the ``ReduceLROnPlateau`` schedulers monitor, as they stand (Lightning keeps none in checkpoints).
-
-    A plateau step between two validations reads the last one's value; a resumed run restores it.
-    """
-    keys = {c.monitor for c in trainer.lr_scheduler_configs if c.reduce_on_plateau and c.monitor}
-    return {key: float(trainer.callback_metrics[key]) for key in sorted(keys) if key in trainer.callback_metrics}
 
 
 def _checkpoints_update_at_epoch_end(trainer: Trainer) -> bool:

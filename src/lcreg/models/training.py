@@ -17,10 +17,12 @@ non-finite one stops training at once, naming the step and the parameter, before
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable, Iterable
 from typing import Any, Literal
 
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_warn
 
 from lcreg.checks import NonFiniteError
@@ -31,6 +33,9 @@ from lcreg.types import RegistrationBatch, RegistrationResult
 __all__ = ["NonFiniteTrainingError", "OptimizerFactory", "SchedulerFactory", "Stage", "TrainingLogic", "milestones"]
 
 Stage = Literal["train", "val", "test"]
+PLATEAU_MONITOR = "val/loss"  # what a ReduceLROnPlateau steps on (label-free for self-supervised models)
+_NEVER = sys.maxsize  # the frequency handed to Lightning for a plateau scheduler this module steps itself
+_PLATEAU_DUE_KEY = "lcreg_plateau_due"  # checkpoint entry: the loss of the plateau step due after this checkpoint
 OptimizerFactory = Callable[[Iterable[torch.nn.Parameter]], torch.optim.Optimizer]
 # Typed return (not Any): jsonargparse only accepts a scheduler `class_path` for a callable returning a scheduler.
 SchedulerFactory = Callable[
@@ -57,6 +62,7 @@ class TrainingLogic(RegistrationInterface):
     _bad_steps: int = 0
     _step_skipped: bool = False
     _step_index: list[int] | None = None
+    _resumed_plateau_loss: float | None = None
 
     def _compute_loss(self, result: RegistrationResult, batch: RegistrationBatch) -> dict[str, torch.Tensor]:
         """The model's own objective terms; must contain ``"loss"``. Call :meth:`training_losses`, not this."""
@@ -164,11 +170,14 @@ class TrainingLogic(RegistrationInterface):
     def on_train_start(self) -> None:
         """Refuse to train from non-finite parameters (loaded weights or checkpoint holding NaN/Inf).
 
+        Then warn about milestones beyond the run, and take the plateau step a resumed checkpoint had due.
+
         Raises:
             NonFiniteTrainingError: Naming the first non-finite parameter.
         """
         self._check_parameters("before training (the model's weights hold them)", advice="load finite weights")
         self._warn_unreached_milestones()
+        self._take_resumed_plateau_step()
 
     def _warn_unreached_milestones(self) -> None:
         """Warn when a step schedule's milestones lie beyond the run's step or epoch limit (its rate would not move).
@@ -309,18 +318,61 @@ class TrainingLogic(RegistrationInterface):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": interval}}
 
     def _plateau_config(self, scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau) -> dict[str, Any]:
-        """A plateau scheduler steps on the validation loss (label-free for self-supervised models), when it exists.
+        """A plateau scheduler steps once right after each validation of ``fit``, on its validation loss.
 
-        With validation every N steps (``val_check_interval=N``, ``check_val_every_n_epoch=None``) it steps every N
-        steps, right after each validation; an epoch end without a validation skips it (``strict=False``) instead of
-        stopping the run.
+        This module takes the steps (:meth:`on_validation_end`); Lightning is given a frequency it never reaches. Its
+        own rule counts a step-interval frequency in batches of the epoch and an epoch-interval one in epochs, so with
+        validations every N steps on epochs N does not divide, every k epochs or several times an epoch, its steps
+        missed validations or read a stale metric (the rate halved between validations, or never moved).
         """
-        config: dict[str, Any] = {"scheduler": scheduler, "monitor": "val/loss", "strict": False}
+        return {"scheduler": scheduler, "monitor": PLATEAU_MONITOR, "frequency": _NEVER, "strict": False}
+
+    def on_validation_end(self) -> None:
+        """Step the plateau scheduler on this validation's loss (a validation of ``fit``; none before ``fit``).
+
+        Lightning calls this after every callback's ``on_validation_end``, so checkpoints written in this validation
+        precede the step (:meth:`on_save_checkpoint` keeps it due).
+        """
+        scheduler, loss = self._plateau_due()
+        if scheduler is None:
+            return
+        if loss is None:
+            rank_zero_warn(f"ReduceLROnPlateau: validation logged no {PLATEAU_MONITOR!r}; the rate stays as it is")
+            return
+        self.lr_scheduler_step(scheduler, loss)
+
+    def _plateau_scheduler(self) -> Any:
+        """The plateau scheduler this module steps (:meth:`_plateau_config`), or None."""
+        configs = self._trainer.lr_scheduler_configs if self._trainer is not None else []
+        return next((c.scheduler for c in configs if c.reduce_on_plateau and c.frequency == _NEVER), None)
+
+    def _plateau_due(self) -> tuple[Any, torch.Tensor | None]:
+        """The plateau scheduler and the loss it steps on, while a validation of ``fit`` awaits its step.
+
+        ``(None, None)`` outside such a validation or without a plateau scheduler.
+        """
         trainer = self._trainer
-        interval = getattr(trainer, "val_check_interval", None)
-        if trainer is not None and trainer.check_val_every_n_epoch is None and isinstance(interval, int):
-            config |= {"interval": "step", "frequency": interval}
-        return config
+        if trainer is None or trainer.state.fn != TrainerFn.FITTING or trainer.sanity_checking:
+            return None, None
+        scheduler = self._plateau_scheduler() if trainer.validating else None
+        return (scheduler, trainer.callback_metrics.get(PLATEAU_MONITOR)) if scheduler is not None else (None, None)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep the plateau step still due when a validation writes the checkpoint (a run resumed from it takes it)."""
+        _, loss = self._plateau_due()
+        if loss is not None:
+            checkpoint[_PLATEAU_DUE_KEY] = float(loss)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep the checkpoint's due plateau step until training starts (:meth:`on_train_start`)."""
+        self._resumed_plateau_loss = checkpoint.get(_PLATEAU_DUE_KEY)
+
+    def _take_resumed_plateau_step(self) -> None:
+        """Take the plateau step a resumed checkpoint had due (a resumed run does not repeat that validation)."""
+        loss, self._resumed_plateau_loss = self._resumed_plateau_loss, None
+        scheduler = self._plateau_scheduler()
+        if loss is not None and scheduler is not None and self._trainer is not None and self._trainer.ckpt_path:
+            self.lr_scheduler_step(scheduler, torch.tensor(loss))
 
 
 def milestones(scheduler: Any) -> list[int]:

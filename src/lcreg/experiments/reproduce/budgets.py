@@ -169,9 +169,9 @@ at 2.5e-4 against 3 at 1e-3, all in bf16-mixed on the CPU, were better beyond th
 ``docs/results/converge/dcp_bf16_lr_seed2_256/lr_rule.md``). X and LC + X alike; the runs at 1e-3 keep their rows
 under the old key."""
 CONVERGE_EPOCHS_OF_8 = RunBudget(steps=5016, points=512, batch=8, checks=57, patience=8, val_pairs=4)
-"""``converge`` for IDAM and DeepGMR (about 1 s per step at 512 × 8): validated once per epoch (88 steps of 8 pairs,
-so epoch-stepped schedulers such as DeepGMR's ``ReduceLROnPlateau`` always see a validation loss), at most 57
-epochs, stopped after 8 epochs without gain."""
+"""``converge`` for IDAM and DeepGMR (about 1 s per step at 512 × 8): validated once per epoch (88 steps of 8 pairs;
+DeepGMR's ``ReduceLROnPlateau`` steps after each validation), at most 57 epochs, stopped after 8 epochs without
+gain."""
 
 
 @dataclass(frozen=True)
