@@ -69,8 +69,8 @@ class RegistrationModule(EvaluationLogic):
     Args:
         optimizer: Callable building the optimiser from the trainable parameters (default Adam, lr 1e-3).
         lr_scheduler: Optional callable building a scheduler from the optimiser (stepped as
-            ``lr_scheduler_interval`` says; a ``ReduceLROnPlateau`` steps once right after each validation of ``fit``, on
-            ``val/loss``, whatever the validation schedule).
+            ``lr_scheduler_interval`` says; a ``ReduceLROnPlateau`` steps once right after each validation of
+            ``fit``, on ``val/loss``, whatever the validation schedule).
         lr_scheduler_interval: ``"epoch"`` (default; the original methods' milestones are epochs of the full
             dataset) or ``"step"``: the scheduler steps after every optimiser step, so its milestones are step
             counts and do not move with the training set's size (e.g. IDAM's 30 epochs of the full ModelNet40 at
