@@ -10,6 +10,7 @@ import yaml
 
 from lcreg.cli import ConfigFileError, ConfigValueError, build_cli, expand_configs, main
 from lcreg.data.synthetic import PRIMITIVES
+from lcreg.experiments.reproduce.budgets import PRESETS
 from lcreg.models.evaluation import COMPONENT_COLUMNS
 
 from _cli_runs import TINY_DVDS  # type: ignore[import-not-found]
@@ -123,6 +124,13 @@ def test_print_config_exits_zero(capsys: pytest.CaptureFixture[str]) -> None:
     printed = yaml.safe_load(capsys.readouterr().out)
     assert printed["model"]["class_path"] == "lcreg.models.dvds.DVDs"
     assert printed["data"]["class_path"] == "lcreg.data.datamodule.SyntheticDataModule"
+
+
+def test_the_top_level_help_names_every_reproduce_budget(capsys: pytest.CaptureFixture[str]) -> None:
+    """Session 62: it named smoke|cpu|paper, without the converge budget ``lcreg reproduce`` takes."""
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert f"--budget {'|'.join(PRESETS)}" in " ".join(capsys.readouterr().out.split())
 
 
 @pytest.mark.parametrize(

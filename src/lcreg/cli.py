@@ -614,7 +614,7 @@ def build_cli(args: ArgsType | ConfigLayers = None, run: bool = True) -> LcregCL
             "description": "lcreg: train, test and compare registration networks (fit, validate, test, predict). "
             "To register your own clouds: `lcreg register SRC REF` (`lcreg register --help`). To deploy a learned "
             "registrar: `lcreg export NAME --format onnx|torchscript --out FILE`. To rerun the paper's "
-            "tables: `lcreg reproduce EXPERIMENT --budget smoke|cpu|paper` (`lcreg reproduce --help`).",
+            "tables: `lcreg reproduce EXPERIMENT --budget smoke|cpu|converge|paper` (`lcreg reproduce --help`).",
         },
         trainer_defaults=TRAINER_DEFAULTS,
         seed_everything_default=1234,
