@@ -162,6 +162,34 @@ def test_a_plateau_scheduler_takes_the_same_steps_in_a_resumed_run(tmp_path: Pat
         torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
 
 
+def _multistep(milestones: list[int], interval: str) -> list[str]:
+    scheduler = {"class_path": "torch.optim.lr_scheduler.MultiStepLR", "init_args": {"milestones": milestones}}
+    return [
+        f"--model.init_args.lr_scheduler={json.dumps(scheduler)}",
+        f"--model.init_args.lr_scheduler_interval={interval}",
+    ]
+
+
+STEP_SCHEDULE_KILLS = {  # the queue's IDAM runs (milestones in steps) and DCP-v2's and PRNet's configs (in epochs)
+    "milestones in steps, the save after a validation": (5, [*EVERY_2, *BY_STEPS, *_multistep([1, 3, 4, 5], "step")]),
+    "milestones in epochs, the epoch-end save": (3, [*EVERY_2, *BY_STEPS, *_multistep([1, 2], "epoch")]),
+}
+
+
+@pytest.mark.parametrize("kill", list(STEP_SCHEDULE_KILLS))
+def test_a_step_schedule_takes_the_same_steps_in_a_resumed_run(tmp_path: Path, kill: str) -> None:
+    """Session 62 probe, kept as a test: a ``MultiStepLR`` (Lightning steps it before the batch's callbacks, so every
+    save already holds the batch's step) resumes exactly from each of ``KILLS``' kill points, milestones in steps or
+    in epochs."""
+    step, args = STEP_SCHEDULE_KILLS[kill]
+    expected, final = _kill_and_resume(tmp_path, step, args)
+    assert final["lr_schedulers"][0] == expected["lr_schedulers"][0]
+    schedule = expected["lr_schedulers"][0]
+    assert schedule["_last_lr"][0] < schedule["base_lrs"][0]  # the rate moved (before the kill, too)
+    for key, value in expected["state_dict"].items():
+        torch.testing.assert_close(final["state_dict"][key], value, rtol=0, atol=0, msg=key)
+
+
 BY_EPOCH_VALIDATIONS = ["--trainer.check_val_every_n_epoch=1", *BY_STEPS]
 
 
