@@ -125,11 +125,12 @@ class LatestCheckpoint(Checkpoint):
         ends = trainer.max_steps != -1 and batches != float("inf") and batches <= trainer.max_steps
         if ends and _checkpoints_update_at_epoch_end(trainer):
             rank_zero_warn(
-                "lcreg: this run has a step budget and its checkpoints update at the end of each epoch, where "
-                "last.ckpt is then written; a run resumed from such a file ends that epoch again and does not "
-                "repeat the uninterrupted run (a related report: Lightning-AI/pytorch-lightning#19617). The same "
-                "schedule that resumes exactly: "
-                f"`--trainer.val_check_interval={int(batches)} --trainer.check_val_every_n_epoch=null`"
+                "lcreg: this run has a step budget and a listed ModelCheckpoint or EarlyStopping takes each "
+                "validation in at the end of its epoch, where last.ckpt is then written; a run resumed from such a "
+                "file ends that epoch again and does not repeat the uninterrupted run (a related report: "
+                "Lightning-AI/pytorch-lightning#19617). It resumes exactly with `save_on_train_epoch_end: false` "
+                "(ModelCheckpoint) and `check_on_train_epoch_end: false` (EarlyStopping), or with the same schedule "
+                f"in steps: `--trainer.val_check_interval={int(batches)} --trainer.check_val_every_n_epoch=null`"
             )
 
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
@@ -181,14 +182,17 @@ class LatestCheckpoint(Checkpoint):
 
 
 def _checkpoints_update_at_epoch_end(trainer: Trainer) -> bool:
-    """Whether the trainer's ``ModelCheckpoint`` callbacks take a validation in at the epoch's end.
+    """Whether a ``ModelCheckpoint`` or ``EarlyStopping`` callback takes a validation in at the epoch's end.
 
-    That is Lightning's rule for one validation per epoch; it is read from the callbacks themselves.
+    Lightning's rule for one validation per epoch, unless the callback says otherwise (``save_on_train_epoch_end``,
+    ``check_on_train_epoch_end``; lcreg's default ``ModelCheckpoint`` saves at the validation's end); it is read from
+    the callbacks themselves.
     """
-    from lightning.pytorch.callbacks import ModelCheckpoint
-
     checkpoints = [c for c in trainer.checkpoint_callbacks if isinstance(c, ModelCheckpoint)]
-    return any(c._should_save_on_train_epoch_end(trainer) for c in checkpoints)
+    stoppers = [c for c in trainer.callbacks if isinstance(c, EarlyStopping)]  # type: ignore[attr-defined]
+    return any(c._should_save_on_train_epoch_end(trainer) for c in checkpoints) or any(
+        bool(c._check_on_train_epoch_end) for c in stoppers
+    )
 
 
 def _epoch_complete(trainer: Trainer) -> bool:

@@ -230,7 +230,8 @@ def nested(values: Mapping[str, Any]) -> dict[str, Any]:
 class LcregCLI(LightningCLI):
     """LightningCLI with lcreg's base classes in subclass mode, the shared trainer defaults and ``compose``.
 
-    Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg")`` (the best),
+    Unless the trainer config lists its own, adds ``ModelCheckpoint(monitor="val/rre_mean_deg")`` (the best; saved
+    when each validation ends),
     :class:`~lcreg.callbacks.LatestCheckpoint` (``last.ckpt``: the latest state) and a
     :class:`~lcreg.callbacks.TimedProgressBar` (a TQDM bar redrawn at most every 0.5 s, at every step on a CPU); always
     adds :class:`~lcreg.callbacks.RngState` and :class:`~lcreg.callbacks.TrainingClock` (training seconds carried
@@ -502,6 +503,9 @@ class LcregCLI(LightningCLI):
                     mode="min",
                     filename="epoch{epoch:03d}-rre{val/rre_mean_deg:.3f}",
                     auto_insert_metric_name=False,
+                    # Saved when each validation ends, also one at an epoch's end: last.ckpt can then be written
+                    # after it at the epoch's last batch, which a max_steps run resumes exactly (LatestCheckpoint).
+                    save_on_train_epoch_end=False,
                 )
             )
         callbacks.extend(latest or ([LatestCheckpoint()] if checkpointing else []))
