@@ -107,8 +107,8 @@ class LatestCheckpoint(Checkpoint):
     ) -> None:
         """Save every ``every_n_train_steps`` optimiser steps, and after an epoch's last batch (see below).
 
-        The end of an epoch is saved here, at its last batch, unless a validation follows or the trainer's
-        ``ModelCheckpoint`` takes its update in at the epoch's end (then :meth:`on_train_epoch_end` saves). Lightning
+        The end of an epoch is saved here, at its last batch, unless a validation follows or a ``ModelCheckpoint``
+        or ``EarlyStopping`` takes its update in at the epoch's end (then :meth:`on_train_epoch_end` saves). Lightning
         2.6 resumes a file from this hook exactly; a file written in ``on_train_epoch_end`` of a ``max_steps`` run
         makes the resumed run end that epoch again after one more batch (its fit loop always restarts an
         iteration-based run; a related report: Lightning-AI/pytorch-lightning#19617).
@@ -136,10 +136,11 @@ class LatestCheckpoint(Checkpoint):
     def on_validation_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Save after every validation during ``fit`` (also the step-cadence save of the batch before it).
 
-        With one validation per epoch, ``ModelCheckpoint`` takes the validation in at the epoch's end, so the state
-        is saved then (:meth:`on_train_epoch_end`), already holding its update. Validations every N steps are taken
-        in here, before this callback (it runs after every ``ModelCheckpoint``), and are saved here: a checkpoint
-        from the epoch-end hook would resume that schedule one step late.
+        With one validation per epoch, Lightning's ``ModelCheckpoint`` and ``EarlyStopping`` take the validation in at
+        the epoch's end unless told otherwise (lcreg's default ``ModelCheckpoint`` is), so the state is then saved at
+        the epoch's end (:meth:`on_train_epoch_end`), already holding their update. Otherwise they take it in here,
+        before this callback (it runs after every ``ModelCheckpoint``), and it is saved here: a checkpoint from the
+        epoch-end hook would resume a ``max_steps`` run one step late.
         """
         if not (_epoch_complete(trainer) and _checkpoints_update_at_epoch_end(trainer)):
             self._save(trainer)
