@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from lcreg.cli import ConfigFileError, ConfigValueError, build_cli, expand_configs, main
+from lcreg.cli import ConfigFileError, ConfigValueError, build_cli, expand_configs, instantiate, main
 from lcreg.data.synthetic import PRIMITIVES
 from lcreg.experiments.reproduce.budgets import PRESETS
 from lcreg.models.evaluation import COMPONENT_COLUMNS
@@ -313,6 +313,24 @@ def test_instantiate_applies_typed_values_after_the_files_and_a_list_replaces_th
         and cli.config["seed_everything"] == 5
     )
     assert cli.model.encoder.linears[-1].out_features == 32
+
+
+@pytest.mark.parametrize("given", ["3", 3, 3.0])
+def test_a_train_objects_count_stays_a_count_through_the_cli(given: object) -> None:
+    """Session 62: jsonargparse parses an ``int | float | None`` argument (default None) float first under
+    LightningCLI, so ``--data.init_args.train_objects 286`` reached the DataModule as 286.0 and was refused as a
+    fraction above 1 (the queue's ``--train-objects 286`` job failed so); a count of 1 became 1.0, all the objects."""
+    if isinstance(given, str):
+        cli = build_cli(["--config", str(DVDS), "--data.init_args.train_objects", given], run=False)
+    else:
+        cli = instantiate([str(DVDS)], {"data.init_args.train_objects": given})
+    assert cli.datamodule.train_objects == 3 and isinstance(cli.datamodule.train_objects, int)
+
+
+def test_train_objects_one_from_a_config_is_refused_as_ambiguous() -> None:
+    with pytest.raises(ConfigValueError, match=r"train_objects.*ambiguous"):
+        build_cli(["--config", str(DVDS), "--data.init_args.train_objects", "1"], run=False)
+    assert instantiate([str(DVDS)], {"data.init_args.train_objects": 0.5}).datamodule.train_objects == 0.5
 
 
 def test_instantiate_refuses_a_malformed_key_or_a_missing_file() -> None:

@@ -288,7 +288,7 @@ def test_train_objects_trains_on_a_nested_seeded_subset_and_leaves_validation_an
     assert len(subset.train_dataloader()) == 6 // 4  # the loader trains on the subset (drop_last)
 
 
-@pytest.mark.parametrize("value", [0, -2, 0.0, 1.5, -0.5, True, "3"])
+@pytest.mark.parametrize("value", [0, -2, 0.0, 1.0, 1.5, -0.5, True, "3"])
 def test_train_objects_refuses_what_is_not_a_count_or_a_fraction(value: object) -> None:
     with pytest.raises(ValueError, match="`train_objects`"):
         _small_module(train_objects=value)

@@ -180,7 +180,20 @@ def _check_pairs_per_object(value: Any, name: str = "pairs_per_object", minimum:
 
 
 def _check_train_objects(value: Any) -> int | float | None:
-    """``train_objects``: ``None``, an int count ``>= 1`` or a float fraction in ``(0, 1]`` (else a ``ValueError``)."""
+    """``train_objects``: ``None``, an int count ``>= 1`` or a float fraction in ``(0, 1)`` (else a ``ValueError``).
+
+    A whole float above 1 is the count it spells: under LightningCLI, jsonargparse parses this ``int | float | None``
+    argument float first (typing hands it back as ``Optional[Union[float, int]]``), so a count from a config or the
+    command line arrives as a float, and a fraction cannot exceed 1. For the same reason 1.0 (one object, or all of
+    them) is refused as ambiguous: ``None`` keeps all.
+    """
+    if isinstance(value, float) and value == 1.0:
+        raise ValueError(
+            "`train_objects` 1.0 is ambiguous (a config's count 1 arrives as 1.0): give null (None) to keep all the "
+            "training objects, or a fraction below 1"
+        )
+    if isinstance(value, float) and value > 1.0 and value.is_integer():
+        value = int(value)
     return None if value is None else check_count_or_fraction(value, "train_objects", wrong_type=ValueError)
 
 
@@ -218,7 +231,8 @@ class PairDataModule(ResumableTrainingOrder, LightningDataModule):
             motion and samplings). 1 is one pair per object; more make checkpoint selection and early stopping
             steadier on a small split (``modelnet40_mini``: 78 objects) without taking objects from training.
         train_objects: Train on a seeded subset of the training objects (after the validation objects are carved
-            out): an int count or a float fraction of them (rounded, at least one). ``None`` (default) keeps all.
+            out): an int count or a float fraction below 1 of them (rounded, at least one); a whole float above 1
+            is a count (a config's count reaches here as a float), 1.0 is refused. ``None`` (default) keeps all.
             Validation and test objects do not change, and for one ``seed`` a smaller subset lies inside a larger
             one, so runs at several sizes measure how the error scales with the training data.
         train_class_cap: Keep at most this many training objects of each class label (the first ones of the same
