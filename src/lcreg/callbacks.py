@@ -115,7 +115,7 @@ class LatestCheckpoint(Checkpoint):
         """
         step, n = trainer.global_step, self.every_n_train_steps
         due = (n > 0 and step > 0 and step % n == 0) or step == trainer.max_steps
-        due = due or (_epoch_complete(trainer) and not _checkpoints_update_at_epoch_end(trainer))
+        due = due or (_epoch_complete(trainer) and not _validation_taken_in_at_epoch_end(trainer))
         if due and not _validation_follows(trainer):
             self._save(trainer)
 
@@ -123,7 +123,7 @@ class LatestCheckpoint(Checkpoint):
         """Warn when this run's epoch-end saves will not resume exactly (see :meth:`on_train_batch_end`)."""
         batches = trainer.num_training_batches
         ends = trainer.max_steps != -1 and batches != float("inf") and batches <= trainer.max_steps
-        if ends and _checkpoints_update_at_epoch_end(trainer):
+        if ends and _validation_taken_in_at_epoch_end(trainer):
             rank_zero_warn(
                 "lcreg: this run has a step budget and a listed ModelCheckpoint or EarlyStopping takes each "
                 "validation in at the end of its epoch, where last.ckpt is then written; a run resumed from such a "
@@ -142,7 +142,7 @@ class LatestCheckpoint(Checkpoint):
         before this callback (it runs after every ``ModelCheckpoint``), and it is saved here: a checkpoint from the
         epoch-end hook would resume a ``max_steps`` run one step late.
         """
-        if not (_epoch_complete(trainer) and _checkpoints_update_at_epoch_end(trainer)):
+        if not (_epoch_complete(trainer) and _validation_taken_in_at_epoch_end(trainer)):
             self._save(trainer)
 
     def on_load_checkpoint(self, trainer: Trainer, pl_module: LightningModule, checkpoint: dict[str, Any]) -> None:
@@ -173,7 +173,8 @@ class LatestCheckpoint(Checkpoint):
     def on_train_epoch_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         """Save at the end of every complete training epoch not saved at its last batch (:meth:`on_train_batch_end`).
 
-        That is, after the epoch's validation when ``ModelCheckpoint`` takes it in at the epoch's end.
+        That is, after the epoch's validation when a ``ModelCheckpoint`` or ``EarlyStopping`` takes it in at the
+        epoch's end.
 
         An epoch cut short (``max_steps``) is not saved here: its last step was (a checkpoint here would resume at
         the next epoch).
@@ -182,7 +183,7 @@ class LatestCheckpoint(Checkpoint):
             self._save(trainer)
 
 
-def _checkpoints_update_at_epoch_end(trainer: Trainer) -> bool:
+def _validation_taken_in_at_epoch_end(trainer: Trainer) -> bool:
     """Whether a ``ModelCheckpoint`` or ``EarlyStopping`` callback takes a validation in at the epoch's end.
 
     Lightning's rule for one validation per epoch, unless the callback says otherwise (``save_on_train_epoch_end``,

@@ -36,7 +36,7 @@ def test_a_real_resume_from_an_epoch_end_is_judged_by_its_trace(
     from lcreg.cli import main
 
     if before_session_61:  # LatestCheckpoint then left every epoch end to on_train_epoch_end
-        monkeypatch.setattr(callbacks, "_checkpoints_update_at_epoch_end", lambda trainer: True)
+        monkeypatch.setattr(callbacks, "_validation_taken_in_at_epoch_end", lambda trainer: True)
     args = [*config_args("dvds.yaml"), *TINY_DVDS, "--data.init_args.num_train=6", "--trainer.limit_train_batches=1.0"]
     args += ["--trainer.max_epochs=-1", "--trainer.max_steps=6", "--trainer.val_check_interval=2"]
     args += ["--trainer.check_val_every_n_epoch=null", f"--trainer.default_root_dir={tmp_path}"]
