@@ -113,6 +113,9 @@ trainer = Trainer(accelerator="cpu", strategy="ddp", devices=2, max_steps=14, mi
                   callbacks=[MinimumEarlyStopping("val/score", patience=2)], default_root_dir=out)
 trainer.fit(Scripted(SCORES[per_rank[trainer.global_rank]]))
 (out / f"rank{trainer.global_rank}").write_text(str(trainer.global_step))
+# Lightning destroys only NCCL groups at exit; a gloo group left to the interpreter's teardown aborts the process now
+# and then ("terminate called without an active exception", exit -6) after everything above has run.
+torch.distributed.destroy_process_group()
 """
 
 
