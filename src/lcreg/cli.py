@@ -375,28 +375,25 @@ class LcregCLI(LightningCLI):
     def _configure_from_weights(self, subcommand: str, source: str, class_path: str) -> None:
         """The ``--weights`` file's model arguments replace the config's, as a checkpoint's do (validate/test/predict).
 
-        Except :data:`~lcreg.models.base.EVALUATION_ARGS` and the arguments given on the command line; for a
-        Lightning checkpoint (``--weights run.ckpt``) also the class's ``inference_hparams`` (the export's settings:
-        the run's decoder is built and loaded, as with ``--ckpt_path``). A file of another class changes nothing here
-        (:func:`lcreg.weights.load_into` refuses it once the model is built).
+        :func:`lcreg.weights.settings_of` chooses them: all but :data:`~lcreg.models.base.EVALUATION_ARGS` and the
+        arguments given on the command line; for a Lightning checkpoint (``--weights run.ckpt``) also all but the
+        class's ``inference_hparams`` (the export's settings: the run's decoder is built and loaded, as with
+        ``--ckpt_path``). A file of another class changes nothing here (:func:`lcreg.weights.load_into` refuses it
+        once the model is built).
 
         Raises:
             lcreg.weights.PretrainedError: The file is damaged, or the class refuses its arguments
                 (:class:`~lcreg.weights.PretrainedBuildError`).
         """
-        from lcreg.weights import CHECKPOINT_SUFFIX, PretrainedBuildError, read_weights, resolve_class
+        from lcreg.weights import CHECKPOINT_SUFFIX, PretrainedBuildError, read_weights, settings_of
 
         weights = read_weights(source)  # a .ckpt: as the export would write it (its constructor arguments)
-        checkpoint = weights.path.suffix == CHECKPOINT_SUFFIX
-        if not checkpoint:
+        if weights.path.suffix != CHECKPOINT_SUFFIX:
             self._pretrained = weights  # read once; a .ckpt is read again by load_into, training-only tensors too
         if weights.class_path != class_path:
             return
         configured = self.config[subcommand]["model"].get("init_args") or {}
-        keep = {*EVALUATION_ARGS, *self._explicit_model_args}
-        if checkpoint:  # the export's own settings (DVDs: no decoder) are not the run's: keep what it trained with
-            keep |= set(resolve_class(class_path, source, weights.path).inference_hparams)
-        changed = {k: v for k, v in weights.init_args.items() if k not in keep and configured.get(k) != v}
+        changed = settings_of(weights, configured, self._explicit_model_args)
         if not changed:
             return
         model = {"class_path": class_path, "init_args": changed}

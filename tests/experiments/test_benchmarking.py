@@ -220,10 +220,55 @@ def test_build_loads_weights_of_the_one_format(tmp_path: Path) -> None:
     path = save(source, tmp_path / "w" / "tiny.pt")
     target = build("dvds", path, values={"seed_everything": 2, **TINY_DVDS})
     inference = [k for k in source.state_dict() if not training_only(source, k)]
-    assert inference and all(torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in inference)
-    assert any(not torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in source.state_dict())
     shipped_like = lcreg.pretrained(path)
+    assert inference and sorted(target.state_dict()) == sorted(shipped_like.state_dict()) == sorted(inference)
+    assert all(torch.equal(source.state_dict()[k], target.state_dict()[k]) for k in inference)
     assert all(torch.equal(source.state_dict()[k], shipped_like.state_dict()[k]) for k in inference)
+    # A training-only module the values ask for is built and left as initialised (seeded), not loaded.
+    with_decoder = build("dvds", path, values={"seed_everything": 2, **TINY_DVDS, "model.init_args.lambda_recon": 0.5})
+    assert all(torch.equal(source.state_dict()[k], with_decoder.state_dict()[k]) for k in inference)
+    decoder = [k for k in with_decoder.state_dict() if k.startswith("decoder.")]
+    assert decoder and any(not torch.equal(source.state_dict()[k], with_decoder.state_dict()[k]) for k in decoder)
+
+
+@pytest.mark.parametrize(
+    ("name", "weights", "settings"),
+    [
+        ("pointnetlk", "pointnetlk-modelnet40", {"jacobian": "analytic", "eval_iterations": 40}),
+        ("fmr", "fmr-modelnet40", {"jacobian": "analytic", "eval_iterations": 20}),
+        ("dvds", "dvds-modelnet40", {"eval_iterations": 40}),
+    ],
+)
+def test_build_runs_shipped_weights_with_their_own_solve_as_lcreg_test_does(
+    name: str, weights: str, settings: dict[str, object]
+) -> None:
+    """Session 64: build() took the config's solve for a shipped file (PointNetLK: finite differences, 20 steps)."""
+    configured = build(name)
+    assert any(configured.hparams[k] != v for k, v in settings.items())  # the config alone differs
+    model = build(name, weights)
+    assert {k: model.hparams[k] for k in settings} == settings
+    points = torch.rand(2, 64, 3, generator=torch.Generator().manual_seed(0)) - 0.5
+    moved = points @ torch.linalg.matrix_exp(torch.tensor([[0.0, -0.2, 0.1], [0.2, 0.0, -0.1], [-0.1, 0.1, 0.0]])).T
+    expected = lcreg.pretrained(weights).register(points, moved).transform_ref_src  # as `lcreg test --weights`
+    assert torch.allclose(model.register(points, moved).transform_ref_src, expected, atol=1e-6)
+    given = build(name, weights, values=cli_args("model", {"eval_iterations": 3}))  # values given win
+    assert given.hparams["eval_iterations"] == 3
+
+
+def test_build_takes_a_checkpoints_own_model_arguments(tmp_path: Path) -> None:
+    """A .ckpt of a run trained with a value the config does not have is built with that value, as --weights does."""
+    run = fit_overrides(max_steps=1, val_every=1, run_dir=tmp_path, name="tiny", seed=0)
+    trained = {**TINY_DVDS, "model.init_args.eval_iterations": 6}
+    result = fit("dvds", {**run, **trained, **synthetic_overrides(pairs=2, num_points=32)})
+    model = build("dvds", result.best_checkpoint, values=TINY_DVDS)
+    assert model.hparams["eval_iterations"] == 6
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), result.model.state_dict().values()))
+    assert (
+        build("dvds", result.best_checkpoint, values=trained | {"model.init_args.eval_iterations": 2}).hparams[
+            "eval_iterations"
+        ]
+        == 2
+    )
 
 
 def test_fit_returns_the_best_checkpoint_and_it_loads_weights_only(tmp_path: Path) -> None:

@@ -22,7 +22,7 @@ terms). ``import lcreg.weights`` needs torch only; Lightning is imported when a 
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from importlib import import_module
@@ -80,6 +80,7 @@ __all__ = [
     "registered_names",
     "resolve",
     "resolve_class",
+    "settings_of",
     "shipped_names",
     "slim_payload",
     "training_only",
@@ -362,6 +363,44 @@ def training_only(model: torch.nn.Module, key: str) -> bool:
     """Whether state-dict ``key`` belongs to one of ``model.training_only_modules``."""
     prefixes = getattr(model, "training_only_modules", ("loss_terms",))
     return any(key == prefix or key.startswith(f"{prefix}.") for prefix in prefixes)
+
+
+def settings_of(weights: PretrainedWeights, configured: Mapping[str, Any], keep: Iterable[str] = ()) -> dict[str, Any]:
+    """The file's constructor arguments that a configured model has other values of: what makes it the file's model.
+
+    ``lcreg test --weights`` and :func:`lcreg.experiments.benchmarking.build` set them before the model is built, so
+    that weights run with the settings they were exported with (a shipped file's ``jacobian``, ``eval_iterations``),
+    not a config's. Left out: :data:`~lcreg.models.base.EVALUATION_ARGS`, ``keep`` and, for a Lightning checkpoint,
+    the class's ``inference_hparams`` (the export's settings, not the run's: the run's decoder is built and loaded).
+
+    Args:
+        weights: Weights read by :func:`read_weights` (a name, an exported ``.pt`` or a ``.ckpt``).
+        configured: The model's constructor arguments as configured (a config's ``init_args``, a model's
+            ``hparams``); an argument it lacks counts as differing.
+        keep: Names whose configured value stays (the caller set them itself).
+
+    Returns:
+        ``{name: the file's value}``; tuples and lists of the same items count as equal.
+    """
+    from lcreg.models.base import EVALUATION_ARGS
+
+    skip = {*EVALUATION_ARGS, *keep}
+    if weights.path.suffix == CHECKPOINT_SUFFIX:
+        skip |= set(resolve_class(weights.class_path, weights.source, weights.path).inference_hparams)
+    return {
+        key: value
+        for key, value in weights.init_args.items()
+        if key not in skip and (key not in configured or _as_lists(configured[key]) != _as_lists(value))
+    }
+
+
+def _as_lists(value: Any) -> Any:
+    """``value`` with every tuple a list (a config's ``[64, 128]`` and a model's ``(64, 128)`` are one setting)."""
+    if isinstance(value, (list, tuple)):
+        return [_as_lists(item) for item in value]
+    if isinstance(value, Mapping):
+        return {key: _as_lists(item) for key, item in value.items()}
+    return value
 
 
 def pretrained(name: str | Path, **overrides: Any) -> RegistrationModule:

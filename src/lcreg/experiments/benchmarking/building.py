@@ -93,12 +93,15 @@ def build(
     *,
     with_data: bool = False,
 ) -> RegistrationModule | tuple[RegistrationModule, LightningDataModule]:
-    """Build a registered method exactly as ``lcreg test --config ...`` does, then load checkpoint weights.
+    """Build a registered method exactly as ``lcreg test --config ... --weights ...`` does, then load the weights.
 
     Args:
         name: Registry name; its configs (and refinement config) come first.
         checkpoint: Weights loaded by :func:`lcreg.weights.load_into` (a ``.ckpt`` of ``lcreg fit``, an exported
-            ``.pt``, a shipped name; ``None``: the config's initialisation, seeded by its ``seed_everything``).
+            ``.pt``, a shipped name; ``None``: the config's initialisation, seeded by its ``seed_everything``). Their
+            own model arguments replace the configs' (:func:`lcreg.weights.settings_of`: ``pointnetlk-modelnet40``
+            runs with its analytic Jacobian and 40 iterations, not the config's finite differences and 20), except
+            the ``model.init_args`` that ``values`` set.
         configs: Further configs (see :func:`method_layers`).
         values: Further values by dotted key, e.g. ``{"data.init_args.num_points": 512, "seed_everything": 3}``.
         with_data: Also return the config's DataModule (not set up).
@@ -111,16 +114,49 @@ def build(
         lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses.
         lcreg.checkpoints.CheckpointError: Unusable weights (a subclass naming the file).
     """
-    from lcreg.models.base import RegistrationModule
     from lcreg.weights import load_into
 
     cli = build_cli_for(name, configs, values)
-    model = cli.model
-    if not isinstance(model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
-        raise TypeError(f"{name} built a {type(model).__name__}, not a RegistrationModule")
+    model = _registration_module(cli, name)
     if checkpoint is not None:
+        settings = _settings_of_weights(model, checkpoint, values or {})
+        if settings:  # built again with them, as `lcreg test --weights` configures the model before building it
+            cli = build_cli_for(name, configs, {**(values or {}), **settings})
+            model = _registration_module(cli, name)
         load_into(model, checkpoint)
     return (model, cli.datamodule) if with_data else model
+
+
+def _registration_module(cli: LcregCLI, name: str) -> RegistrationModule:
+    from lcreg.models.base import RegistrationModule
+
+    if not isinstance(cli.model, RegistrationModule):  # pragma: no cover - the CLI only builds RegistrationModules
+        raise TypeError(f"{name} built a {type(cli.model).__name__}, not a RegistrationModule")
+    return cli.model
+
+
+def _settings_of_weights(model: RegistrationModule, checkpoint: str | Path, values: Mapping[str, Any]) -> Values:
+    """The weights' own model arguments (:func:`lcreg.weights.settings_of`) as values, but those ``values`` set.
+
+    A file of another class gives none (:func:`lcreg.weights.load_into` then refuses it, naming the file).
+    """
+    from lightning.pytorch.utilities import rank_zero_info
+
+    from lcreg.weights import class_path_of, read_weights, settings_of
+
+    weights = read_weights(checkpoint)
+    if weights.class_path != class_path_of(model):
+        return {}
+    prefix = "model.init_args."
+    given = {key.removeprefix(prefix) for key in values if key.startswith(prefix)}
+    model_value = values.get("model")
+    if isinstance(model_value, Mapping):
+        given |= set(model_value.get("init_args") or {})
+    settings = settings_of(weights, dict(model.hparams), given)
+    if settings:
+        told = ", ".join(f"{key}={value!r}" for key, value in settings.items())
+        rank_zero_info(f"lcreg: the weights {weights.source} set the model's {told} (the file's; values given win)")
+    return {f"{prefix}{key}": value for key, value in settings.items()}
 
 
 def _keys_set_by(files: Sequence[Path]) -> set[str]:
