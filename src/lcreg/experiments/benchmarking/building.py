@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 
     from lcreg.cli import LcregCLI
     from lcreg.models.base import RegistrationModule
+    from lcreg.weights import PretrainedWeights
 
 __all__ = ["Values", "build", "build_cli_for", "method_layers"]
 
@@ -114,16 +115,17 @@ def build(
         lcreg.config.ConfigValueError: A malformed key or a value a constructor refuses.
         lcreg.checkpoints.CheckpointError: Unusable weights (a subclass naming the file).
     """
-    from lcreg.weights import load_into
+    from lcreg.weights import CHECKPOINT_SUFFIX, load_into, read_weights
 
     cli = build_cli_for(name, configs, values)
     model = _registration_module(cli, name)
     if checkpoint is not None:
-        settings = _settings_of_weights(model, checkpoint, values or {})
+        weights = read_weights(checkpoint)  # a .ckpt: as exported; load_into reads its training-only tensors too
+        settings = _settings_of_weights(model, weights, values or {})
         if settings:  # built again with them, as `lcreg test --weights` configures the model before building it
             cli = build_cli_for(name, configs, {**(values or {}), **settings})
             model = _registration_module(cli, name)
-        load_into(model, checkpoint)
+        load_into(model, checkpoint if weights.path.suffix == CHECKPOINT_SUFFIX else weights)
     return (model, cli.datamodule) if with_data else model
 
 
@@ -135,16 +137,15 @@ def _registration_module(cli: LcregCLI, name: str) -> RegistrationModule:
     return cli.model
 
 
-def _settings_of_weights(model: RegistrationModule, checkpoint: str | Path, values: Mapping[str, Any]) -> Values:
+def _settings_of_weights(model: RegistrationModule, weights: PretrainedWeights, values: Mapping[str, Any]) -> Values:
     """The weights' own model arguments (:func:`lcreg.weights.settings_of`) as values, but those ``values`` set.
 
     A file of another class gives none (:func:`lcreg.weights.load_into` then refuses it, naming the file).
     """
     from lightning.pytorch.utilities import rank_zero_info
 
-    from lcreg.weights import class_path_of, read_weights, settings_of
+    from lcreg.weights import class_path_of, settings_of
 
-    weights = read_weights(checkpoint)
     if weights.class_path != class_path_of(model):
         return {}
     prefix = "model.init_args."
